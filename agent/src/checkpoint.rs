@@ -1,0 +1,214 @@
+//! Checkpoints: one safetensors file of named f32 tensors plus string metadata describing the
+//! networks, so a file for another shape or swarm is refused with a clear message.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use candle_core::{Device, Tensor};
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+
+use crate::actor::ActorShape;
+
+/// Marks files written by this project.
+pub const FORMAT: &str = "formation-rl/1";
+/// The file name inside a run directory.
+pub const FILE_NAME: &str = "checkpoint.safetensors";
+/// The best checkpoint (by rolling success rate) inside a run directory.
+pub const BEST_FILE_NAME: &str = "best.safetensors";
+
+/// What a checkpoint describes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CheckpointMeta {
+    /// Robots the critic was trained for.
+    pub n_agents: usize,
+    /// Number of actors stored (1 when shared).
+    pub n_actors: usize,
+    /// The actors' shape.
+    pub actor: ActorShape,
+    /// Free-form string pairs (training figures).
+    pub extra: HashMap<String, String>,
+}
+
+impl CheckpointMeta {
+    fn to_map(&self) -> HashMap<String, String> {
+        let mut map = self.extra.clone();
+        map.insert("format".into(), FORMAT.into());
+        map.insert("n_agents".into(), self.n_agents.to_string());
+        map.insert("n_actors".into(), self.n_actors.to_string());
+        map.insert("history".into(), self.actor.history.to_string());
+        map.insert("actor_hidden".into(), format!("{:?}", self.actor.hidden));
+        map
+    }
+
+    fn from_map(map: &HashMap<String, String>, path: &Path) -> Result<Self> {
+        let field = |key: &str| {
+            map.get(key)
+                .ok_or_else(|| anyhow::anyhow!("checkpoint {} has no metadata field {key:?}", path.display()))
+        };
+        if field("format")? != FORMAT {
+            bail!("checkpoint {} has format {:?}, expected {FORMAT:?}", path.display(), field("format")?);
+        }
+        let number = |key: &str| -> Result<usize> {
+            field(key)?
+                .parse()
+                .with_context(|| format!("checkpoint {}: metadata {key} is not a number", path.display()))
+        };
+        let hidden: Vec<usize> = serde_json::from_str(field("actor_hidden")?)
+            .with_context(|| format!("checkpoint {}: metadata actor_hidden is not a list", path.display()))?;
+        Ok(Self {
+            n_agents: number("n_agents")?,
+            n_actors: number("n_actors")?,
+            actor: ActorShape {
+                history: number("history")?,
+                hidden,
+            },
+            extra: map.clone(),
+        })
+    }
+}
+
+/// `PATH` as given to `--checkpoint`: a file, or a run directory (its best checkpoint if it has
+/// one, else its last).
+pub fn resolve(path: &Path) -> Result<PathBuf> {
+    if path.is_dir() {
+        for name in [BEST_FILE_NAME, FILE_NAME] {
+            let candidate = path.join(name);
+            if candidate.is_file() {
+                return Ok(candidate);
+            }
+        }
+        bail!("{} is a directory without {BEST_FILE_NAME} or {FILE_NAME}", path.display());
+    }
+    if !path.is_file() {
+        bail!("checkpoint {} does not exist", path.display());
+    }
+    Ok(path.to_path_buf())
+}
+
+/// Writes named tensors and metadata atomically (temporary file, then rename).
+pub fn save(path: &Path, tensors: &[(String, Tensor)], meta: &CheckpointMeta) -> Result<()> {
+    let mut buffers = Vec::with_capacity(tensors.len());
+    for (name, tensor) in tensors {
+        let values = tensor.flatten_all()?.to_vec1::<f32>()?;
+        let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+        buffers.push((name.clone(), tensor.dims().to_vec(), bytes));
+    }
+    let views = buffers
+        .iter()
+        .map(|(name, dims, bytes)| Ok((name.clone(), TensorView::new(Dtype::F32, dims.clone(), bytes)?)))
+        .collect::<Result<Vec<_>>>()?;
+    let bytes = safetensors::tensor::serialize(views, Some(meta.to_map()))?;
+    formation_protocol::cli::write_atomically(path, &bytes)
+}
+
+/// A loaded checkpoint.
+#[derive(Debug)]
+pub struct Checkpoint {
+    /// Where it was read from.
+    pub path: PathBuf,
+    /// Its metadata.
+    pub meta: CheckpointMeta,
+    /// Every tensor by name.
+    pub tensors: HashMap<String, Tensor>,
+}
+
+/// Reads and checks a checkpoint file.
+pub fn load(path: &Path) -> Result<Checkpoint> {
+    let bytes = std::fs::read(path).with_context(|| format!("cannot read checkpoint {}", path.display()))?;
+    let (_, metadata) = SafeTensors::read_metadata(&bytes)
+        .map_err(|err| anyhow::anyhow!("checkpoint {} is not a valid safetensors file: {err}", path.display()))?;
+    let map = metadata.metadata().clone().unwrap_or_default();
+    let meta = CheckpointMeta::from_map(&map, path)?;
+    let file = SafeTensors::deserialize(&bytes)
+        .map_err(|err| anyhow::anyhow!("checkpoint {} is corrupted: {err}", path.display()))?;
+    let mut tensors = HashMap::new();
+    for (name, view) in file.tensors() {
+        if view.dtype() != Dtype::F32 {
+            bail!("checkpoint {}: tensor {name} is {:?}, expected F32", path.display(), view.dtype());
+        }
+        let values: Vec<f32> = view
+            .data()
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
+        if values.iter().any(|v| !v.is_finite()) {
+            bail!("checkpoint {}: tensor {name} holds non-finite values", path.display());
+        }
+        tensors.insert(name, Tensor::from_vec(values, view.shape(), &Device::Cpu)?);
+    }
+    Ok(Checkpoint {
+        path: path.to_path_buf(),
+        meta,
+        tensors,
+    })
+}
+
+/// Tensor-name prefix of actor `index`.
+pub fn actor_prefix(index: usize) -> String {
+    format!("actor{index}.")
+}
+
+impl Checkpoint {
+    /// The flat weights of the actor robot `agent` uses (the shared one, or its own).
+    pub fn actor_weights(&self, agent: usize) -> Result<Vec<f32>> {
+        let index = if self.meta.n_actors == 1 { 0 } else { agent };
+        if index >= self.meta.n_actors {
+            bail!(
+                "checkpoint {} holds {} independent actors (trained for {} robots); robot {agent} has none. \
+                 Use a checkpoint with a shared actor to drive more robots",
+                self.path.display(),
+                self.meta.n_actors,
+                self.meta.n_agents
+            );
+        }
+        crate::actor::flatten_parameters(|name| self.tensors.get(name).cloned(), &actor_prefix(index), &self.meta.actor)
+            .with_context(|| format!("checkpoint {}", self.path.display()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn temp_dir(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("formation-ckpt-{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temp dir");
+        dir
+    }
+
+    #[test]
+    fn round_trip_and_bad_files() {
+        let dir = temp_dir("rt");
+        let shape = ActorShape { history: 2, hidden: vec![4] };
+        let tensors: Vec<(String, Tensor)> = shape
+            .parameters()
+            .into_iter()
+            .map(|(name, dims)| {
+                let len: usize = dims.iter().product();
+                let values: Vec<f32> = (0..len).map(|i| i as f32 * 0.5).collect();
+                (format!("{}{name}", actor_prefix(0)), Tensor::from_vec(values, dims, &Device::Cpu).expect("t"))
+            })
+            .collect();
+        let meta = CheckpointMeta { n_agents: 3, n_actors: 1, actor: shape.clone(), extra: HashMap::new() };
+        let path = dir.join(FILE_NAME);
+        save(&path, &tensors, &meta).expect("save");
+        let loaded = load(&path).expect("load");
+        assert_eq!(loaded.meta.actor, shape);
+        let flat = loaded.actor_weights(5).expect("shared actor serves any robot");
+        assert_eq!(flat.len(), shape.parameter_count());
+        assert_eq!(resolve(&dir).expect("dir resolves"), path);
+
+        // Truncated file: a clear error naming the file.
+        let bytes = std::fs::read(&path).expect("read");
+        let truncated = dir.join("truncated.safetensors");
+        std::fs::write(&truncated, &bytes[..bytes.len() / 2]).expect("write");
+        let err = load(&truncated).expect_err("truncated").to_string();
+        assert!(err.contains("truncated.safetensors"), "{err}");
+        // Garbage.
+        let garbage = dir.join("garbage.safetensors");
+        std::fs::write(&garbage, b"not a checkpoint at all").expect("write");
+        assert!(load(&garbage).is_err());
+        std::fs::remove_dir_all(&dir).expect("cleanup");
+    }
+}

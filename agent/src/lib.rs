@@ -1,0 +1,9 @@
+//! One robot's process: it reads only its own observations, keeps the last H of them and
+//! answers each tick with (v, w) from the scripted baseline or the learned actor.
+
+pub mod actor;
+pub mod checkpoint;
+pub mod history;
+pub mod policy;
+pub mod run;
+pub mod scripted;

@@ -1,0 +1,113 @@
+//! `formation-agent`: one robot's process. Usually started by `scripts/run_swarm.sh`.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::{Result, bail};
+use clap::{Parser, ValueEnum};
+use formation_agent::actor::ActorShape;
+use formation_agent::checkpoint;
+use formation_agent::policy::{Exploration, LearnedPolicy};
+use formation_agent::run::{AgentOptions, AgentPolicy, run};
+use formation_agent::scripted::{BaselineGains, ScriptedBaseline};
+use formation_protocol::cli::{Mode, RunArgs};
+use iceoryx2::prelude::*;
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+
+/// Which controller drives this robot.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum PolicyKind {
+    /// The classical distance-based formation controller.
+    Scripted,
+    /// The learned actor (weights from the critic in train mode, from --checkpoint in eval).
+    Learned,
+}
+
+/// One robot: reads only its own observations over iceoryx2, keeps the last H, and publishes
+/// (v, w) every tick.
+#[derive(Debug, Parser)]
+#[command(version, about, long_about = None)]
+struct Cli {
+    #[command(flatten)]
+    run: RunArgs,
+    /// This robot's index, 0..agents.
+    #[arg(long)]
+    agent: usize,
+    /// Controller of this robot.
+    #[arg(long, value_enum, default_value_t = PolicyKind::Learned)]
+    policy: PolicyKind,
+    /// Actor weights to start from: a checkpoint file or a run directory. Required for a
+    /// learned policy in eval mode; in train mode the critic streams weights.
+    #[arg(long)]
+    checkpoint: Option<PathBuf>,
+}
+
+fn main() -> ExitCode {
+    // SAFETY: nothing else runs yet. One thread per agent: N agents share 2 cores, and candle
+    // re-reads /proc/cpuinfo on every matmul when this is unset.
+    unsafe { std::env::set_var("RAYON_NUM_THREADS", "1") };
+    let cli = Cli::parse();
+    match try_main(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(err) => {
+            eprintln!("formation-agent: error: {err:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn try_main(cli: Cli) -> Result<()> {
+    let (identity, config) = cli.run.load()?;
+    let n_agents = cli.run.agents;
+    if cli.agent >= n_agents {
+        bail!("--agent {} does not exist in a swarm of {n_agents} (robots are 0..{n_agents})", cli.agent);
+    }
+    set_log_level_from_env_or(LogLevel::Warn);
+    let rng = StdRng::seed_from_u64(cli.run.seed.wrapping_mul(1_000_003).wrapping_add(cli.agent as u64));
+    let (policy, weights_from) = match cli.policy {
+        PolicyKind::Scripted => (
+            AgentPolicy::Fixed(Box::new(ScriptedBaseline::new(&config.env, BaselineGains::default()))),
+            None,
+        ),
+        PolicyKind::Learned => {
+            let shape = ActorShape {
+                history: config.env.history,
+                hidden: config.learn.actor_hidden.clone(),
+            };
+            let exploration = (cli.run.mode == Mode::Train).then_some(Exploration {
+                std_start: config.learn.noise_std,
+                std_end: config.learn.noise_std_min,
+                decay_episodes: config.learn.noise_decay_episodes,
+            });
+            let mut learned = LearnedPolicy::new(&config.env, shape.clone(), exploration, rng);
+            let actor_index = if config.learn.shared_actor { 0 } else { cli.agent };
+            match (&cli.checkpoint, cli.run.mode) {
+                (Some(path), _) => {
+                    let loaded = checkpoint::load(&checkpoint::resolve(path)?)?;
+                    if loaded.meta.actor != shape {
+                        bail!(
+                            "checkpoint {} holds actors of shape {:?}, the config asks for {:?} (env.history, learn.actor_hidden)",
+                            loaded.path.display(),
+                            loaded.meta.actor,
+                            shape
+                        );
+                    }
+                    learned.load(&loaded.actor_weights(cli.agent)?, 1)?;
+                }
+                (None, Mode::Eval) => bail!("a learned agent in eval mode needs --checkpoint FILE|RUN_DIR"),
+                (None, Mode::Train) => {}
+            }
+            let follow = (cli.run.mode == Mode::Train).then_some(actor_index);
+            (AgentPolicy::Learned(Box::new(learned)), follow)
+        }
+    };
+    let options = AgentOptions {
+        agent: cli.agent,
+        n_agents,
+        weights_from,
+        config,
+    };
+    run::<ipc::Service>(&identity, &options, policy)?;
+    Ok(())
+}

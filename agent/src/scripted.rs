@@ -1,0 +1,197 @@
+//! The scripted baseline: a classical distance-based formation controller from the robot's own
+//! local observation, mapped to unicycle commands. The yardstick for the learned policy.
+//!
+//! In the robot's frame (own position at the origin), with neighbours at q_j and desired
+//! distances dbar_j:
+//! * formation term: sum_j k_form (|q_j| - dbar_j) q_j / |q_j| (gradient of the edge errors);
+//! * goal term: k_goal (g - c), with c = (q_1 + q_2) / 3 the centroid of the robot's triangle
+//!   (exact for N = 3), saturated at the top speed;
+//! * repulsion from any neighbour closer than `repulsion_range`.
+//!
+//! The desired velocity u is then tracked by a unicycle: turn towards u, drive forward with
+//! the component of u along the heading (never backwards).
+
+use formation_protocol::config::EnvConfig;
+use formation_protocol::{NEIGHBOUR_FEATURES, NEIGHBOURS, OBS_DIM};
+
+/// Gains of the baseline. The defaults were tuned on random 3-robot episodes (see the tests).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BaselineGains {
+    /// Formation (edge error) gain, 1/s.
+    pub k_form: f64,
+    /// Goal gain, 1/s.
+    pub k_goal: f64,
+    /// Heading gain, 1/s.
+    pub k_turn: f64,
+    /// Neighbours closer than this push the robot away, metres.
+    pub repulsion_range: f64,
+    /// Repulsion gain, 1/s.
+    pub k_repulsion: f64,
+}
+
+impl Default for BaselineGains {
+    fn default() -> Self {
+        Self {
+            k_form: 1.5,
+            k_goal: 0.6,
+            k_turn: 2.5,
+            repulsion_range: 0.5,
+            k_repulsion: 3.0,
+        }
+    }
+}
+
+/// The baseline controller for one robot.
+#[derive(Debug, Clone)]
+pub struct ScriptedBaseline {
+    gains: BaselineGains,
+    v_max: f64,
+    w_max: f64,
+}
+
+impl ScriptedBaseline {
+    /// A controller for the robot limits in `env`.
+    pub fn new(env: &EnvConfig, gains: BaselineGains) -> Self {
+        Self {
+            gains,
+            v_max: env.v_max,
+            w_max: env.w_max,
+        }
+    }
+
+    /// The desired planar velocity in the robot's frame.
+    pub fn desired_velocity(&self, obs: &[f32]) -> [f64; 2] {
+        debug_assert_eq!(obs.len(), OBS_DIM);
+        let g = self.gains;
+        let mut u = [0.0f64; 2];
+        let mut centroid = [0.0f64; 2];
+        for k in 0..NEIGHBOURS {
+            let base = k * NEIGHBOUR_FEATURES;
+            let q = [f64::from(obs[base]), f64::from(obs[base + 1])];
+            let desired = f64::from(obs[base + 4]);
+            let dist = q[0].hypot(q[1]).max(1e-6);
+            let unit = [q[0] / dist, q[1] / dist];
+            let pull = g.k_form * (dist - desired);
+            let push = if dist < g.repulsion_range { g.k_repulsion * (g.repulsion_range - dist) } else { 0.0 };
+            u[0] += (pull - push) * unit[0];
+            u[1] += (pull - push) * unit[1];
+            centroid[0] += q[0] / (NEIGHBOURS + 1) as f64;
+            centroid[1] += q[1] / (NEIGHBOURS + 1) as f64;
+        }
+        let goal = [f64::from(obs[OBS_DIM - 2]), f64::from(obs[OBS_DIM - 1])];
+        let mut to_goal = [g.k_goal * (goal[0] - centroid[0]), g.k_goal * (goal[1] - centroid[1])];
+        let speed = to_goal[0].hypot(to_goal[1]);
+        if speed > self.v_max {
+            to_goal = [to_goal[0] * self.v_max / speed, to_goal[1] * self.v_max / speed];
+        }
+        [u[0] + to_goal[0], u[1] + to_goal[1]]
+    }
+
+    /// The (v, w) command for the newest observation, clamped to the robot's limits.
+    pub fn command(&self, obs: &[f32]) -> (f64, f64) {
+        let u = self.desired_velocity(obs);
+        let bearing = u[1].atan2(u[0]);
+        let speed = u[0].hypot(u[1]);
+        let v = (speed * bearing.cos()).clamp(0.0, self.v_max);
+        let w = (self.gains.k_turn * bearing).clamp(-self.w_max, self.w_max);
+        (v, w)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use formation_sim::formation::random_episode;
+    use formation_sim::task::Outcome;
+    use formation_sim::world::World;
+    use rand::SeedableRng;
+    use rand::rngs::StdRng;
+
+    fn obs_with(neighbours: [[f32; 2]; 2], desired: [f32; 2], goal: [f32; 2]) -> [f32; OBS_DIM] {
+        let mut obs = [0.0; OBS_DIM];
+        for k in 0..2 {
+            obs[k * 5] = neighbours[k][0];
+            obs[k * 5 + 1] = neighbours[k][1];
+            obs[k * 5 + 2] = 1.0;
+            obs[k * 5 + 4] = desired[k];
+        }
+        obs[10] = goal[0];
+        obs[11] = goal[1];
+        obs
+    }
+
+    #[test]
+    fn drives_straight_to_a_goal_ahead_when_in_formation() {
+        let env = EnvConfig::default();
+        let baseline = ScriptedBaseline::new(&env, BaselineGains::default());
+        // Neighbours behind-left and behind-right at their desired distance; goal straight ahead
+        // of the triangle's centroid.
+        let obs = obs_with([[-1.0, 0.5], [-1.0, -0.5]], [1.25f32.sqrt(), 1.25f32.sqrt()], [2.0, 0.0]);
+        let (v, w) = baseline.command(&obs);
+        assert!((v - env.v_max).abs() < 1e-9, "full speed ahead, got v = {v}");
+        assert!(w.abs() < 1e-6, "no turn, got w = {w}");
+    }
+
+    #[test]
+    fn turns_in_place_towards_a_goal_behind() {
+        let env = EnvConfig::default();
+        let baseline = ScriptedBaseline::new(&env, BaselineGains::default());
+        let obs = obs_with([[0.0, 1.0], [0.0, -1.0]], [1.0, 1.0], [-2.0, 0.5]);
+        let (v, w) = baseline.command(&obs);
+        assert_eq!(v, 0.0, "never drives backwards");
+        assert!(w > 0.0 && (w - env.w_max).abs() < 1e-9, "turns left at full rate, got {w}");
+    }
+
+    #[test]
+    fn pulls_towards_a_neighbour_that_is_too_far() {
+        let env = EnvConfig::default();
+        let baseline = ScriptedBaseline::new(&env, BaselineGains::default());
+        let obs = obs_with([[2.0, 0.0], [0.0, 1.0]], [1.0, 1.0], [2.0 / 3.0, 1.0 / 3.0]);
+        let u = baseline.desired_velocity(&obs);
+        assert!(u[0] > 1.0, "the stretched edge pulls forward: {u:?}");
+    }
+
+    /// Runs the baseline on every robot of random episodes in-process (no IPC).
+    pub(crate) fn success_rate(n: usize, episodes: usize, seed: u64) -> (f64, f64) {
+        let env = EnvConfig::default();
+        let baseline = ScriptedBaseline::new(&env, BaselineGains::default());
+        let mut rng = StdRng::seed_from_u64(seed);
+        let (mut successes, mut collisions) = (0, 0);
+        for _ in 0..episodes {
+            let mut world = World::new(&env, random_episode(n, &env, &mut rng));
+            loop {
+                let commands: Vec<(f64, f64)> =
+                    (0..n).map(|agent| baseline.command(&world.observation(agent))).collect();
+                let result = world.step(&commands);
+                match result.outcome {
+                    Outcome::Running => continue,
+                    Outcome::Success => successes += 1,
+                    Outcome::Collision => collisions += 1,
+                    Outcome::Timeout => {}
+                }
+                break;
+            }
+        }
+        (successes as f64 / episodes as f64, collisions as f64 / episodes as f64)
+    }
+
+    #[test]
+    fn baseline_solves_three_robot_episodes() {
+        let (success, collision) = success_rate(3, 200, 11);
+        assert!(success >= 0.9, "baseline success {success}");
+        assert_eq!(collision, 0.0);
+    }
+}
+
+#[cfg(test)]
+mod report {
+    /// Prints the baseline's in-process success rates: `cargo test -p formation-agent -- --ignored --nocapture`.
+    #[test]
+    #[ignore = "a report, not a check"]
+    fn baseline_report() {
+        for n in [3, 4, 5, 6, 8, 12] {
+            let (success, collision) = super::tests::success_rate(n, 200, 11);
+            println!("N = {n}: success {success:.3}, collision {collision:.3}");
+        }
+    }
+}

@@ -1,0 +1,242 @@
+//! Assembles the sim's state stream, every agent's observations and commands into whole
+//! episodes of joint ticks, and counts what went missing.
+//!
+//! The sim publishes observations(t) before state(t), and waits for commands(t) before it
+//! publishes state(t+1); so when state(t) is read, its observations are already waiting.
+
+use anyhow::Result;
+use formation_protocol::config::EnvConfig;
+use formation_protocol::services::{self, Sizing};
+use formation_protocol::wire::*;
+use formation_protocol::OBS_DIM;
+use formation_replay::buffer::{Episode, Tick};
+use formation_replay::features::observation;
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+
+/// Counters of the stream.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct CollectorStats {
+    /// State messages taken in (one per tick).
+    pub ticks_received: u64,
+    /// Ticks that could not be used whole (a gap in the stream or a missing observation).
+    pub lost_transitions: u64,
+    /// Commands seen on the agents' command streams.
+    pub commands_seen: u64,
+    /// Latest policy version seen from each agent.
+    pub policy_versions: Vec<u32>,
+    /// The sim announced the end of the run.
+    pub run_ended: bool,
+}
+
+/// An episode as it ended.
+#[derive(Debug, Clone)]
+pub struct FinishedEpisode {
+    /// Its ticks.
+    pub episode: Episode,
+    /// `OUTCOME_*` of its last transition.
+    pub outcome: u32,
+    /// Undiscounted return.
+    pub episode_return: f64,
+    /// Played without exploration noise.
+    pub eval: bool,
+}
+
+struct EpisodeBuilder {
+    episode: Episode,
+    last_tick: u32,
+    episode_return: f64,
+    eval: bool,
+}
+
+/// The critic's subscriptions.
+pub struct Collector<S: Service> {
+    env: EnvConfig,
+    state: Subscriber<S, StateMsg, ()>,
+    observations: Vec<Subscriber<S, ObservationMsg, ()>>,
+    pending_observations: Vec<Option<ObservationMsg>>,
+    commands: Vec<Subscriber<S, CommandMsg, ()>>,
+    wake: Listener<S>,
+    current: Option<EpisodeBuilder>,
+    /// Counters so far.
+    pub stats: CollectorStats,
+}
+
+impl<S: Service> Collector<S> {
+    /// Subscribes to the state, every observation and every command stream.
+    pub fn new(node: &Node<S>, sizing: &Sizing, env: &EnvConfig) -> Result<Self> {
+        let buffer = sizing.stream_buffer;
+        let n = sizing.n_agents;
+        let mut observations = Vec::with_capacity(n);
+        let mut commands = Vec::with_capacity(n);
+        for agent in 0..n {
+            observations.push(
+                services::observation_stream(node, sizing, agent)?
+                    .subscriber_builder()
+                    .buffer_size(buffer)
+                    .create()
+                    .map_err(|e| anyhow::anyhow!("critic: observation subscriber {agent}: {e:?}"))?,
+            );
+            commands.push(
+                services::command_stream(node, sizing, agent)?
+                    .subscriber_builder()
+                    .buffer_size(buffer)
+                    .create()
+                    .map_err(|e| anyhow::anyhow!("critic: command subscriber {agent}: {e:?}"))?,
+            );
+        }
+        Ok(Self {
+            env: env.clone(),
+            state: services::state_stream(node, sizing)?
+                .subscriber_builder()
+                .buffer_size(buffer)
+                .create()
+                .map_err(|e| anyhow::anyhow!("critic: state subscriber: {e:?}"))?,
+            observations,
+            pending_observations: vec![None; n],
+            commands,
+            wake: services::critic_wake_event(node, sizing)?
+                .listener_builder()
+                .create()
+                .map_err(|e| anyhow::anyhow!("critic: wake listener: {e:?}"))?,
+            current: None,
+            stats: CollectorStats {
+                policy_versions: vec![0; n],
+                ..CollectorStats::default()
+            },
+        })
+    }
+
+    /// Blocks until the sim signals new data or `timeout` passes.
+    pub fn wait(&self, timeout: std::time::Duration) -> Result<()> {
+        self.wake
+            .timed_wait(|_| {}, timeout)
+            .map_err(|e| anyhow::anyhow!("critic: wait: {e:?}"))?;
+        Ok(())
+    }
+
+    /// Takes in everything waiting; returns the episodes that ended.
+    pub fn drain(&mut self) -> Result<Vec<FinishedEpisode>> {
+        let mut finished = Vec::new();
+        while let Some(sample) = self.state.receive().map_err(|e| anyhow::anyhow!("critic: state: {e:?}"))? {
+            let state = *sample.payload();
+            drop(sample);
+            if state.header.protocol_version != PROTOCOL_VERSION {
+                anyhow::bail!(
+                    "critic: the sim speaks protocol {}, this critic {PROTOCOL_VERSION}: rebuild all binaries together",
+                    state.header.protocol_version
+                );
+            }
+            if state.header.has(FLAG_RUN_END) {
+                self.stats.run_ended = true;
+                break;
+            }
+            self.stats.ticks_received += 1;
+            if let Some(done) = self.take_tick(&state) {
+                finished.push(done);
+            }
+        }
+        for (agent, commands) in self.commands.iter().enumerate() {
+            while let Some(sample) = commands.receive().map_err(|e| anyhow::anyhow!("critic: command: {e:?}"))? {
+                if !sample.payload().header.has(FLAG_HELLO) {
+                    self.stats.commands_seen += 1;
+                    self.stats.policy_versions[agent] = sample.payload().policy_version;
+                }
+            }
+        }
+        Ok(finished)
+    }
+
+    /// The observation of `agent` for (episode, tick), or `None` when it never arrived.
+    fn observation_for(&mut self, agent: usize, key: (u32, u32)) -> Option<[f32; OBS_DIM]> {
+        loop {
+            let msg = match self.pending_observations[agent].take() {
+                Some(msg) => msg,
+                None => *self.observations[agent].receive().ok()??.payload(),
+            };
+            let msg_key = (msg.header.episode, msg.header.tick);
+            if msg_key == key {
+                return Some(msg.obs);
+            }
+            if msg_key > key {
+                self.pending_observations[agent] = Some(msg);
+                return None;
+            }
+        }
+    }
+
+    fn take_tick(&mut self, state: &StateMsg) -> Option<FinishedEpisode> {
+        let n = state.n_agents as usize;
+        let key = (state.header.episode, state.header.tick);
+        let poses = state.poses[..n].to_vec();
+        let desired = state.desired[..n].to_vec();
+        let mut missing = false;
+        let observations: Vec<[f32; OBS_DIM]> = (0..n)
+            .map(|agent| {
+                self.observation_for(agent, key).unwrap_or_else(|| {
+                    missing = true;
+                    observation(agent, &poses, &desired, state.goal)
+                })
+            })
+            .collect();
+        if missing {
+            self.stats.lost_transitions += 1;
+        }
+        let tick = Tick {
+            poses,
+            observations,
+            actions: vec![[0.0; 2]; n],
+            reward: 0.0,
+        };
+        if state.header.tick == 0 {
+            if let Some(cut) = self.current.take() {
+                self.stats.lost_transitions += cut.episode.ticks.len() as u64;
+            }
+            self.current = Some(EpisodeBuilder {
+                episode: Episode {
+                    number: state.header.episode,
+                    desired,
+                    goal: state.goal,
+                    ticks: vec![tick],
+                    terminal: false,
+                },
+                last_tick: 0,
+                episode_return: 0.0,
+                eval: state.header.has(FLAG_EVAL_EPISODE),
+            });
+        } else {
+            let Some(builder) = self
+                .current
+                .as_mut()
+                .filter(|b| b.episode.number == state.header.episode && b.last_tick + 1 == state.header.tick)
+            else {
+                // A gap: this episode cannot be assembled whole.
+                self.stats.lost_transitions += 1;
+                self.current = None;
+                return None;
+            };
+            if let Some(previous) = builder.episode.ticks.last_mut() {
+                for (agent, action) in previous.actions.iter_mut().enumerate() {
+                    let [v, w] = state.applied[agent];
+                    *action = self.env.action_from_command(f64::from(v), f64::from(w));
+                }
+                previous.reward = state.reward;
+            }
+            builder.episode_return += f64::from(state.reward);
+            builder.episode.ticks.push(tick);
+            builder.last_tick = state.header.tick;
+        }
+        if state.outcome == OUTCOME_RUNNING {
+            return None;
+        }
+        let mut builder = self.current.take()?;
+        builder.episode.terminal = matches!(state.outcome, OUTCOME_SUCCESS | OUTCOME_COLLISION);
+        Some(FinishedEpisode {
+            episode: builder.episode,
+            outcome: state.outcome,
+            episode_return: builder.episode_return,
+            eval: builder.eval,
+        })
+    }
+}

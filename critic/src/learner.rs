@@ -1,0 +1,406 @@
+//! Central training: actor(s) and critic(s) in candle, DDPG (the paper) or TD3.
+//!
+//! * critic target y = r + gamma (1 - terminal) min_j Q'_j(s', [u_{t-H+2..t}, pi'(o')]); a
+//!   time-limit truncation is not terminal;
+//! * actor step on -Q_1(s, [u_{t-H+1..t-1}, pi(o_t)]): each robot's last action replaced by its
+//!   current policy's output, earlier actions as executed;
+//! * target networks follow by polyak averaging with tau.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use anyhow::{Context, Result, bail};
+use candle_core::{DType, Device, Module, Tensor, Var};
+use candle_nn::{AdamW, Linear, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+use formation_agent::actor::{Actor, ActorShape, flatten_parameters};
+use formation_agent::checkpoint::{self, CheckpointMeta, actor_prefix};
+use formation_protocol::config::{Algorithm, EnvConfig, LearnConfig};
+use formation_protocol::{ACTION_DIM, OBS_DIM};
+use formation_replay::features::state_dim;
+use formation_replay::sample::Batch;
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, Normal};
+
+/// Losses of one update.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Losses {
+    /// Mean squared TD error, summed over the critics.
+    pub critic: f64,
+    /// -Q of the current policy (only on updates that step the actor).
+    pub actor: Option<f64>,
+    /// Mean |action| of the current policy, a saturation gauge (1 = every output at a limit).
+    pub action_magnitude: Option<f64>,
+}
+
+/// An MLP with ReLU hidden layers and a linear output of width 1: Q(s, u).
+#[derive(Debug, Clone)]
+pub struct CriticNet {
+    layers: Vec<Linear>,
+}
+
+impl CriticNet {
+    fn new(vb: VarBuilder, input: usize, hidden: &[usize]) -> candle_core::Result<Self> {
+        let mut layers = Vec::with_capacity(hidden.len() + 1);
+        let mut width = input;
+        for (i, &h) in hidden.iter().chain(std::iter::once(&1)).enumerate() {
+            layers.push(candle_nn::linear(width, h, vb.pp(format!("layer{i}")))?);
+            width = h;
+        }
+        Ok(Self { layers })
+    }
+
+    /// Q values, shape [B, 1].
+    pub fn forward(&self, input: &Tensor) -> candle_core::Result<Tensor> {
+        let mut x = input.clone();
+        for (i, layer) in self.layers.iter().enumerate() {
+            x = layer.forward(&x)?;
+            if i + 1 < self.layers.len() {
+                x = x.relu()?;
+            }
+        }
+        Ok(x)
+    }
+}
+
+/// Every network, its target and its optimiser.
+pub struct Learner {
+    config: LearnConfig,
+    n_agents: usize,
+    history: usize,
+    actor_shape: ActorShape,
+    actor_vars: VarMap,
+    actor_target_vars: VarMap,
+    actors: Vec<Actor>,
+    actor_targets: Vec<Actor>,
+    critic_vars: VarMap,
+    critic_target_vars: VarMap,
+    critics: Vec<CriticNet>,
+    critic_targets: Vec<CriticNet>,
+    actor_optimizer: AdamW,
+    critic_optimizer: AdamW,
+    updates: u64,
+    rng: StdRng,
+}
+
+/// Re-draws every variable from `rng`, U(-1/sqrt(fan_in), 1/sqrt(fan_in)) (PyTorch's default
+/// for linear layers), because candle's CPU generator cannot be seeded.
+fn reinitialise(vars: &VarMap, rng: &mut StdRng) -> Result<()> {
+    let data = vars.data().lock().map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+    let mut names: Vec<&String> = data.keys().collect();
+    names.sort();
+    // Fan-in of a layer is the width of its weight's second dimension.
+    let fan_in = |name: &str| -> Option<usize> {
+        let weight = name.strip_suffix(".bias").map_or_else(|| name.to_string(), |stem| format!("{stem}.weight"));
+        data.get(&weight).and_then(|w| w.as_tensor().dims().get(1).copied())
+    };
+    for name in names {
+        let var = &data[name];
+        let bound = 1.0 / (fan_in(name).unwrap_or(1) as f32).sqrt();
+        let count = var.as_tensor().elem_count();
+        let values: Vec<f32> = (0..count).map(|_| rng.random_range(-bound..bound)).collect();
+        var.set(&Tensor::from_vec(values, var.as_tensor().shape(), &Device::Cpu)?)?;
+    }
+    Ok(())
+}
+
+fn copy_vars(from: &VarMap, to: &VarMap) -> Result<()> {
+    let source = from.data().lock().map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+    let target = to.data().lock().map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+    for (name, var) in target.iter() {
+        let src = source.get(name).ok_or_else(|| anyhow::anyhow!("no variable {name} to copy"))?;
+        var.set(src.as_tensor())?;
+    }
+    Ok(())
+}
+
+/// target <- tau * online + (1 - tau) * target, for every variable.
+pub fn soft_update(online: &VarMap, target: &VarMap, tau: f64) -> Result<()> {
+    let source = online.data().lock().map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+    let dest = target.data().lock().map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+    for (name, var) in dest.iter() {
+        let src = source.get(name).ok_or_else(|| anyhow::anyhow!("no variable {name} for the soft update"))?;
+        let blended = ((src.as_tensor() * tau)? + (var.as_tensor() * (1.0 - tau))?)?;
+        var.set(&blended)?;
+    }
+    Ok(())
+}
+
+fn adam(vars: Vec<Var>, lr: f64) -> Result<AdamW> {
+    // The paper's Adam: candle's AdamW defaults weight_decay to 0.01.
+    Ok(AdamW::new(
+        vars,
+        ParamsAdamW {
+            lr,
+            weight_decay: 0.0,
+            ..ParamsAdamW::default()
+        },
+    )?)
+}
+
+impl Learner {
+    /// Fresh networks for `n_agents` robots (seeded through candle's CPU generator).
+    pub fn new(n_agents: usize, env: &EnvConfig, config: &LearnConfig, seed: u64) -> Result<Self> {
+        let device = Device::Cpu;
+        let mut rng = StdRng::seed_from_u64(seed);
+        let history = env.history;
+        let actor_shape = ActorShape {
+            history,
+            hidden: config.actor_hidden.clone(),
+        };
+        let n_actors = if config.shared_actor { 1 } else { n_agents };
+        let n_critics = match config.algorithm {
+            Algorithm::Ddpg => 1,
+            Algorithm::Td3 => 2,
+        };
+        let critic_input = history * (state_dim(n_agents) + n_agents * ACTION_DIM);
+        let build_actors = |vars: &VarMap| -> Result<Vec<Actor>> {
+            let vb = VarBuilder::from_varmap(vars, DType::F32, &device);
+            (0..n_actors)
+                .map(|k| Ok(Actor::new(vb.pp(format!("actor{k}")), &actor_shape)?))
+                .collect()
+        };
+        let build_critics = |vars: &VarMap| -> Result<Vec<CriticNet>> {
+            let vb = VarBuilder::from_varmap(vars, DType::F32, &device);
+            (0..n_critics)
+                .map(|j| Ok(CriticNet::new(vb.pp(format!("critic{j}")), critic_input, &config.critic_hidden)?))
+                .collect()
+        };
+        let actor_vars = VarMap::new();
+        let actors = build_actors(&actor_vars)?;
+        reinitialise(&actor_vars, &mut rng)?;
+        let actor_target_vars = VarMap::new();
+        let actor_targets = build_actors(&actor_target_vars)?;
+        copy_vars(&actor_vars, &actor_target_vars)?;
+        let critic_vars = VarMap::new();
+        let critics = build_critics(&critic_vars)?;
+        reinitialise(&critic_vars, &mut rng)?;
+        let critic_target_vars = VarMap::new();
+        let critic_targets = build_critics(&critic_target_vars)?;
+        copy_vars(&critic_vars, &critic_target_vars)?;
+        Ok(Self {
+            actor_optimizer: adam(actor_vars.all_vars(), config.actor_lr)?,
+            critic_optimizer: adam(critic_vars.all_vars(), config.critic_lr)?,
+            config: config.clone(),
+            n_agents,
+            history,
+            actor_shape,
+            actor_vars,
+            actor_target_vars,
+            actors,
+            actor_targets,
+            critic_vars,
+            critic_target_vars,
+            critics,
+            critic_targets,
+            updates: 0,
+            rng,
+        })
+    }
+
+    /// Gradient updates done.
+    pub fn updates(&self) -> u64 {
+        self.updates
+    }
+
+    /// Number of actors (1 when shared).
+    pub fn n_actors(&self) -> usize {
+        self.actors.len()
+    }
+
+    /// The actors' shape.
+    pub fn actor_shape(&self) -> &ActorShape {
+        &self.actor_shape
+    }
+
+    /// Joint actions [B, N * 2] of `actors` for observation windows [B, N, H * OBS_DIM].
+    fn joint_actions(actors: &[Actor], observations: &Tensor) -> Result<Tensor> {
+        let (batch, n, width) = observations.dims3()?;
+        if actors.len() == 1 {
+            let flat = observations.reshape((batch * n, width))?;
+            return Ok(actors[0].forward(&flat)?.reshape((batch, n * ACTION_DIM))?);
+        }
+        let per_agent = (0..n)
+            .map(|agent| actors[agent].forward(&observations.narrow(1, agent, 1)?.squeeze(1)?))
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        Ok(Tensor::cat(&per_agent, 1)?)
+    }
+
+    /// The TD target y for a batch (no gradient flows through it).
+    pub fn td_target(&mut self, batch: &Batch) -> Result<Tensor> {
+        let device = Device::Cpu;
+        let b = batch.batch_size;
+        let n = self.n_agents;
+        let h = self.history;
+        let next_obs = Tensor::from_slice(&batch.next_observations, (b, n, h * OBS_DIM), &device)?;
+        let next_states = Tensor::from_slice(&batch.next_states, (b, batch.state_window_dim()), &device)?;
+        let actions = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?;
+        let rewards = (Tensor::from_slice(&batch.rewards, (b, 1), &device)? * self.config.reward_scale)?;
+        let terminals = Tensor::from_slice(&batch.terminals, (b, 1), &device)?;
+        let mut next_actions = Self::joint_actions(&self.actor_targets, &next_obs)?;
+        if self.config.algorithm == Algorithm::Td3 && self.config.target_noise > 0.0 {
+            let normal = Normal::new(0.0f32, self.config.target_noise as f32)?;
+            let clip = self.config.target_noise_clip as f32;
+            let values: Vec<f32> =
+                (0..next_actions.elem_count()).map(|_| normal.sample(&mut self.rng).clamp(-clip, clip)).collect();
+            let noise = Tensor::from_vec(values, next_actions.shape(), &device)?;
+            next_actions = (next_actions + noise)?.clamp(-1f32, 1f32)?;
+        }
+        let joint = n * ACTION_DIM;
+        let next_window = Tensor::cat(&[actions.narrow(1, joint, (h - 1) * joint)?, next_actions], 1)?;
+        let next_input = Tensor::cat(&[next_states, next_window], 1)?;
+        let mut q_next = self.critic_targets[0].forward(&next_input)?;
+        for target in &self.critic_targets[1..] {
+            q_next = q_next.minimum(&target.forward(&next_input)?)?;
+        }
+        let not_done = terminals.affine(-1.0, 1.0)?;
+        let y = (rewards + (q_next * not_done)?.affine(self.config.gamma, 0.0)?)?;
+        Ok(y.detach())
+    }
+
+    /// The critic loss on a batch against a given target (used by tests on a fixed batch).
+    pub fn critic_loss(&self, batch: &Batch, target: &Tensor) -> Result<Tensor> {
+        let device = Device::Cpu;
+        let b = batch.batch_size;
+        let states = Tensor::from_slice(&batch.states, (b, batch.state_window_dim()), &device)?;
+        let actions = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?;
+        let input = Tensor::cat(&[states, actions], 1)?;
+        let mut loss: Option<Tensor> = None;
+        for critic in &self.critics {
+            let l = candle_nn::loss::mse(&critic.forward(&input)?, target)?;
+            loss = Some(match loss {
+                Some(acc) => (acc + l)?,
+                None => l,
+            });
+        }
+        loss.context("no critic")
+    }
+
+    /// One gradient update of the critic(s), and of the actor(s) and targets when due.
+    pub fn update(&mut self, batch: &Batch) -> Result<Losses> {
+        if batch.n_agents != self.n_agents || batch.history != self.history {
+            bail!(
+                "batch for {} robots and H = {} given to a learner for {} robots and H = {}",
+                batch.n_agents,
+                batch.history,
+                self.n_agents,
+                self.history
+            );
+        }
+        let device = Device::Cpu;
+        let b = batch.batch_size;
+        let n = self.n_agents;
+        let h = self.history;
+        let target = self.td_target(batch)?;
+        let critic_loss = self.critic_loss(batch, &target)?;
+        self.critic_optimizer.backward_step(&critic_loss)?;
+        let mut losses = Losses {
+            critic: f64::from(critic_loss.to_scalar::<f32>()?),
+            ..Losses::default()
+        };
+        self.updates += 1;
+        let delay = match self.config.algorithm {
+            Algorithm::Ddpg => 1,
+            Algorithm::Td3 => u64::from(self.config.policy_delay),
+        };
+        if self.updates.is_multiple_of(delay) {
+            let obs = Tensor::from_slice(&batch.observations, (b, n, h * OBS_DIM), &device)?;
+            let states = Tensor::from_slice(&batch.states, (b, batch.state_window_dim()), &device)?;
+            let actions = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?;
+            let current = Self::joint_actions(&self.actors, &obs)?;
+            let joint = n * ACTION_DIM;
+            let window = Tensor::cat(&[actions.narrow(1, 0, (h - 1) * joint)?, current.clone()], 1)?;
+            let q = self.critics[0].forward(&Tensor::cat(&[states, window], 1)?)?;
+            let actor_loss = q.mean_all()?.neg()?;
+            self.actor_optimizer.backward_step(&actor_loss)?;
+            losses.actor = Some(f64::from(actor_loss.to_scalar::<f32>()?));
+            losses.action_magnitude = Some(f64::from(current.abs()?.mean_all()?.to_scalar::<f32>()?));
+            soft_update(&self.actor_vars, &self.actor_target_vars, self.config.tau)?;
+            soft_update(&self.critic_vars, &self.critic_target_vars, self.config.tau)?;
+        }
+        Ok(losses)
+    }
+
+    /// Flat weights of actor `index`, in the order agents rebuild them.
+    pub fn actor_weights(&self, index: usize) -> Result<Vec<f32>> {
+        let data = self.actor_vars.data().lock().map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+        flatten_parameters(|name| data.get(name).map(|v| v.as_tensor().clone()), &actor_prefix(index), &self.actor_shape)
+    }
+
+    fn all_tensors(&self) -> Result<Vec<(String, Tensor)>> {
+        let mut out = Vec::new();
+        for (prefix, vars) in [
+            ("", &self.actor_vars),
+            ("target.", &self.actor_target_vars),
+            ("", &self.critic_vars),
+            ("target.", &self.critic_target_vars),
+        ] {
+            let data = vars.data().lock().map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+            let mut names: Vec<&String> = data.keys().collect();
+            names.sort();
+            for name in names {
+                out.push((format!("{prefix}{name}"), data[name].as_tensor().clone()));
+            }
+        }
+        Ok(out)
+    }
+
+    /// Writes every network (online and target) to a checkpoint.
+    pub fn save(&self, path: &Path, extra: HashMap<String, String>) -> Result<()> {
+        let meta = CheckpointMeta {
+            n_agents: self.n_agents,
+            n_actors: self.n_actors(),
+            actor: self.actor_shape.clone(),
+            extra,
+        };
+        checkpoint::save(path, &self.all_tensors()?, &meta)
+    }
+
+    /// Resumes from a checkpoint written by [`Learner::save`] for the same shapes.
+    pub fn load(&mut self, path: &Path) -> Result<()> {
+        let loaded = checkpoint::load(path)?;
+        if loaded.meta.n_agents != self.n_agents
+            || loaded.meta.n_actors != self.n_actors()
+            || loaded.meta.actor != self.actor_shape
+        {
+            bail!(
+                "checkpoint {} is for {} robots, {} actors of shape {:?}; this run trains {} robots, {} actors of shape {:?}",
+                path.display(),
+                loaded.meta.n_agents,
+                loaded.meta.n_actors,
+                loaded.meta.actor,
+                self.n_agents,
+                self.n_actors(),
+                self.actor_shape
+            );
+        }
+        for (prefix, vars) in [
+            ("", &self.actor_vars),
+            ("target.", &self.actor_target_vars),
+            ("", &self.critic_vars),
+            ("target.", &self.critic_target_vars),
+        ] {
+            let data = vars.data().lock().map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+            for (name, var) in data.iter() {
+                let full = format!("{prefix}{name}");
+                let tensor = loaded
+                    .tensors
+                    .get(&full)
+                    .ok_or_else(|| anyhow::anyhow!("checkpoint {} has no tensor {full}", path.display()))?;
+                if tensor.dims() != var.as_tensor().dims() {
+                    bail!(
+                        "checkpoint {}: {full} has shape {:?}, this run needs {:?} (critic widths or algorithm differ)",
+                        path.display(),
+                        tensor.dims(),
+                        var.as_tensor().dims()
+                    );
+                }
+                var.set(tensor)?;
+            }
+        }
+        if let Some(updates) = loaded.meta.extra.get("updates").and_then(|u| u.parse().ok()) {
+            self.updates = updates;
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,523 @@
+//! The run configuration: one serde struct with defaults from the paper and DESIGN.md.
+//!
+//! Every process reads the same file (`config.toml` in the run directory), so the sim, the
+//! agents and the critic can never disagree on dt, tolerances or network shapes.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::{MAX_AGENTS, MIN_AGENTS};
+
+/// Everything a run is configured by. Unknown keys are rejected.
+#[derive(Serialize, Deserialize, Clone, Debug, Default, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct RunConfig {
+    /// Physics, task and reward.
+    pub env: EnvConfig,
+    /// Lockstep and real-time tick protocol.
+    pub ticks: TickConfig,
+    /// Central training.
+    pub learn: LearnConfig,
+    /// Live view and recordings.
+    pub view: ViewConfig,
+}
+
+/// The environment: unicycle robots, formation, goal and the paper's reward table (Table I).
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct EnvConfig {
+    /// Integration step, seconds.
+    pub dt_s: f64,
+    /// Episode time limit in steps (a truncation, not a terminal state).
+    pub max_steps: u32,
+    /// Largest forward speed, m/s (the smallest is 0).
+    pub v_max: f64,
+    /// Largest turn rate magnitude, rad/s.
+    pub w_max: f64,
+    /// Side of the square arena, metres (grown to fit large swarms, see `effective_arena_m`).
+    pub arena_m: f64,
+    /// Shortest desired edge, metres.
+    pub edge_min_m: f64,
+    /// Longest desired edge, metres.
+    pub edge_max_m: f64,
+    /// Nearest goal from the start centroid, metres.
+    pub goal_min_m: f64,
+    /// Farthest goal from the start centroid, metres.
+    pub goal_max_m: f64,
+    /// Largest deviation of a robot's start heading from the common heading, radians.
+    pub heading_jitter_rad: f64,
+    /// C1: largest edge error that still counts as "in formation", metres.
+    pub eps_form_m: f64,
+    /// C2: two robots closer than this have collided, metres.
+    pub eps_coll_m: f64,
+    /// C3: largest centroid-to-goal distance that counts as "at the goal", metres.
+    pub eps_goal_m: f64,
+    /// Reward when only C1 holds.
+    pub r_edge: f64,
+    /// Reward on collision (episode ends).
+    pub r_collision: f64,
+    /// Reward on success (episode ends).
+    pub r_goal: f64,
+    /// Reward otherwise.
+    pub r_penalty: f64,
+    /// Observations of history each actor sees (H).
+    pub history: usize,
+}
+
+impl Default for EnvConfig {
+    fn default() -> Self {
+        Self {
+            dt_s: 0.1,
+            max_steps: 120,
+            v_max: 0.5,
+            w_max: 1.0,
+            arena_m: 10.0,
+            edge_min_m: 0.8,
+            edge_max_m: 2.0,
+            goal_min_m: 1.0,
+            goal_max_m: 2.5,
+            heading_jitter_rad: 0.1,
+            eps_form_m: 0.10,
+            eps_coll_m: 0.20,
+            eps_goal_m: 0.15,
+            r_edge: 0.1,
+            r_collision: -100.0,
+            r_goal: 50.0,
+            r_penalty: -0.5,
+            history: 15,
+        }
+    }
+}
+
+impl EnvConfig {
+    /// Maps a normalised action in [-1, 1]^2 (the actor's tanh output) to (v, w).
+    pub fn command_from_action(&self, action: [f32; 2]) -> (f64, f64) {
+        let a0 = f64::from(action[0]).clamp(-1.0, 1.0);
+        let a1 = f64::from(action[1]).clamp(-1.0, 1.0);
+        ((a0 + 1.0) * 0.5 * self.v_max, a1 * self.w_max)
+    }
+
+    /// Maps (v, w) back to the normalised action the actor would have produced.
+    pub fn action_from_command(&self, v: f64, w: f64) -> [f32; 2] {
+        let a0 = (2.0 * v / self.v_max - 1.0).clamp(-1.0, 1.0);
+        let a1 = (w / self.w_max).clamp(-1.0, 1.0);
+        [a0 as f32, a1 as f32]
+    }
+
+    /// Clamps a command to the robot's limits (what the sim applies).
+    pub fn clamp_command(&self, v: f64, w: f64) -> (f64, f64) {
+        (v.clamp(0.0, self.v_max), w.clamp(-self.w_max, self.w_max))
+    }
+
+    /// The arena side actually used for `n_agents`: large swarms need room for a closed strip
+    /// of robots plus the goal distance, so the arena grows to fit them.
+    pub fn effective_arena_m(&self, n_agents: usize) -> f64 {
+        // A closed triangle strip advances about edge_min/2 per robot along its loop.
+        let loop_radius = n_agents as f64 * self.edge_min_m * 0.5 / std::f64::consts::TAU;
+        let needed = 2.0 * (loop_radius + self.edge_max_m + self.goal_max_m + 1.0);
+        self.arena_m.max(needed)
+    }
+}
+
+/// The tick protocol.
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct TickConfig {
+    /// Lockstep: how long the sim waits for every command of a tick before holding the
+    /// missing robots' last commands, milliseconds.
+    pub command_timeout_ms: u64,
+    /// How long the sim waits for every agent (and the critic) to connect, seconds.
+    pub startup_timeout_s: u64,
+    /// Train mode: how many ticks the sim may run ahead of the critic's consumption.
+    pub critic_window: u32,
+    /// How many ticks of silence from the sim make agents and critic give up, milliseconds.
+    pub sim_silence_ms: u64,
+}
+
+impl Default for TickConfig {
+    fn default() -> Self {
+        Self {
+            command_timeout_ms: 200,
+            startup_timeout_s: 60,
+            critic_window: 64,
+            sim_silence_ms: 2000,
+        }
+    }
+}
+
+/// Actor-critic variants. The paper uses DDPG; TD3 is the measured improvement.
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum Algorithm {
+    /// One critic, actor step every update (the paper).
+    Ddpg,
+    /// Twin critics, target policy smoothing, delayed actor steps.
+    Td3,
+}
+
+/// Central training hyper-parameters.
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct LearnConfig {
+    /// DDPG (the paper) or TD3 (default, measured to be stable on this task).
+    pub algorithm: Algorithm,
+    /// One actor for every robot (default) or one per robot (the paper).
+    pub shared_actor: bool,
+    /// Concurrent sequences per gradient update (B).
+    pub batch_size: usize,
+    /// Discount factor.
+    pub gamma: f64,
+    /// Adam learning rate of the actor(s).
+    pub actor_lr: f64,
+    /// Adam learning rate of the critic(s).
+    pub critic_lr: f64,
+    /// Polyak factor of the target networks.
+    pub tau: f64,
+    /// Probability that a sampled sequence gets its goal relabelled (HER).
+    pub her_probability: f64,
+    /// Exploration noise std (in normalised action units) at the start of training.
+    pub noise_std: f64,
+    /// Exploration noise std it decays to.
+    pub noise_std_min: f64,
+    /// Episodes over which the noise decays linearly.
+    pub noise_decay_episodes: u32,
+    /// Gradient updates per team transition (update-to-data ratio).
+    pub updates_per_transition: f64,
+    /// Transitions collected with random actions before the first update.
+    pub warmup_transitions: usize,
+    /// Hidden layer widths of the actor.
+    pub actor_hidden: Vec<usize>,
+    /// Hidden layer widths of the critic.
+    pub critic_hidden: Vec<usize>,
+    /// TD3: actor and target updates every this many critic updates.
+    pub policy_delay: u32,
+    /// TD3: std of the target policy smoothing noise.
+    pub target_noise: f64,
+    /// TD3: clip of the target policy smoothing noise.
+    pub target_noise_clip: f64,
+    /// Rewards are multiplied by this before training (1 = the paper's reward).
+    pub reward_scale: f64,
+    /// Replay capacity in ticks.
+    pub replay_capacity: usize,
+    /// New actor weights are published every this many updates.
+    pub publish_every_updates: u64,
+    /// A checkpoint is written at least this often, seconds.
+    pub checkpoint_every_s: u64,
+    /// Threads the critic's matrix products may use.
+    pub threads: usize,
+    /// In train mode, every this many episodes is played without noise to measure the policy.
+    pub eval_every_episodes: u32,
+}
+
+impl Default for LearnConfig {
+    fn default() -> Self {
+        Self {
+            algorithm: Algorithm::Td3,
+            shared_actor: true,
+            batch_size: 128,
+            gamma: 0.98,
+            actor_lr: 3e-4,
+            critic_lr: 1e-3,
+            tau: 5e-3,
+            her_probability: 0.8,
+            noise_std: 0.3,
+            noise_std_min: 0.1,
+            noise_decay_episodes: 3000,
+            updates_per_transition: 0.5,
+            warmup_transitions: 5000,
+            actor_hidden: vec![128, 128],
+            critic_hidden: vec![256, 256],
+            policy_delay: 2,
+            target_noise: 0.2,
+            target_noise_clip: 0.5,
+            reward_scale: 1.0,
+            replay_capacity: 1_000_000,
+            publish_every_updates: 50,
+            checkpoint_every_s: 120,
+            threads: 1,
+            eval_every_episodes: 10,
+        }
+    }
+}
+
+/// What the live view logs.
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct ViewConfig {
+    /// In train mode, log the world for one episode in this many (eval logs every episode).
+    pub world_every_episodes: u32,
+    /// Length of the robots' trails, ticks.
+    pub trail_ticks: usize,
+}
+
+impl Default for ViewConfig {
+    fn default() -> Self {
+        Self {
+            world_every_episodes: 20,
+            trail_ticks: 40,
+        }
+    }
+}
+
+/// A configuration value that cannot work, with the field it is in.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("cannot read config file {path}: {source}")]
+    Read {
+        /// The file.
+        path: String,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The file is not valid TOML for this struct (syntax, unknown key, wrong type).
+    #[error("config file {path} does not parse: {message}")]
+    Parse {
+        /// The file.
+        path: String,
+        /// What toml said, with line and key.
+        message: String,
+    },
+    /// A value is out of its range.
+    #[error("config value {field} = {value} is invalid: {reason}")]
+    Invalid {
+        /// Dotted name of the field, e.g. `env.dt_s`.
+        field: &'static str,
+        /// The value found.
+        value: String,
+        /// What it must be instead.
+        reason: &'static str,
+    },
+}
+
+fn check(ok: bool, field: &'static str, value: impl ToString, reason: &'static str) -> Result<(), ConfigError> {
+    if ok {
+        Ok(())
+    } else {
+        Err(ConfigError::Invalid {
+            field,
+            value: value.to_string(),
+            reason,
+        })
+    }
+}
+
+fn positive(v: f64) -> bool {
+    v.is_finite() && v > 0.0
+}
+
+impl RunConfig {
+    /// Reads a TOML file of overrides on top of the defaults, then validates it.
+    pub fn from_toml_file(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.display().to_string(),
+            source,
+        })?;
+        Self::from_toml_str(&text).map_err(|err| match err {
+            ConfigError::Parse { message, .. } => ConfigError::Parse {
+                path: path.display().to_string(),
+                message,
+            },
+            other => other,
+        })
+    }
+
+    /// Parses TOML overrides on top of the defaults, then validates.
+    pub fn from_toml_str(text: &str) -> Result<Self, ConfigError> {
+        let config: RunConfig = toml::from_str(text).map_err(|err| ConfigError::Parse {
+            path: "<string>".into(),
+            message: err.to_string(),
+        })?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// The configuration as TOML (what is written into the run directory).
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).unwrap_or_else(|err| format!("# cannot serialise config: {err}\n"))
+    }
+
+    /// Rejects values that make the task impossible or the numbers meaningless.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let e = &self.env;
+        check(positive(e.dt_s) && e.dt_s <= 1.0, "env.dt_s", e.dt_s, "must be in (0, 1] seconds")?;
+        check(e.max_steps >= 1, "env.max_steps", e.max_steps, "must be at least 1")?;
+        check(positive(e.v_max), "env.v_max", e.v_max, "must be > 0")?;
+        check(positive(e.w_max), "env.w_max", e.w_max, "must be > 0")?;
+        check(positive(e.arena_m), "env.arena_m", e.arena_m, "must be > 0")?;
+        check(positive(e.eps_form_m), "env.eps_form_m", e.eps_form_m, "must be > 0")?;
+        check(positive(e.eps_goal_m), "env.eps_goal_m", e.eps_goal_m, "must be > 0")?;
+        check(e.eps_coll_m.is_finite() && e.eps_coll_m >= 0.0, "env.eps_coll_m", e.eps_coll_m, "must be >= 0")?;
+        check(
+            positive(e.edge_min_m) && e.edge_min_m > e.eps_coll_m + e.eps_form_m,
+            "env.edge_min_m",
+            e.edge_min_m,
+            "must exceed eps_coll_m + eps_form_m, or robots in formation would collide",
+        )?;
+        check(
+            e.edge_max_m.is_finite() && e.edge_max_m >= e.edge_min_m,
+            "env.edge_max_m",
+            e.edge_max_m,
+            "must be >= edge_min_m",
+        )?;
+        check(positive(e.goal_min_m), "env.goal_min_m", e.goal_min_m, "must be > 0")?;
+        check(
+            e.goal_max_m.is_finite() && e.goal_max_m >= e.goal_min_m,
+            "env.goal_max_m",
+            e.goal_max_m,
+            "must be >= goal_min_m",
+        )?;
+        check(
+            e.arena_m > 2.0 * (e.edge_max_m + e.goal_max_m),
+            "env.arena_m",
+            e.arena_m,
+            "must exceed 2 * (edge_max_m + goal_max_m) so a formation and its goal fit",
+        )?;
+        check(
+            e.heading_jitter_rad.is_finite() && e.heading_jitter_rad >= 0.0,
+            "env.heading_jitter_rad",
+            e.heading_jitter_rad,
+            "must be >= 0",
+        )?;
+        for (field, value) in [
+            ("env.r_edge", e.r_edge),
+            ("env.r_collision", e.r_collision),
+            ("env.r_goal", e.r_goal),
+            ("env.r_penalty", e.r_penalty),
+        ] {
+            check(value.is_finite(), field, value, "must be finite")?;
+        }
+        check((1..=64).contains(&e.history), "env.history", e.history, "must be in 1..=64")?;
+
+        let t = &self.ticks;
+        check(t.command_timeout_ms >= 1, "ticks.command_timeout_ms", t.command_timeout_ms, "must be >= 1")?;
+        check(t.startup_timeout_s >= 1, "ticks.startup_timeout_s", t.startup_timeout_s, "must be >= 1")?;
+        check((1..=4096).contains(&t.critic_window), "ticks.critic_window", t.critic_window, "must be in 1..=4096")?;
+        check(t.sim_silence_ms >= 100, "ticks.sim_silence_ms", t.sim_silence_ms, "must be >= 100")?;
+
+        let l = &self.learn;
+        check((1..=65536).contains(&l.batch_size), "learn.batch_size", l.batch_size, "must be in 1..=65536")?;
+        check(l.gamma.is_finite() && (0.0..1.0).contains(&l.gamma), "learn.gamma", l.gamma, "must be in [0, 1)")?;
+        check(positive(l.actor_lr), "learn.actor_lr", l.actor_lr, "must be > 0")?;
+        check(positive(l.critic_lr), "learn.critic_lr", l.critic_lr, "must be > 0")?;
+        check(positive(l.tau) && l.tau <= 1.0, "learn.tau", l.tau, "must be in (0, 1]")?;
+        check(
+            (0.0..=1.0).contains(&l.her_probability),
+            "learn.her_probability",
+            l.her_probability,
+            "must be in [0, 1]",
+        )?;
+        check(l.noise_std.is_finite() && l.noise_std >= 0.0, "learn.noise_std", l.noise_std, "must be >= 0")?;
+        check(
+            l.noise_std_min.is_finite() && l.noise_std_min >= 0.0,
+            "learn.noise_std_min",
+            l.noise_std_min,
+            "must be >= 0",
+        )?;
+        check(
+            positive(l.updates_per_transition) && l.updates_per_transition <= 64.0,
+            "learn.updates_per_transition",
+            l.updates_per_transition,
+            "must be in (0, 64]",
+        )?;
+        check(
+            !l.actor_hidden.is_empty() && l.actor_hidden.iter().all(|&w| (1..=4096).contains(&w)),
+            "learn.actor_hidden",
+            format!("{:?}", l.actor_hidden),
+            "needs 1 or more widths in 1..=4096",
+        )?;
+        check(
+            !l.critic_hidden.is_empty() && l.critic_hidden.iter().all(|&w| (1..=4096).contains(&w)),
+            "learn.critic_hidden",
+            format!("{:?}", l.critic_hidden),
+            "needs 1 or more widths in 1..=4096",
+        )?;
+        check(l.policy_delay >= 1, "learn.policy_delay", l.policy_delay, "must be >= 1")?;
+        check(positive(l.reward_scale), "learn.reward_scale", l.reward_scale, "must be > 0")?;
+        check(
+            l.replay_capacity >= 1000,
+            "learn.replay_capacity",
+            l.replay_capacity,
+            "must be >= 1000 ticks",
+        )?;
+        check(l.publish_every_updates >= 1, "learn.publish_every_updates", l.publish_every_updates, "must be >= 1")?;
+        check((1..=64).contains(&l.threads), "learn.threads", l.threads, "must be in 1..=64")?;
+        check(l.eval_every_episodes >= 1, "learn.eval_every_episodes", l.eval_every_episodes, "must be >= 1")?;
+        check(
+            self.view.world_every_episodes >= 1,
+            "view.world_every_episodes",
+            self.view.world_every_episodes,
+            "must be >= 1",
+        )?;
+        Ok(())
+    }
+}
+
+/// Checks a swarm size against what the wire types support.
+pub fn validate_agent_count(n_agents: usize) -> Result<(), ConfigError> {
+    check(
+        (MIN_AGENTS..=MAX_AGENTS).contains(&n_agents),
+        "agents",
+        n_agents,
+        "the swarm needs 3 to 64 robots (each observes two distinct neighbours)",
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_valid_and_round_trip() {
+        let config = RunConfig::default();
+        config.validate().expect("defaults validate");
+        let back = RunConfig::from_toml_str(&config.to_toml()).expect("round trip");
+        assert_eq!(back, config);
+    }
+
+    #[test]
+    fn overrides_keep_other_defaults() {
+        let config = RunConfig::from_toml_str("[env]\ndt_s = 0.05\n").expect("parses");
+        assert_eq!(config.env.dt_s, 0.05);
+        assert_eq!(config.env.max_steps, 120);
+    }
+
+    #[test]
+    fn bad_values_name_their_field() {
+        for (text, field) in [
+            ("[env]\ndt_s = -0.1\n", "env.dt_s"),
+            ("[env]\neps_goal_m = 0.0\n", "env.eps_goal_m"),
+            ("[env]\nedge_min_m = 0.1\n", "env.edge_min_m"),
+            ("[learn]\ngamma = 1.5\n", "learn.gamma"),
+        ] {
+            let err = RunConfig::from_toml_str(text).expect_err(text);
+            assert!(err.to_string().contains(field), "{err} should name {field}");
+        }
+    }
+
+    #[test]
+    fn unknown_keys_and_bad_syntax_are_rejected() {
+        let err = RunConfig::from_toml_str("[env]\ndt = 0.1\n").expect_err("unknown key");
+        assert!(err.to_string().contains("unknown field"), "{err}");
+        assert!(RunConfig::from_toml_str("[env\n").is_err());
+    }
+
+    #[test]
+    fn agent_count_bounds() {
+        assert!(validate_agent_count(2).is_err());
+        assert!(validate_agent_count(3).is_ok());
+        assert!(validate_agent_count(64).is_ok());
+        assert!(validate_agent_count(65).is_err());
+    }
+
+    #[test]
+    fn action_mapping_inverts() {
+        let env = EnvConfig::default();
+        for action in [[-1.0f32, 0.3], [0.0, -1.0], [1.0, 1.0]] {
+            let (v, w) = env.command_from_action(action);
+            let back = env.action_from_command(v, w);
+            assert!((back[0] - action[0]).abs() < 1e-6 && (back[1] - action[1]).abs() < 1e-6);
+        }
+    }
+}

@@ -1,0 +1,37 @@
+//! The contract between the processes of a formation-control run.
+//!
+//! * [`wire`]: the `#[repr(C)]` payloads that travel over iceoryx2 shared memory;
+//! * [`services`]: service names, the run-unique iceoryx2 configuration and port helpers;
+//! * [`config`]: the one serde configuration every process reads (environment, ticks, learning);
+//! * [`summary`]: the figures a run leaves behind in `summary.json`.
+
+pub mod cli;
+pub mod config;
+pub mod services;
+pub mod summary;
+pub mod wire;
+
+/// Largest swarm the wire types have room for.
+pub const MAX_AGENTS: usize = 64;
+/// Smallest swarm: every robot needs two distinct neighbours.
+pub const MIN_AGENTS: usize = 3;
+/// Neighbours each robot observes: (i+1) mod N and (i+2) mod N.
+pub const NEIGHBOURS: usize = 2;
+/// Per neighbour: relative x, y, cos and sin of relative heading, desired distance.
+pub const NEIGHBOUR_FEATURES: usize = 5;
+/// One observation: both neighbours then the goal's position, in the robot's own frame.
+pub const OBS_DIM: usize = NEIGHBOURS * NEIGHBOUR_FEATURES + 2;
+/// Actions are (v, w).
+pub const ACTION_DIM: usize = 2;
+
+/// The agents agent `agent` observes in a swarm of `n_agents`.
+pub fn neighbours(agent: usize, n_agents: usize) -> [usize; NEIGHBOURS] {
+    [(agent + 1) % n_agents, (agent + 2) % n_agents]
+}
+
+/// True when the termination signal (SIGINT, SIGTERM) reached this process.
+///
+/// iceoryx2 installs the handler when a node is created; this reads (and consumes) its flag.
+pub fn termination_requested() -> bool {
+    iceoryx2_bb_posix::signal::SignalHandler::termination_requested()
+}

@@ -1,0 +1,264 @@
+//! Service names, the run-unique iceoryx2 configuration and the port factories of a run.
+//!
+//! Binaries never spell a service name: they call these functions, so the sim, the agents and
+//! the critic cannot drift apart. Every factory is generic over the iceoryx2 service type, so
+//! the same loops run across processes (`ipc::Service`) and inside one (`local::Service`).
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::{event, publish_subscribe};
+
+use crate::wire::{CommandMsg, CriticProgressMsg, ObservationMsg, StateMsg, WeightsHeader};
+use crate::MAX_AGENTS;
+
+/// Ports left for processes that replace a dead one before iceoryx2 has cleaned it up, and for
+/// observers such as a viewer.
+const SPARE_PORTS: usize = 4;
+
+/// Where a run's iceoryx2 files live and what their shared-memory names start with.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RunIdentity {
+    /// Letters, digits, `_` and `-`; at most 24 characters.
+    pub run_id: String,
+}
+
+impl RunIdentity {
+    /// Checks the id is usable in file names.
+    pub fn new(run_id: &str) -> Result<Self> {
+        if run_id.is_empty()
+            || run_id.len() > 24
+            || !run_id.chars().all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+        {
+            bail!("run id {run_id:?} must be 1 to 24 letters, digits, '_' or '-'");
+        }
+        Ok(Self {
+            run_id: run_id.to_string(),
+        })
+    }
+
+    /// Prefix of every file of this run in `/dev/shm`.
+    pub fn shm_prefix(&self) -> String {
+        format!("fc_{}_", self.run_id)
+    }
+
+    /// Directory for the run's iceoryx2 node and service descriptions.
+    pub fn root_path(&self) -> PathBuf {
+        std::env::temp_dir().join("formation-iox2").join(&self.run_id)
+    }
+
+    /// The iceoryx2 configuration every process of this run uses.
+    pub fn iceoryx_config(&self) -> Result<Config> {
+        let mut config = Config::default();
+        config.global.prefix = FileName::new(self.shm_prefix().as_bytes())
+            .map_err(|err| anyhow::anyhow!("bad shm prefix {}: {err:?}", self.shm_prefix()))?;
+        let root = format!("{}/", self.root_path().display());
+        config.global.set_root_path(
+            &Path::new(root.as_bytes()).map_err(|err| anyhow::anyhow!("bad root path {root}: {err:?}"))?,
+        );
+        Ok(config)
+    }
+
+    /// Removes what a finished run leaves behind: its `/dev/shm` files and its root path.
+    /// Returns how many shared-memory files were removed.
+    pub fn remove_leftovers(&self) -> usize {
+        let prefix = self.shm_prefix();
+        let mut removed = 0;
+        if let Ok(entries) = std::fs::read_dir("/dev/shm") {
+            for entry in entries.flatten() {
+                if entry.file_name().to_string_lossy().starts_with(&prefix)
+                    && std::fs::remove_file(entry.path()).is_ok()
+                {
+                    removed += 1;
+                }
+            }
+        }
+        let _ignored_if_absent = std::fs::remove_dir_all(self.root_path());
+        removed
+    }
+}
+
+/// Creates a node of the run with a descriptive name (shown by `iox2 node list`).
+pub fn create_node<S: Service>(identity: &RunIdentity, name: &str) -> Result<Node<S>> {
+    let config = identity.iceoryx_config()?;
+    let node_name = NodeName::new(name).map_err(|err| anyhow::anyhow!("bad node name {name}: {err:?}"))?;
+    NodeBuilder::new()
+        .name(&node_name)
+        .config(&config)
+        .create::<S>()
+        .map_err(|err| anyhow::anyhow!("cannot create iceoryx2 node {name}: {err:?}"))
+}
+
+fn service_name(name: &str) -> Result<ServiceName> {
+    ServiceName::new(name).map_err(|err| anyhow::anyhow!("bad service name {name}: {err:?}"))
+}
+
+/// Name of agent `agent`'s observation service.
+pub fn observation_service_name(agent: usize) -> String {
+    format!("formation/agent/{agent}/observation")
+}
+
+/// Name of the event that wakes agent `agent` when its observation is ready.
+pub fn observation_event_name(agent: usize) -> String {
+    format!("formation/agent/{agent}/observation_ready")
+}
+
+/// Name of agent `agent`'s command service.
+pub fn command_service_name(agent: usize) -> String {
+    format!("formation/agent/{agent}/command")
+}
+
+/// Name of the event agents raise (event id = agent index) when a command is sent.
+pub fn command_event_name() -> String {
+    "formation/command_ready".into()
+}
+
+/// Name of the true-state service.
+pub fn state_service_name() -> String {
+    "formation/state".into()
+}
+
+/// Name of the event that wakes the critic to drain its subscribers.
+pub fn critic_wake_event_name() -> String {
+    "formation/critic/wake".into()
+}
+
+/// Name of the critic's progress service (flow control).
+pub fn critic_progress_service_name() -> String {
+    "formation/critic/progress".into()
+}
+
+/// Name of the event raised when the critic's progress changes.
+pub fn critic_progress_event_name() -> String {
+    "formation/critic/progress_ready".into()
+}
+
+/// Name of actor `actor_index`'s weights service.
+pub fn weights_service_name(actor_index: usize) -> String {
+    format!("formation/actor/{actor_index}/weights")
+}
+
+/// Sizes of the run's services, derived from the swarm size.
+#[derive(Debug, Clone, Copy)]
+pub struct Sizing {
+    /// Robots in the swarm.
+    pub n_agents: usize,
+    /// Samples a subscriber may hold before the oldest is overwritten.
+    pub stream_buffer: usize,
+}
+
+impl Sizing {
+    /// Sizing for `n_agents` robots with the critic allowed `critic_window` ticks behind.
+    pub fn new(n_agents: usize, critic_window: u32) -> Self {
+        Self {
+            n_agents,
+            stream_buffer: 2 * critic_window as usize + 16,
+        }
+    }
+
+    fn shared_nodes(&self) -> usize {
+        self.n_agents + 2 + SPARE_PORTS
+    }
+}
+
+/// Port factory of a fixed-size payload.
+pub type Stream<S, T> = publish_subscribe::PortFactory<S, T, ()>;
+/// Port factory of actor weights.
+pub type WeightsStream<S> = publish_subscribe::PortFactory<S, [f32], WeightsHeader>;
+/// Port factory of an event.
+pub type Event<S> = event::PortFactory<S>;
+
+fn stream<S: Service, T>(
+    node: &Node<S>,
+    name: &str,
+    sizing: &Sizing,
+    history: usize,
+    max_nodes: usize,
+) -> Result<Stream<S, T>>
+where
+    T: std::fmt::Debug + ZeroCopySend + Copy + 'static,
+{
+    node.service_builder(&service_name(name)?)
+        .publish_subscribe::<T>()
+        .max_publishers(1 + SPARE_PORTS)
+        .max_subscribers(2 + SPARE_PORTS)
+        .max_nodes(max_nodes)
+        .history_size(history)
+        .subscriber_max_buffer_size(sizing.stream_buffer.max(history))
+        .open_or_create()
+        .map_err(|err| anyhow::anyhow!("cannot open service {name}: {err:?}"))
+}
+
+fn event_service<S: Service>(node: &Node<S>, name: &str, sizing: &Sizing, notifiers: usize) -> Result<Event<S>> {
+    node.service_builder(&service_name(name)?)
+        .event()
+        .max_notifiers(notifiers + SPARE_PORTS)
+        .max_listeners(1 + SPARE_PORTS)
+        .max_nodes(sizing.shared_nodes())
+        .event_id_max_value(MAX_AGENTS)
+        .open_or_create()
+        .map_err(|err| anyhow::anyhow!("cannot open event {name}: {err:?}"))
+}
+
+/// Observation stream of one agent.
+pub fn observation_stream<S: Service>(node: &Node<S>, sizing: &Sizing, agent: usize) -> Result<Stream<S, ObservationMsg>> {
+    stream(node, &observation_service_name(agent), sizing, 0, 2 + SPARE_PORTS)
+}
+
+/// Event that wakes one agent.
+pub fn observation_event<S: Service>(node: &Node<S>, sizing: &Sizing, agent: usize) -> Result<Event<S>> {
+    event_service(node, &observation_event_name(agent), sizing, 1)
+}
+
+/// Command stream of one agent. History 1: the sim sees an agent's greeting even when the
+/// agent started first.
+pub fn command_stream<S: Service>(node: &Node<S>, sizing: &Sizing, agent: usize) -> Result<Stream<S, CommandMsg>> {
+    stream(node, &command_service_name(agent), sizing, 1, 2 + SPARE_PORTS)
+}
+
+/// Event every agent raises after sending a command.
+pub fn command_event<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Event<S>> {
+    event_service(node, &command_event_name(), sizing, sizing.n_agents)
+}
+
+/// True-state stream.
+pub fn state_stream<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Stream<S, StateMsg>> {
+    stream(node, &state_service_name(), sizing, 0, sizing.shared_nodes())
+}
+
+/// Event that wakes the critic.
+pub fn critic_wake_event<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Event<S>> {
+    event_service(node, &critic_wake_event_name(), sizing, 1)
+}
+
+/// The critic's progress (history 1: the sim sees the latest at once).
+pub fn critic_progress_stream<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Stream<S, CriticProgressMsg>> {
+    stream(node, &critic_progress_service_name(), sizing, 1, sizing.shared_nodes())
+}
+
+/// Event raised when the critic's progress changes.
+pub fn critic_progress_event<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Event<S>> {
+    event_service(node, &critic_progress_event_name(), sizing, 1)
+}
+
+/// Weights of one actor (history 1: a restarted agent gets the latest at once).
+pub fn weights_stream<S: Service>(node: &Node<S>, sizing: &Sizing, actor_index: usize) -> Result<WeightsStream<S>> {
+    let name = weights_service_name(actor_index);
+    node.service_builder(&service_name(&name)?)
+        .publish_subscribe::<[f32]>()
+        .user_header::<WeightsHeader>()
+        .max_publishers(1 + SPARE_PORTS)
+        .max_subscribers(sizing.n_agents + SPARE_PORTS)
+        .max_nodes(sizing.shared_nodes())
+        .history_size(1)
+        .subscriber_max_buffer_size(2)
+        .open_or_create()
+        .with_context(|| format!("cannot open weights service {name}"))
+        .map_err(|err| anyhow::anyhow!("{err:?}"))
+}
+
+/// Converts an agent index into its event id.
+pub fn agent_event_id(agent: usize) -> EventId {
+    EventId::new(agent)
+}

@@ -1,0 +1,106 @@
+//! What a run leaves behind in `summary.json`, and the table printed at its end.
+
+use serde::{Deserialize, Serialize};
+
+/// Figures of a whole run. The sim fills the episode figures, the critic the stream and
+/// training figures; missing parts stay `None` and are written as `null`.
+#[derive(Serialize, Deserialize, Clone, Debug, Default, PartialEq)]
+pub struct Summary {
+    /// `train` or `eval`.
+    pub mode: String,
+    /// Robots in the swarm.
+    pub n_agents: usize,
+    /// Seed of the episode generator.
+    pub seed: u64,
+    /// Which robots ran the scripted baseline.
+    pub scripted_agents: Vec<usize>,
+    /// Episodes finished.
+    pub episodes: u64,
+    /// Fraction of episodes that reached C3.
+    pub success_rate: f64,
+    /// Fraction of episodes that ended in a collision.
+    pub collision_rate: f64,
+    /// Fraction of episodes that hit the time limit.
+    pub timeout_rate: f64,
+    /// Mean over episodes of the mean |d_ij - dbar_ij| at the last tick, metres.
+    pub mean_final_edge_error_m: f64,
+    /// Mean over episodes of the centroid-to-goal distance at the last tick, metres.
+    pub mean_final_goal_distance_m: f64,
+    /// Mean steps of the successful episodes (`null` when none succeeded).
+    pub mean_steps_to_goal: Option<f64>,
+    /// Fraction of ticks on which C1 held.
+    pub formation_hold_rate: f64,
+    /// Mean undiscounted episode return.
+    pub mean_return: f64,
+    /// Physics steps taken.
+    pub env_steps: u64,
+    /// Physics steps per wall-clock second of the stepping loop.
+    pub env_steps_per_s: f64,
+    /// Median tick duration (publish observations to all commands in), microseconds.
+    pub tick_p50_us: f64,
+    /// 99th percentile tick duration, microseconds.
+    pub tick_p99_us: f64,
+    /// Agent-ticks on which a command was missing and the last one was held.
+    pub missed_ticks: u64,
+    /// Commands rejected as malformed (non-finite, wrong tick or protocol).
+    pub rejected_commands: u64,
+    /// Real-time mode: ticks that overran their deadline.
+    pub deadline_misses: u64,
+    /// Wall-clock seconds of the run.
+    pub wall_s: f64,
+    /// Ticks the critic took into its replay.
+    pub transitions_received: Option<u64>,
+    /// Ticks the critic should have seen but did not (gaps, missing observations).
+    pub lost_transitions: Option<u64>,
+    /// Gradient updates.
+    pub updates: Option<u64>,
+    /// Gradient updates per second of the critic's run.
+    pub updates_per_s: Option<f64>,
+    /// Last critic loss.
+    pub critic_loss: Option<f64>,
+    /// Last actor loss.
+    pub actor_loss: Option<f64>,
+    /// Latest weights version published.
+    pub weights_version: Option<u32>,
+    /// Checkpoint written at the end, relative to the run directory.
+    pub checkpoint: Option<String>,
+}
+
+impl Summary {
+    /// The end-of-run table.
+    pub fn table(&self) -> String {
+        let opt = |value: Option<f64>, digits: usize| match value {
+            Some(v) => format!("{v:.digits$}"),
+            None => "-".into(),
+        };
+        let rows: Vec<(&str, String)> = vec![
+            ("mode", self.mode.clone()),
+            ("robots", self.n_agents.to_string()),
+            ("scripted robots", format!("{:?}", self.scripted_agents)),
+            ("episodes", self.episodes.to_string()),
+            ("success rate", format!("{:.3}", self.success_rate)),
+            ("collision rate", format!("{:.3}", self.collision_rate)),
+            ("timeout rate", format!("{:.3}", self.timeout_rate)),
+            ("final edge error (m)", format!("{:.4}", self.mean_final_edge_error_m)),
+            ("final goal distance (m)", format!("{:.4}", self.mean_final_goal_distance_m)),
+            ("steps to goal", opt(self.mean_steps_to_goal, 1)),
+            ("formation held (ticks)", format!("{:.3}", self.formation_hold_rate)),
+            ("mean return", format!("{:.2}", self.mean_return)),
+            ("env steps", self.env_steps.to_string()),
+            ("env steps / s", format!("{:.0}", self.env_steps_per_s)),
+            ("tick p50 / p99 (us)", format!("{:.1} / {:.1}", self.tick_p50_us, self.tick_p99_us)),
+            ("missed ticks", self.missed_ticks.to_string()),
+            ("rejected commands", self.rejected_commands.to_string()),
+            ("deadline misses", self.deadline_misses.to_string()),
+            ("transitions received", self.transitions_received.map_or("-".into(), |v| v.to_string())),
+            ("lost transitions", self.lost_transitions.map_or("-".into(), |v| v.to_string())),
+            ("gradient updates", self.updates.map_or("-".into(), |v| v.to_string())),
+            ("updates / s", opt(self.updates_per_s, 1)),
+            ("weights version", self.weights_version.map_or("-".into(), |v| v.to_string())),
+        ];
+        let width = rows.iter().map(|(k, _)| k.len()).max().unwrap_or(0);
+        rows.iter()
+            .map(|(k, v)| format!("  {k:<width$}  {v}\n"))
+            .collect()
+    }
+}

@@ -1,0 +1,168 @@
+//! Payloads that travel over iceoryx2. Every type is `#[repr(C)]`, `Copy`, fixed size and
+//! carries an explicit type name, so any language binding that agrees on the layout can read it.
+
+use iceoryx2::prelude::ZeroCopySend;
+
+use crate::{ACTION_DIM, MAX_AGENTS, NEIGHBOURS, OBS_DIM};
+
+/// Bumped whenever a payload's layout or meaning changes.
+pub const PROTOCOL_VERSION: u32 = 1;
+
+/// `Header::flags`: first tick of an episode (agents reset their history).
+pub const FLAG_EPISODE_START: u32 = 1;
+/// `Header::flags`: the episode has ended at this tick; no command is expected.
+pub const FLAG_EPISODE_END: u32 = 2;
+/// `Header::flags`: the run is over; every process finishes and exits.
+pub const FLAG_RUN_END: u32 = 4;
+/// `Header::flags` on a command: a greeting sent once at start-up, not a command for a tick.
+pub const FLAG_HELLO: u32 = 8;
+/// `Header::flags`: a train-mode episode the agents play without exploration noise, so the
+/// critic can measure the current policy.
+pub const FLAG_EVAL_EPISODE: u32 = 16;
+
+/// Common to every payload: who may read it and which tick it belongs to.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("formation::Header")]
+pub struct Header {
+    /// [`PROTOCOL_VERSION`] of the sender.
+    pub protocol_version: u32,
+    /// Episode counter, from 0.
+    pub episode: u32,
+    /// Tick within the episode, from 0.
+    pub tick: u32,
+    /// `FLAG_*` bits.
+    pub flags: u32,
+}
+
+impl Header {
+    /// A header of this build's protocol version.
+    pub fn new(episode: u32, tick: u32, flags: u32) -> Self {
+        Self {
+            protocol_version: PROTOCOL_VERSION,
+            episode,
+            tick,
+            flags,
+        }
+    }
+
+    /// True when `flag` is set.
+    pub fn has(&self, flag: u32) -> bool {
+        self.flags & flag != 0
+    }
+}
+
+/// sim -> agent i: what robot i sees at a tick, in its own frame.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("formation::Observation")]
+pub struct ObservationMsg {
+    /// Episode, tick and flags.
+    pub header: Header,
+    /// The observing robot.
+    pub agent: u32,
+    /// Number of robots in the swarm.
+    pub n_agents: u32,
+    /// For each of the 2 neighbours: x, y, cos(dtheta), sin(dtheta), desired distance; then the
+    /// goal's x, y. See `sim::observe`.
+    pub obs: [f32; OBS_DIM],
+}
+
+/// agent i -> sim: the command for one tick.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("formation::Command")]
+pub struct CommandMsg {
+    /// Episode and tick of the observation this answers.
+    pub header: Header,
+    /// The commanding robot.
+    pub agent: u32,
+    /// Version of the policy weights that produced it (0: scripted or random).
+    pub policy_version: u32,
+    /// Forward speed, m/s.
+    pub v: f32,
+    /// Turn rate, rad/s.
+    pub w: f32,
+}
+
+/// `StateMsg::outcome`: the episode goes on.
+pub const OUTCOME_RUNNING: u32 = 0;
+/// `StateMsg::outcome`: C3 reached (terminal).
+pub const OUTCOME_SUCCESS: u32 = 1;
+/// `StateMsg::outcome`: C2, two robots collided (terminal).
+pub const OUTCOME_COLLISION: u32 = 2;
+/// `StateMsg::outcome`: the time limit (a truncation, not terminal).
+pub const OUTCOME_TIMEOUT: u32 = 3;
+/// `StateMsg::outcome`: the run was stopped mid-episode (a truncation).
+pub const OUTCOME_ABORTED: u32 = 4;
+
+/// sim -> critic (and the view): the true world at a tick, plus what led to it.
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("formation::State")]
+pub struct StateMsg {
+    /// Episode, tick and flags.
+    pub header: Header,
+    /// Number of robots; entries past it are zero.
+    pub n_agents: u32,
+    /// `OUTCOME_*` of the transition into this tick.
+    pub outcome: u32,
+    /// Shared reward of the transition into this tick (0 at tick 0).
+    pub reward: f32,
+    /// Robots whose command for the previous tick was missing (their last one was held).
+    pub missed: u32,
+    /// World poses (x, y, theta).
+    pub poses: [[f32; 3]; MAX_AGENTS],
+    /// Commands (v, w) applied in the transition into this tick.
+    pub applied: [[f32; ACTION_DIM]; MAX_AGENTS],
+    /// Desired distance of each robot's two observed edges.
+    pub desired: [[f32; NEIGHBOURS]; MAX_AGENTS],
+    /// Goal of the formation's centroid, world frame.
+    pub goal: [f32; 2],
+}
+
+impl Default for StateMsg {
+    fn default() -> Self {
+        Self {
+            header: Header::default(),
+            n_agents: 0,
+            outcome: OUTCOME_RUNNING,
+            reward: 0.0,
+            missed: 0,
+            poses: [[0.0; 3]; MAX_AGENTS],
+            applied: [[0.0; ACTION_DIM]; MAX_AGENTS],
+            desired: [[0.0; NEIGHBOURS]; MAX_AGENTS],
+            goal: [0.0; 2],
+        }
+    }
+}
+
+/// critic -> sim: how far the critic has consumed the stream (train-mode flow control).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("formation::CriticProgress")]
+pub struct CriticProgressMsg {
+    /// Protocol version of the critic.
+    pub protocol_version: u32,
+    /// Latest published actor weights version.
+    pub weights_version: u32,
+    /// Ticks (state messages) taken into the replay so far.
+    pub consumed_ticks: u64,
+    /// Gradient updates so far.
+    pub updates: u64,
+}
+
+/// critic -> agents: the user header in front of one actor's flat `[f32]` weights.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("formation::WeightsHeader")]
+pub struct WeightsHeader {
+    /// Protocol version of the critic.
+    pub protocol_version: u32,
+    /// Which actor (0 for the shared actor, else the robot index).
+    pub actor_index: u32,
+    /// Increases with every publication, from 1.
+    pub version: u32,
+    /// Number of f32 values that follow.
+    pub len: u32,
+}

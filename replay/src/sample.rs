@@ -1,0 +1,170 @@
+//! Concurrent sequence sampling (CERT) with HER goal relabelling.
+//!
+//! A sample is one transition t -> t+1 of one episode seen through windows of H ticks: the
+//! window ending at t and the one ending at t+1, for every robot at the same ticks. Ticks before
+//! the episode's start repeat tick 0 (the padding the agents use too).
+
+use formation_protocol::config::EnvConfig;
+use formation_protocol::{ACTION_DIM, OBS_DIM};
+use rand::Rng;
+
+use crate::buffer::{Episode, ReplayBuffer};
+use crate::features::{centroid, observation, state_dim, transition_reward, write_state};
+
+/// A batch of B samples, every array row-major with the batch index first.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Batch {
+    /// B.
+    pub batch_size: usize,
+    /// N.
+    pub n_agents: usize,
+    /// H.
+    pub history: usize,
+    /// [B, N, H * OBS_DIM]: each robot's observation window ending at t.
+    pub observations: Vec<f32>,
+    /// [B, N, H * OBS_DIM]: windows ending at t+1.
+    pub next_observations: Vec<f32>,
+    /// [B, H * state_dim]: critic state window ending at t.
+    pub states: Vec<f32>,
+    /// [B, H * state_dim]: window ending at t+1.
+    pub next_states: Vec<f32>,
+    /// [B, H * N * 2]: executed normalised actions of ticks t-H+1..=t, tick-major.
+    pub actions: Vec<f32>,
+    /// [B]: shared reward of t -> t+1 (recomputed when relabelled).
+    pub rewards: Vec<f32>,
+    /// [B]: 1 when t+1 is terminal (success or collision); a time limit is not terminal.
+    pub terminals: Vec<f32>,
+    /// [B]: where each sample came from (episode number, t).
+    pub origins: Vec<(u32, usize)>,
+    /// [B]: the goal used (world frame); differs from the episode's when relabelled.
+    pub goals: Vec<[f32; 2]>,
+    /// [B]: whether HER relabelled the sample.
+    pub relabelled: Vec<bool>,
+}
+
+impl Batch {
+    /// Width of one robot's observation window.
+    pub fn window_dim(&self) -> usize {
+        self.history * OBS_DIM
+    }
+
+    /// Width of the critic state window.
+    pub fn state_window_dim(&self) -> usize {
+        self.history * state_dim(self.n_agents)
+    }
+
+    /// Width of the joint action window.
+    pub fn action_window_dim(&self) -> usize {
+        self.history * self.n_agents * ACTION_DIM
+    }
+}
+
+/// Draws batches from a replay buffer.
+#[derive(Debug, Clone)]
+pub struct Sampler {
+    /// H.
+    pub history: usize,
+    /// Probability of relabelling a sample's goal with a centroid reached later (HER "future").
+    pub her_probability: f64,
+    /// The environment (for rewards of relabelled samples).
+    pub env: EnvConfig,
+}
+
+impl Sampler {
+    /// B samples, transitions drawn uniformly over the buffer; `None` when it is empty.
+    pub fn sample<R: Rng>(&self, buffer: &ReplayBuffer, batch_size: usize, rng: &mut R) -> Option<Batch> {
+        let episodes = buffer.episodes();
+        let total = buffer.transitions();
+        let first = episodes.front()?;
+        let n = first.n_agents();
+        let h = self.history;
+        let sd = state_dim(n);
+        let mut batch = Batch {
+            batch_size,
+            n_agents: n,
+            history: h,
+            observations: vec![0.0; batch_size * n * h * OBS_DIM],
+            next_observations: vec![0.0; batch_size * n * h * OBS_DIM],
+            states: vec![0.0; batch_size * h * sd],
+            next_states: vec![0.0; batch_size * h * sd],
+            actions: vec![0.0; batch_size * h * n * ACTION_DIM],
+            rewards: vec![0.0; batch_size],
+            terminals: vec![0.0; batch_size],
+            origins: Vec::with_capacity(batch_size),
+            goals: Vec::with_capacity(batch_size),
+            relabelled: Vec::with_capacity(batch_size),
+        };
+        // Cumulative transition counts to draw transitions uniformly.
+        let mut ends = Vec::with_capacity(episodes.len());
+        let mut acc = 0;
+        for e in episodes {
+            acc += e.transitions();
+            ends.push(acc);
+        }
+        for b in 0..batch_size {
+            let pick = rng.random_range(0..total);
+            let index = ends.partition_point(|&end| end <= pick);
+            let episode = &episodes[index];
+            let start = if index == 0 { 0 } else { ends[index - 1] };
+            let t = pick - start;
+            self.fill(&mut batch, b, episode, t, rng);
+        }
+        Some(batch)
+    }
+
+    /// Fills sample `b` of `batch` with transition `t` of `episode`.
+    pub fn fill<R: Rng>(&self, batch: &mut Batch, b: usize, episode: &Episode, t: usize, rng: &mut R) {
+        let n = batch.n_agents;
+        let h = self.history;
+        let sd = state_dim(n);
+        let last = episode.ticks.len() - 1;
+        debug_assert!(t < last);
+        let relabel = rng.random_bool(self.her_probability);
+        let goal = if relabel {
+            let reached = rng.random_range(t + 1..=last);
+            centroid(&episode.ticks[reached].poses)
+        } else {
+            episode.goal
+        };
+        let window_tick = |end: usize, k: usize| (end + k + 1).saturating_sub(h);
+        for (end, observations, states) in [
+            (t, &mut batch.observations, &mut batch.states),
+            (t + 1, &mut batch.next_observations, &mut batch.next_states),
+        ] {
+            let frame = episode.ticks[end].poses[0][2];
+            for k in 0..h {
+                let tick = &episode.ticks[window_tick(end, k)];
+                for agent in 0..n {
+                    let offset = ((b * n + agent) * h + k) * OBS_DIM;
+                    let obs = if relabel {
+                        observation(agent, &tick.poses, &episode.desired, goal)
+                    } else {
+                        tick.observations[agent]
+                    };
+                    observations[offset..offset + OBS_DIM].copy_from_slice(&obs);
+                }
+                let offset = (b * h + k) * sd;
+                write_state(&mut states[offset..offset + sd], &tick.poses, goal, &episode.desired, frame);
+            }
+        }
+        for k in 0..h {
+            let tick = &episode.ticks[window_tick(t, k)];
+            for agent in 0..n {
+                let offset = ((b * h + k) * n + agent) * ACTION_DIM;
+                batch.actions[offset..offset + ACTION_DIM].copy_from_slice(&tick.actions[agent]);
+            }
+        }
+        let (reward, terminal) = if relabel {
+            let (r, terminal) =
+                transition_reward(&episode.ticks[t + 1].poses, &episode.desired, goal, (t + 1) as u32, &self.env);
+            (r, terminal)
+        } else {
+            (episode.ticks[t].reward, episode.is_terminal_transition(t))
+        };
+        batch.rewards[b] = reward;
+        batch.terminals[b] = if terminal { 1.0 } else { 0.0 };
+        batch.origins.push((episode.number, t));
+        batch.goals.push(goal);
+        batch.relabelled.push(relabel);
+    }
+}

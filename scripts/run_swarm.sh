@@ -1,0 +1,195 @@
+#!/usr/bin/env bash
+# Launches one formation-control run: the sim, N agent processes and the critic, all talking
+# over iceoryx2 shared memory under one run-unique prefix. Ctrl-C ends the run cleanly.
+set -euo pipefail
+
+usage() {
+  cat <<'USAGE'
+Usage: scripts/run_swarm.sh N [flags]
+
+Starts the physics process, N robot processes and the central critic, lockstep over iceoryx2
+shared memory, and leaves results in a run directory.
+
+  N                       robots in the swarm, 3 to 64
+
+Flags:
+  --mode train|eval       train: explore and learn (default); eval: act without noise, record
+  --episodes E            stop after E episodes (eval default: 100)
+  --minutes M             stop after M minutes of wall clock (train default: 30)
+  --scripted all|i,j,...  robots that run the scripted baseline instead of the learned actor
+  --checkpoint PATH       checkpoint file or run directory: eval loads it into the agents,
+                          train resumes the critic from it (eval default: the shipped model
+                          models/formation-3robots.safetensors)
+  --seed S                seed of episodes, noise and networks (default 1)
+  --run-dir DIR           where results go (default runs/<timestamp>)
+  --viewer MODE           spawn | save | off | connect=URL (default: spawn when a `rerun`
+                          viewer and a display are present, else save)
+  --realtime              pace ticks at dt of wall-clock time instead of as fast as possible
+  --config FILE           TOML overrides of the defaults (see config.toml in any run dir)
+  -h, --help              this help
+
+Environment: FORMATION_BIN_DIR=DIR uses prebuilt binaries from DIR instead of building.
+
+Examples:
+  scripts/run_swarm.sh 3 --scripted all --mode eval --episodes 50 --seed 1 --viewer off
+  scripts/run_swarm.sh 3 --minutes 20
+  scripts/run_swarm.sh 6 --mode eval --checkpoint runs/my-training
+USAGE
+}
+
+die() { echo "run_swarm.sh: error: $*" >&2; echo "Try 'scripts/run_swarm.sh --help'." >&2; exit 2; }
+
+[[ $# -ge 1 ]] || { usage >&2; exit 2; }
+case "$1" in -h|--help) usage; exit 0 ;; esac
+N=$1; shift
+[[ "$N" =~ ^[0-9]+$ ]] || die "N must be a whole number, got '$N'"
+(( N >= 3 && N <= 64 )) || die "N must be between 3 and 64 (each robot observes two distinct neighbours), got $N"
+
+MODE=train EPISODES="" MINUTES="" SCRIPTED="" CHECKPOINT="" SEED=1 RUN_DIR="" VIEWER="" REALTIME="" CONFIG=""
+need() { [[ $# -ge 2 && -n "$2" ]] || die "$1 needs a value"; }
+while [[ $# -gt 0 ]]; do
+  case "$1" in
+    --mode) need "$@"; MODE=$2; shift 2 ;;
+    --episodes) need "$@"; EPISODES=$2; shift 2 ;;
+    --minutes) need "$@"; MINUTES=$2; shift 2 ;;
+    --scripted) need "$@"; SCRIPTED=$2; shift 2 ;;
+    --checkpoint) need "$@"; CHECKPOINT=$2; shift 2 ;;
+    --seed) need "$@"; SEED=$2; shift 2 ;;
+    --run-dir) need "$@"; RUN_DIR=$2; shift 2 ;;
+    --viewer) need "$@"; VIEWER=$2; shift 2 ;;
+    --realtime) REALTIME=1; shift ;;
+    --config) need "$@"; CONFIG=$2; shift 2 ;;
+    -h|--help) usage; exit 0 ;;
+    *) die "unknown flag '$1'" ;;
+  esac
+done
+
+[[ "$MODE" == train || "$MODE" == eval ]] || die "--mode must be train or eval, got '$MODE'"
+[[ -z "$EPISODES" || "$EPISODES" =~ ^[1-9][0-9]*$ ]] || die "--episodes must be a positive whole number, got '$EPISODES'"
+[[ -z "$MINUTES" || "$MINUTES" =~ ^[0-9]*\.?[0-9]+$ ]] || die "--minutes must be a positive number, got '$MINUTES'"
+[[ "$SEED" =~ ^[0-9]+$ ]] || die "--seed must be a whole number, got '$SEED'"
+[[ -z "$CONFIG" || -f "$CONFIG" ]] || die "--config file '$CONFIG' does not exist"
+[[ -z "$CHECKPOINT" || -e "$CHECKPOINT" ]] || die "--checkpoint '$CHECKPOINT' does not exist"
+
+# Which robots are scripted.
+declare -a IS_SCRIPTED
+for ((i = 0; i < N; i++)); do IS_SCRIPTED[i]=0; done
+case "$SCRIPTED" in
+  "") ;;
+  all) for ((i = 0; i < N; i++)); do IS_SCRIPTED[i]=1; done ;;
+  *)
+    IFS=',' read -ra picks <<<"$SCRIPTED"
+    for p in "${picks[@]}"; do
+      [[ "$p" =~ ^[0-9]+$ ]] || die "--scripted takes 'all' or indices like 0,2; got '$SCRIPTED'"
+      (( p < N )) || die "--scripted: robot $p does not exist (robots are 0..$((N - 1)))"
+      IS_SCRIPTED[p]=1
+    done ;;
+esac
+LEARNED=0
+for ((i = 0; i < N; i++)); do (( IS_SCRIPTED[i] )) || LEARNED=$((LEARNED + 1)); done
+
+ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+SHIPPED_MODEL="$ROOT/models/formation-3robots.safetensors"
+if [[ "$MODE" == eval && $LEARNED -gt 0 && -z "$CHECKPOINT" ]]; then
+  [[ -f "$SHIPPED_MODEL" ]] || die "eval with learned robots needs --checkpoint (no shipped model at $SHIPPED_MODEL)"
+  CHECKPOINT=$SHIPPED_MODEL
+fi
+
+case "$VIEWER" in
+  "") if command -v rerun >/dev/null 2>&1 && [[ -n "${DISPLAY:-}${WAYLAND_DISPLAY:-}" ]]; then VIEWER=spawn; else VIEWER=save; fi
+      echo "viewer: $VIEWER (choose with --viewer spawn|save|off|connect=URL)" ;;
+  spawn|save|off|connect=*) ;;
+  *) die "--viewer must be spawn, save, off or connect=URL, got '$VIEWER'" ;;
+esac
+
+if [[ -n "${FORMATION_BIN_DIR:-}" ]]; then
+  BIN=$FORMATION_BIN_DIR
+else
+  echo "building (release)..."
+  (cd "$ROOT" && cargo build --release --quiet --bins) || die "build failed"
+  BIN=$ROOT/target/release
+fi
+for b in formation-sim formation-agent formation-critic; do
+  [[ -x "$BIN/$b" ]] || die "missing binary $BIN/$b"
+done
+
+RUN_DIR=${RUN_DIR:-runs/$(date +%Y%m%d-%H%M%S)}
+mkdir -p "$RUN_DIR/logs"
+RUN_ID="r$(date +%s | tail -c 7)p$$"
+COMMON=(--agents "$N" --mode "$MODE" --run-id "$RUN_ID" --run-dir "$RUN_DIR" --seed "$SEED")
+[[ -n "$CONFIG" ]] && COMMON+=(--config "$CONFIG")
+
+# Validate the configuration once before anything starts.
+"$BIN/formation-sim" "${COMMON[@]}" --check-config || exit 2
+
+declare -a PIDS=()
+cleanup() {
+  local pid
+  for pid in "${PIDS[@]}"; do kill -TERM "$pid" 2>/dev/null || true; done
+  sleep 0.5
+  for pid in "${PIDS[@]}"; do kill -KILL "$pid" 2>/dev/null || true; wait "$pid" 2>/dev/null || true; done
+  rm -f /dev/shm/fc_"${RUN_ID}"_* 2>/dev/null || true
+  rm -rf "${TMPDIR:-/tmp}/formation-iox2/$RUN_ID" 2>/dev/null || true
+}
+trap cleanup EXIT
+
+CRITIC_ARGS=("${COMMON[@]}")
+[[ "$MODE" == train && -n "$CHECKPOINT" ]] && CRITIC_ARGS+=(--checkpoint "$CHECKPOINT")
+"$BIN/formation-critic" "${CRITIC_ARGS[@]}" 2> >(tee "$RUN_DIR/logs/critic.log" >&2) &
+CRITIC_PID=$!
+PIDS+=("$CRITIC_PID")
+
+for ((i = 0; i < N; i++)); do
+  AGENT_ARGS=("${COMMON[@]}" --agent "$i")
+  if (( IS_SCRIPTED[i] )); then
+    AGENT_ARGS+=(--policy scripted)
+  else
+    AGENT_ARGS+=(--policy learned)
+    [[ "$MODE" == eval ]] && AGENT_ARGS+=(--checkpoint "$CHECKPOINT")
+  fi
+  "$BIN/formation-agent" "${AGENT_ARGS[@]}" >"$RUN_DIR/logs/agent-$i.log" 2>&1 &
+  PIDS+=("$!")
+done
+
+SIM_ARGS=("${COMMON[@]}" --viewer "$VIEWER")
+[[ -n "$EPISODES" ]] && SIM_ARGS+=(--episodes "$EPISODES")
+[[ -n "$MINUTES" ]] && SIM_ARGS+=(--minutes "$MINUTES")
+[[ -n "$REALTIME" ]] && SIM_ARGS+=(--realtime)
+[[ -n "$SCRIPTED" ]] && SIM_ARGS+=(--scripted "$SCRIPTED")
+"$BIN/formation-sim" "${SIM_ARGS[@]}" >"$RUN_DIR/logs/sim.log" 2>&1 &
+SIM_PID=$!
+PIDS+=("$SIM_PID")
+
+# Ctrl-C or SIGTERM: ask the sim to end the run; it tells everyone else.
+trap 'echo; echo "stopping: the sim closes the episode and ends the run..."; kill -INT "$SIM_PID" 2>/dev/null || true' INT TERM
+
+echo "run $RUN_ID: sim, $N agents and the critic started; results in $RUN_DIR (logs in $RUN_DIR/logs)"
+status=0
+while true; do
+  rc=0
+  wait "$SIM_PID" || rc=$?
+  kill -0 "$SIM_PID" 2>/dev/null && continue # woken by Ctrl-C: keep waiting for the sim
+  status=$rc
+  break
+done
+if (( status != 0 )); then
+  echo "run_swarm.sh: the sim exited with status $status:" >&2
+  tail -n 5 "$RUN_DIR/logs/sim.log" >&2
+fi
+# The others end on the sim's end-of-run message; give them a moment, then stop them.
+for pid in "${PIDS[@]}"; do
+  for _ in $(seq 1 100); do kill -0 "$pid" 2>/dev/null || break; sleep 0.1; done
+done
+for ((i = 0; i < N; i++)); do
+  if grep -q "error" "$RUN_DIR/logs/agent-$i.log" 2>/dev/null; then
+    echo "agent $i reported:" >&2; tail -n 3 "$RUN_DIR/logs/agent-$i.log" >&2
+  fi
+done
+critic_status=0
+wait "$CRITIC_PID" 2>/dev/null || critic_status=$?
+if (( critic_status != 0 )); then
+  echo "run_swarm.sh: the critic exited with status $critic_status" >&2
+  (( status != 0 )) || status=$critic_status
+fi
+echo "results: $RUN_DIR (summary.json, episodes.csv, config.toml, logs/)"
+exit "$status"

@@ -1,0 +1,225 @@
+//! Random formations and episodes: robots start exactly in formation around a random centroid,
+//! with a random goal 1 to 2.5 m away.
+
+use formation_protocol::config::EnvConfig;
+use formation_protocol::{NEIGHBOURS, neighbours};
+use rand::Rng;
+
+use crate::physics::{Pose, wrap_angle};
+use crate::task::centroid;
+
+/// Closest two robots of a formation may be, as a multiple of eps_coll (keeps starts safe).
+const MIN_SEPARATION_FACTOR: f64 = 2.5;
+/// Relaxation sweeps that pull a perturbed ring into the allowed edge lengths.
+const RELAX_SWEEPS: usize = 400;
+
+/// Where an episode starts and where it must go.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EpisodeInit {
+    /// Start poses (in formation).
+    pub poses: Vec<Pose>,
+    /// Desired length of each robot's two observed edges.
+    pub desired: Vec<[f64; NEIGHBOURS]>,
+    /// Goal for the centroid.
+    pub goal: [f64; 2],
+}
+
+/// The observed (directed) edges of a swarm of `n` robots.
+pub fn observed_edges(n: usize) -> impl Iterator<Item = (usize, usize, usize)> {
+    (0..n).flat_map(move |i| neighbours(i, n).into_iter().enumerate().map(move |(k, j)| (i, k, j)))
+}
+
+fn edge_ok(length: f64, env: &EnvConfig) -> bool {
+    length >= env.edge_min_m && length <= env.edge_max_m
+}
+
+/// A random shape of `n` robots, centred on the origin, whose observed edges all lie in
+/// [edge_min, edge_max] and whose robots are at least a safe distance apart.
+///
+/// Robots start on a perturbed ring (any N closes the triangle strip), then alternate
+/// projections move each edge into range and push close pairs apart; a shape that does not
+/// settle is discarded and drawn again.
+pub fn random_shape<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> Vec<[f64; 2]> {
+    let min_sep = env.eps_coll_m * MIN_SEPARATION_FACTOR;
+    let mid_edge = 0.5 * (env.edge_min_m + env.edge_max_m);
+    loop {
+        let step = std::f64::consts::TAU / n as f64;
+        // Ring radius that puts the second neighbour (the longer chord for n >= 5) near mid range.
+        let chord_angle = if n >= 5 { 2.0 * step } else { step };
+        let base_radius = rng.random_range(0.6..1.2) * mid_edge / (2.0 * (0.5 * chord_angle).sin());
+        let mut points: Vec<[f64; 2]> = (0..n)
+            .map(|i| {
+                let angle = i as f64 * step + rng.random_range(-0.35..0.35) * step;
+                let zigzag = if n >= 5 && i % 2 == 1 { -0.35 * env.edge_min_m } else { 0.0 };
+                let radius = base_radius * rng.random_range(0.75..1.25) + zigzag;
+                [radius * angle.cos(), radius * angle.sin()]
+            })
+            .collect();
+        for _ in 0..RELAX_SWEEPS {
+            let mut settled = true;
+            for (i, _, j) in observed_edges(n) {
+                let (dx, dy) = (points[j][0] - points[i][0], points[j][1] - points[i][1]);
+                let d = dx.hypot(dy).max(1e-9);
+                let target = d.clamp(env.edge_min_m * 1.02, env.edge_max_m * 0.98);
+                if !edge_ok(d, env) {
+                    settled = false;
+                }
+                let corr = 0.5 * (d - target) / d;
+                points[i][0] += corr * dx;
+                points[i][1] += corr * dy;
+                points[j][0] -= corr * dx;
+                points[j][1] -= corr * dy;
+            }
+            for i in 0..n {
+                for j in i + 1..n {
+                    let (dx, dy) = (points[j][0] - points[i][0], points[j][1] - points[i][1]);
+                    let d = dx.hypot(dy).max(1e-9);
+                    if d < min_sep {
+                        settled = false;
+                        let corr = 0.5 * (min_sep * 1.05 - d) / d;
+                        points[i][0] -= corr * dx;
+                        points[i][1] -= corr * dy;
+                        points[j][0] += corr * dx;
+                        points[j][1] += corr * dy;
+                    }
+                }
+            }
+            if settled {
+                break;
+            }
+        }
+        let valid = observed_edges(n).all(|(i, _, j)| {
+            edge_ok((points[j][0] - points[i][0]).hypot(points[j][1] - points[i][1]), env)
+        }) && (0..n).all(|i| {
+            (i + 1..n).all(|j| (points[j][0] - points[i][0]).hypot(points[j][1] - points[i][1]) >= min_sep)
+        });
+        if valid {
+            let c = centroid(&points.iter().map(|p| Pose { x: p[0], y: p[1], theta: 0.0 }).collect::<Vec<_>>());
+            return points.iter().map(|p| [p[0] - c[0], p[1] - c[1]]).collect();
+        }
+    }
+}
+
+/// A random episode: a random shape, rotated to a common random heading, placed at a random
+/// centroid, with each robot's heading jittered, and a goal in the arena.
+pub fn random_episode<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> EpisodeInit {
+    let arena = env.effective_arena_m(n);
+    let shape = random_shape(n, env, rng);
+    let reach = shape.iter().map(|p| p[0].hypot(p[1])).fold(0.0, f64::max);
+    let margin = reach + 0.5;
+    let heading = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+    let (s, c) = heading.sin_cos();
+    loop {
+        let centre = [rng.random_range(margin..arena - margin), rng.random_range(margin..arena - margin)];
+        let goal_angle = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+        let goal_dist = rng.random_range(env.goal_min_m..=env.goal_max_m);
+        let goal = [centre[0] + goal_dist * goal_angle.cos(), centre[1] + goal_dist * goal_angle.sin()];
+        if !(margin..=arena - margin).contains(&goal[0]) || !(margin..=arena - margin).contains(&goal[1]) {
+            continue;
+        }
+        let poses: Vec<Pose> = shape
+            .iter()
+            .map(|p| Pose {
+                x: centre[0] + c * p[0] - s * p[1],
+                y: centre[1] + s * p[0] + c * p[1],
+                theta: wrap_angle(heading + rng.random_range(-1.0..=1.0) * env.heading_jitter_rad),
+            })
+            .collect();
+        let desired = (0..n)
+            .map(|i| {
+                let nb = neighbours(i, n);
+                let d = |j: usize| (poses[i].x - poses[j].x).hypot(poses[i].y - poses[j].y);
+                [d(nb[0]), d(nb[1])]
+            })
+            .collect();
+        return EpisodeInit { poses, desired, goal };
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::task::conditions;
+    use rand::SeedableRng;
+    use rand::rngs::StdRng;
+
+    #[test]
+    fn episodes_start_in_formation_with_valid_edges_for_many_sizes() {
+        let env = EnvConfig::default();
+        let mut rng = StdRng::seed_from_u64(7);
+        for n in [3, 4, 5, 6, 7, 12, 24, 48, 64] {
+            for _ in 0..5 {
+                let init = random_episode(n, &env, &mut rng);
+                let c = conditions(&init.poses, &init.desired, init.goal, &env);
+                assert!(c.in_formation && !c.collision, "n={n}: {c:?}");
+                for row in &init.desired {
+                    for &d in row {
+                        assert!(edge_ok(d, &env), "n={n}: edge {d}");
+                    }
+                }
+                let start = centroid(&init.poses);
+                let dist = (start[0] - init.goal[0]).hypot(start[1] - init.goal[1]);
+                assert!((env.goal_min_m - 1e-9..=env.goal_max_m + 1e-9).contains(&dist));
+                let arena = env.effective_arena_m(n);
+                assert!(init.poses.iter().all(|p| (0.0..=arena).contains(&p.x) && (0.0..=arena).contains(&p.y)));
+            }
+        }
+    }
+
+    #[test]
+    fn neighbour_graph_is_rigid() {
+        // Laman count: a minimally rigid 2-D graph on n >= 3 vertices has at least 2n - 3
+        // independent edges; the triangle strip i -> i+1, i+2 has exactly 2n undirected edges for
+        // n >= 5, and every vertex is in at least two triangles. Check rigidity numerically:
+        // the rigidity matrix of a generic placement has rank 2n - 3.
+        let env = EnvConfig::default();
+        let mut rng = StdRng::seed_from_u64(3);
+        for n in 3..=64 {
+            let shape = random_shape(n, &env, &mut rng);
+            let mut edges: Vec<(usize, usize)> =
+                observed_edges(n).map(|(i, _, j)| (i.min(j), i.max(j))).collect();
+            edges.sort_unstable();
+            edges.dedup();
+            let rows: Vec<Vec<f64>> = edges
+                .iter()
+                .map(|&(i, j)| {
+                    let mut row = vec![0.0; 2 * n];
+                    let (dx, dy) = (shape[i][0] - shape[j][0], shape[i][1] - shape[j][1]);
+                    row[2 * i] = dx;
+                    row[2 * i + 1] = dy;
+                    row[2 * j] = -dx;
+                    row[2 * j + 1] = -dy;
+                    row
+                })
+                .collect();
+            assert_eq!(rank(rows), 2 * n - 3, "n = {n}: the neighbour graph is not rigid");
+        }
+    }
+
+    /// Rank by Gaussian elimination with partial pivoting.
+    fn rank(mut rows: Vec<Vec<f64>>) -> usize {
+        let cols = rows.first().map_or(0, Vec::len);
+        let mut rank = 0;
+        for col in 0..cols {
+            let Some(pivot) = (rank..rows.len()).max_by(|&a, &b| rows[a][col].abs().total_cmp(&rows[b][col].abs()))
+            else {
+                break;
+            };
+            if rows[pivot][col].abs() < 1e-9 {
+                continue;
+            }
+            rows.swap(rank, pivot);
+            let pivot_row = rows[rank].clone();
+            for (r, row) in rows.iter_mut().enumerate() {
+                if r != rank {
+                    let factor = row[col] / pivot_row[col];
+                    for (value, pivot_value) in row[col..].iter_mut().zip(&pivot_row[col..]) {
+                        *value -= factor * pivot_value;
+                    }
+                }
+            }
+            rank += 1;
+        }
+        rank
+    }
+}

@@ -1,0 +1,496 @@
+//! The sim's tick loop over iceoryx2: publish every observation and the state, wait for every
+//! command of the tick (or the timeout), hold missing commands, step, score, repeat.
+//!
+//! Generic over the iceoryx2 service type: `ipc::Service` across processes, `local::Service`
+//! for all roles in one process.
+
+use std::path::PathBuf;
+use std::sync::mpsc::SyncSender;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use formation_protocol::cli::{Mode, write_atomically};
+use formation_protocol::config::RunConfig;
+use formation_protocol::services::{self, RunIdentity, Sizing};
+use formation_protocol::summary::Summary;
+use formation_protocol::termination_requested;
+use formation_protocol::wire::*;
+use hdrhistogram::Histogram;
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+
+use crate::formation::random_episode;
+use crate::report::{EpisodeLog, EpisodeRecord, fill_episode_figures, outcome_name};
+use crate::task::Outcome;
+use crate::world::World;
+
+/// How the sim runs.
+#[derive(Debug, Clone)]
+pub struct SimOptions {
+    /// Robots in the swarm.
+    pub n_agents: usize,
+    /// Train or eval (recorded in the summary).
+    pub mode: Mode,
+    /// Stop after this many episodes.
+    pub episodes: Option<u64>,
+    /// Stop after this much wall-clock time.
+    pub minutes: Option<f64>,
+    /// Seed of the episode generator.
+    pub seed: u64,
+    /// Pace ticks at dt of wall-clock time instead of running as fast as possible.
+    pub realtime: bool,
+    /// Wait for the critic at start-up and never run more than `critic_window` ticks ahead.
+    pub expect_critic: bool,
+    /// Robots that run the scripted baseline (recorded in the summary).
+    pub scripted: Vec<usize>,
+    /// Where results go.
+    pub run_dir: PathBuf,
+    /// The configuration as run.
+    pub config: RunConfig,
+}
+
+/// Where the view gets its states: the sim offers each logged state without ever waiting.
+pub type StateTap = SyncSender<StateMsg>;
+
+struct AgentPorts<S: Service> {
+    observation: Publisher<S, ObservationMsg, ()>,
+    wake: Notifier<S>,
+    command: Subscriber<S, CommandMsg, ()>,
+}
+
+struct Ports<S: Service> {
+    agents: Vec<AgentPorts<S>>,
+    command_ready: Listener<S>,
+    state: Publisher<S, StateMsg, ()>,
+    critic_wake: Notifier<S>,
+    critic_progress: Subscriber<S, CriticProgressMsg, ()>,
+    critic_progress_ready: Listener<S>,
+}
+
+fn open_ports<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Ports<S>> {
+    let err = |what: &str| format!("sim cannot create {what}");
+    let mut agents = Vec::with_capacity(sizing.n_agents);
+    for agent in 0..sizing.n_agents {
+        agents.push(AgentPorts {
+            observation: services::observation_stream(node, sizing, agent)?
+                .publisher_builder()
+                .create()
+                .map_err(|e| anyhow::anyhow!("{}: {e:?}", err("observation publisher")))?,
+            wake: services::observation_event(node, sizing, agent)?
+                .notifier_builder()
+                .create()
+                .map_err(|e| anyhow::anyhow!("{}: {e:?}", err("observation notifier")))?,
+            command: services::command_stream(node, sizing, agent)?
+                .subscriber_builder()
+                .buffer_size(sizing.stream_buffer)
+                .create()
+                .map_err(|e| anyhow::anyhow!("{}: {e:?}", err("command subscriber")))?,
+        });
+    }
+    Ok(Ports {
+        agents,
+        command_ready: services::command_event(node, sizing)?
+            .listener_builder()
+            .create()
+            .map_err(|e| anyhow::anyhow!("{}: {e:?}", err("command listener")))?,
+        state: services::state_stream(node, sizing)?
+            .publisher_builder()
+            .create()
+            .map_err(|e| anyhow::anyhow!("{}: {e:?}", err("state publisher")))?,
+        critic_wake: services::critic_wake_event(node, sizing)?
+            .notifier_builder()
+            .create()
+            .map_err(|e| anyhow::anyhow!("{}: {e:?}", err("critic notifier")))?,
+        critic_progress: services::critic_progress_stream(node, sizing)?
+            .subscriber_builder()
+            .create()
+            .map_err(|e| anyhow::anyhow!("{}: {e:?}", err("progress subscriber")))?,
+        critic_progress_ready: services::critic_progress_event(node, sizing)?
+            .listener_builder()
+            .create()
+            .map_err(|e| anyhow::anyhow!("{}: {e:?}", err("progress listener")))?,
+    })
+}
+
+/// Counters of the stream, kept across episodes.
+#[derive(Debug, Default)]
+struct StreamCounters {
+    env_steps: u64,
+    missed_ticks: u64,
+    rejected_commands: u64,
+    deadline_misses: u64,
+    critic_consumed: u64,
+    published_ticks: u64,
+}
+
+/// Why the loop stopped.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Stop {
+    Budget,
+    Signal,
+}
+
+/// Runs the sim until the episode or time budget is spent or a termination signal arrives;
+/// writes `episodes.csv` and `summary.json`; returns the summary.
+pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option<StateTap>) -> Result<Summary> {
+    let node = services::create_node::<S>(identity, "sim")?;
+    let sizing = Sizing::new(options.n_agents, options.config.ticks.critic_window);
+    let ports = open_ports(&node, &sizing)?;
+    let mut log = EpisodeLog::create(&options.run_dir)?;
+    let mut counters = StreamCounters::default();
+
+    wait_for_peers(&ports, options, &mut counters)?;
+
+    let env = &options.config.env;
+    let mut rng = StdRng::seed_from_u64(options.seed);
+    let timeout = Duration::from_millis(options.config.ticks.command_timeout_ms);
+    let dt = Duration::from_secs_f64(env.dt_s);
+    let budget = options.minutes.map(|m| Duration::from_secs_f64(m * 60.0));
+    let mut histogram = Histogram::<u64>::new_with_bounds(1, 60_000_000, 3).context("tick histogram")?;
+    let n = options.n_agents;
+    let mut last_commands = vec![(0.0f64, 0.0f64); n];
+    let mut received = vec![false; n];
+    let started = Instant::now();
+    let mut stepping_time = Duration::ZERO;
+    let mut next_deadline = Instant::now();
+    let mut stop = Stop::Budget;
+
+    'episodes: for episode in 0u32.. {
+        if options.episodes.is_some_and(|e| u64::from(episode) >= e) || budget.is_some_and(|b| started.elapsed() >= b) {
+            break;
+        }
+        let mut world = World::new(env, random_episode(n, env, &mut rng));
+        let log_world = tap.is_some()
+            && (options.mode == Mode::Eval || episode % options.config.view.world_every_episodes == 0);
+        last_commands.iter_mut().for_each(|c| *c = (0.0, 0.0));
+        let eval_episode =
+            options.mode == Mode::Train && episode % options.config.learn.eval_every_episodes == 0;
+        let mut episode_return = 0.0;
+        let mut formation_ticks = 0u32;
+        let mut missed_this_episode = 0u64;
+        let mut last = world.conditions();
+        let mut outcome = Outcome::Running;
+        let mut reward = 0.0;
+        let mut missed_mask = 0u32;
+        let mut applied = vec![(0.0f64, 0.0f64); n];
+
+        for tick in 0u32.. {
+            let tick_started = Instant::now();
+            let ends = outcome != Outcome::Running;
+            let flags = if tick == 0 { FLAG_EPISODE_START } else { 0 }
+                | if ends { FLAG_EPISODE_END } else { 0 }
+                | if eval_episode { FLAG_EVAL_EPISODE } else { 0 };
+            let header = Header::new(episode, tick, flags);
+            publish_observations(&ports, &world, header)?;
+            let state = publish_state(&ports, &world, header, outcome, reward, missed_mask, &applied)?;
+            counters.published_ticks += 1;
+            if let Some(tap) = &tap
+                && log_world
+            {
+                let _dropped_when_view_is_behind = tap.try_send(state);
+            }
+            if options.expect_critic
+                && (ends || counters.published_ticks % u64::from((options.config.ticks.critic_window / 2).max(1)) == 0)
+            {
+                ports.critic_wake.notify().map_err(|e| anyhow::anyhow!("critic wake: {e:?}"))?;
+            }
+            if ends {
+                log.push(EpisodeRecord {
+                    episode,
+                    outcome: outcome_name(Some(outcome)),
+                    steps: world.steps,
+                    episode_return,
+                    final_edge_error_m: last.mean_edge_error,
+                    final_goal_distance_m: last.goal_distance,
+                    formation_hold_rate: f64::from(formation_ticks) / f64::from(world.steps.max(1)),
+                    missed_ticks: missed_this_episode,
+                    wall_s: started.elapsed().as_secs_f64(),
+                })?;
+                break;
+            }
+
+            // Wait for this tick's commands.
+            let deadline = if options.realtime { next_deadline.max(tick_started) + dt } else { tick_started + timeout };
+            received.iter_mut().for_each(|r| *r = false);
+            let mut pending = n;
+            loop {
+                pending -= drain_commands(&ports, header, &mut received, &mut last_commands, &mut counters);
+                if pending == 0 {
+                    break;
+                }
+                let now = Instant::now();
+                if now >= deadline {
+                    break;
+                }
+                ports
+                    .command_ready
+                    .timed_wait(|_| {}, deadline - now)
+                    .map_err(|e| anyhow::anyhow!("waiting for commands: {e:?}"))?;
+            }
+            missed_mask = 0;
+            for (agent, got) in received.iter().enumerate() {
+                if !got {
+                    missed_mask |= 1 << agent.min(31);
+                }
+            }
+            counters.missed_ticks += pending as u64;
+            missed_this_episode += pending as u64;
+            applied.copy_from_slice(&last_commands);
+            let result = world.step(&applied);
+            for a in applied.iter_mut() {
+                *a = env.clamp_command(a.0, a.1);
+            }
+            counters.env_steps += 1;
+            reward = result.reward;
+            episode_return += result.reward;
+            outcome = result.outcome;
+            last = result.conditions;
+            if last.in_formation {
+                formation_ticks += 1;
+            }
+            let tick_time = tick_started.elapsed();
+            stepping_time += tick_time;
+            let _ = histogram.record((tick_time.as_micros() as u64).max(1));
+
+            if options.realtime {
+                next_deadline = next_deadline.max(tick_started) + dt;
+                let now = Instant::now();
+                if now > next_deadline {
+                    counters.deadline_misses += 1;
+                    next_deadline = now;
+                } else {
+                    std::thread::sleep(next_deadline - now);
+                }
+            }
+            if options.expect_critic {
+                wait_for_critic(&ports, options, &mut counters)?;
+            }
+            if termination_requested() {
+                stop = Stop::Signal;
+                // Close the episode as aborted so the critic sees a truncation.
+                let header = Header::new(episode, tick + 1, FLAG_EPISODE_END);
+                publish_observations(&ports, &world, header)?;
+                publish_state(&ports, &world, header, Outcome::Timeout, reward, missed_mask, &applied)?;
+                log.push(EpisodeRecord {
+                    episode,
+                    outcome: outcome_name(None),
+                    steps: world.steps,
+                    episode_return,
+                    final_edge_error_m: last.mean_edge_error,
+                    final_goal_distance_m: last.goal_distance,
+                    formation_hold_rate: f64::from(formation_ticks) / f64::from(world.steps.max(1)),
+                    missed_ticks: missed_this_episode,
+                    wall_s: started.elapsed().as_secs_f64(),
+                })?;
+                break 'episodes;
+            }
+        }
+    }
+
+    let mut summary = Summary {
+        mode: options.mode.as_str().into(),
+        n_agents: n,
+        seed: options.seed,
+        scripted_agents: options.scripted.clone(),
+        env_steps: counters.env_steps,
+        env_steps_per_s: counters.env_steps as f64 / stepping_time.as_secs_f64().max(1e-9),
+        tick_p50_us: histogram.value_at_quantile(0.5) as f64,
+        tick_p99_us: histogram.value_at_quantile(0.99) as f64,
+        missed_ticks: counters.missed_ticks,
+        rejected_commands: counters.rejected_commands,
+        deadline_misses: counters.deadline_misses,
+        wall_s: started.elapsed().as_secs_f64(),
+        ..Summary::default()
+    };
+    fill_episode_figures(&mut summary, log.records());
+    let path = options.run_dir.join("summary.json");
+    write_atomically(&path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
+
+    // Tell everyone the run is over (after summary.json exists, so the critic can extend it).
+    let header = Header::new(u32::MAX, 0, FLAG_RUN_END | FLAG_EPISODE_END);
+    for agent in &ports.agents {
+        let mut sample = agent.observation.loan().map_err(|e| anyhow::anyhow!("loan: {e:?}"))?;
+        sample.payload_mut().header = header;
+        sample.send().map_err(|e| anyhow::anyhow!("send: {e:?}"))?;
+        agent.wake.notify().map_err(|e| anyhow::anyhow!("notify: {e:?}"))?;
+    }
+    let mut sample = ports.state.loan().map_err(|e| anyhow::anyhow!("loan: {e:?}"))?;
+    sample.payload_mut().header = header;
+    sample.send().map_err(|e| anyhow::anyhow!("send: {e:?}"))?;
+    ports.critic_wake.notify().map_err(|e| anyhow::anyhow!("notify: {e:?}"))?;
+    if stop == Stop::Signal {
+        eprintln!("sim: stopped by signal after {} episodes", log.records().len());
+    }
+    Ok(summary)
+}
+
+/// Waits until every agent has greeted (and the critic, when expected).
+fn wait_for_peers<S: Service>(ports: &Ports<S>, options: &SimOptions, counters: &mut StreamCounters) -> Result<()> {
+    let deadline = Instant::now() + Duration::from_secs(options.config.ticks.startup_timeout_s);
+    let mut greeted = vec![false; ports.agents.len()];
+    let mut critic_ready = !options.expect_critic;
+    loop {
+        for (agent, ports) in ports.agents.iter().enumerate() {
+            while let Some(sample) = ports.command.receive().map_err(|e| anyhow::anyhow!("receive: {e:?}"))? {
+                if sample.payload().header.has(FLAG_HELLO) {
+                    check_protocol(sample.payload().header.protocol_version, &format!("agent {agent}"))?;
+                    greeted[agent] = true;
+                }
+            }
+        }
+        if !critic_ready {
+            critic_ready = drain_progress(ports, counters)?;
+        }
+        if critic_ready && greeted.iter().all(|&g| g) {
+            return Ok(());
+        }
+        if termination_requested() {
+            bail!("sim: stopped by signal while waiting for the swarm to connect");
+        }
+        if Instant::now() >= deadline {
+            let missing: Vec<usize> = (0..greeted.len()).filter(|&a| !greeted[a]).collect();
+            bail!(
+                "sim: after {} s, agents {missing:?} {}have not connected (run id and --agents must match)",
+                options.config.ticks.startup_timeout_s,
+                if critic_ready { "" } else { "and the critic " }
+            );
+        }
+        ports
+            .command_ready
+            .timed_wait(|_| {}, Duration::from_millis(50))
+            .map_err(|e| anyhow::anyhow!("waiting for agents: {e:?}"))?;
+    }
+}
+
+fn check_protocol(version: u32, who: &str) -> Result<()> {
+    if version != PROTOCOL_VERSION {
+        bail!("{who} speaks protocol version {version}, this sim speaks {PROTOCOL_VERSION}: rebuild all binaries together");
+    }
+    Ok(())
+}
+
+/// Reads the critic's latest progress; true when any arrived.
+fn drain_progress<S: Service>(ports: &Ports<S>, counters: &mut StreamCounters) -> Result<bool> {
+    let mut any = false;
+    while let Some(sample) = ports.critic_progress.receive().map_err(|e| anyhow::anyhow!("receive: {e:?}"))? {
+        check_protocol(sample.payload().protocol_version, "the critic")?;
+        counters.critic_consumed = sample.payload().consumed_ticks;
+        any = true;
+    }
+    Ok(any)
+}
+
+/// Blocks (event-driven) while the sim is more than `critic_window` ticks ahead of the critic.
+fn wait_for_critic<S: Service>(ports: &Ports<S>, options: &SimOptions, counters: &mut StreamCounters) -> Result<()> {
+    let window = u64::from(options.config.ticks.critic_window);
+    let silence = Duration::from_millis(options.config.ticks.sim_silence_ms.max(1000) * 5);
+    let mut waited = Duration::ZERO;
+    drain_progress(ports, counters)?;
+    while counters.published_ticks.saturating_sub(counters.critic_consumed) > window {
+        let step = Duration::from_millis(100);
+        ports
+            .critic_progress_ready
+            .timed_wait(|_| {}, step)
+            .map_err(|e| anyhow::anyhow!("waiting for the critic: {e:?}"))?;
+        if !drain_progress(ports, counters)? {
+            waited += step;
+        }
+        if waited >= silence {
+            bail!("sim: the critic has consumed nothing for {} s; is it alive?", silence.as_secs());
+        }
+        ports.critic_wake.notify().map_err(|e| anyhow::anyhow!("critic wake: {e:?}"))?;
+        if termination_requested() {
+            return Ok(());
+        }
+    }
+    Ok(())
+}
+
+/// Takes every pending command; returns how many agents delivered this tick's command.
+fn drain_commands<S: Service>(
+    ports: &Ports<S>,
+    header: Header,
+    received: &mut [bool],
+    last_commands: &mut [(f64, f64)],
+    counters: &mut StreamCounters,
+) -> usize {
+    let mut arrived = 0;
+    for (agent, agent_ports) in ports.agents.iter().enumerate() {
+        if received[agent] {
+            continue;
+        }
+        while let Ok(Some(sample)) = agent_ports.command.receive() {
+            let cmd = sample.payload();
+            if cmd.header.has(FLAG_HELLO) {
+                continue;
+            }
+            let valid = cmd.header.protocol_version == PROTOCOL_VERSION
+                && cmd.agent as usize == agent
+                && cmd.v.is_finite()
+                && cmd.w.is_finite();
+            if !valid {
+                counters.rejected_commands += 1;
+                eprintln!("sim: rejected a malformed command from agent {agent}: {cmd:?}");
+                continue;
+            }
+            if cmd.header.episode != header.episode || cmd.header.tick != header.tick {
+                // A late answer to an earlier tick: already counted as missed.
+                continue;
+            }
+            last_commands[agent] = (f64::from(cmd.v), f64::from(cmd.w));
+            received[agent] = true;
+            arrived += 1;
+            break;
+        }
+    }
+    arrived
+}
+
+fn publish_observations<S: Service>(ports: &Ports<S>, world: &World, header: Header) -> Result<()> {
+    let n = world.n_agents() as u32;
+    for (agent, agent_ports) in ports.agents.iter().enumerate() {
+        let mut sample = agent_ports.observation.loan().map_err(|e| anyhow::anyhow!("loan observation: {e:?}"))?;
+        let msg = sample.payload_mut();
+        msg.header = header;
+        msg.agent = agent as u32;
+        msg.n_agents = n;
+        msg.obs = world.observation(agent);
+        sample.send().map_err(|e| anyhow::anyhow!("send observation: {e:?}"))?;
+        if !header.has(FLAG_EPISODE_END) {
+            agent_ports.wake.notify().map_err(|e| anyhow::anyhow!("wake agent {agent}: {e:?}"))?;
+        }
+    }
+    Ok(())
+}
+
+fn publish_state<S: Service>(
+    ports: &Ports<S>,
+    world: &World,
+    header: Header,
+    outcome: Outcome,
+    reward: f64,
+    missed: u32,
+    applied: &[(f64, f64)],
+) -> Result<StateMsg> {
+    let mut sample = ports.state.loan().map_err(|e| anyhow::anyhow!("loan state: {e:?}"))?;
+    let msg = sample.payload_mut();
+    msg.header = header;
+    msg.n_agents = world.n_agents() as u32;
+    msg.outcome = outcome.code();
+    msg.reward = reward as f32;
+    msg.missed = missed;
+    for (agent, pose) in world.poses.iter().enumerate() {
+        msg.poses[agent] = [pose.x as f32, pose.y as f32, pose.theta as f32];
+        msg.applied[agent] = [applied[agent].0 as f32, applied[agent].1 as f32];
+        msg.desired[agent] = [world.desired[agent][0] as f32, world.desired[agent][1] as f32];
+    }
+    msg.goal = [world.goal[0] as f32, world.goal[1] as f32];
+    let copy = *msg;
+    sample.send().map_err(|e| anyhow::anyhow!("send state: {e:?}"))?;
+    Ok(copy)
+}

@@ -1,0 +1,109 @@
+//! `formation-sim`: the physics process of a run. Usually started by `scripts/run_swarm.sh`.
+
+use std::process::ExitCode;
+
+use anyhow::Result;
+use clap::Parser;
+use formation_protocol::cli::{Mode, RunArgs, prepare_run_dir};
+use formation_sim::lockstep::{SimOptions, run};
+use iceoryx2::prelude::*;
+
+/// Steps the unicycle physics, scores the paper's reward and drives N agent processes in
+/// lockstep over iceoryx2 shared memory.
+#[derive(Debug, Parser)]
+#[command(version, about, long_about = None)]
+struct Cli {
+    #[command(flatten)]
+    run: RunArgs,
+    /// Stop after this many episodes (default: 100 in eval mode, unlimited in train mode).
+    #[arg(long)]
+    episodes: Option<u64>,
+    /// Stop after this many minutes of wall clock (default: 30 in train mode).
+    #[arg(long)]
+    minutes: Option<f64>,
+    /// Pace ticks at dt of wall-clock time (real robots) instead of as fast as possible.
+    #[arg(long)]
+    realtime: bool,
+    /// Run without a critic process (no flow control, nothing recorded but the sim's figures).
+    #[arg(long)]
+    no_critic: bool,
+    /// Which agents run the scripted baseline, as recorded in the summary: `all` or `0,2`.
+    #[arg(long, default_value = "")]
+    scripted: String,
+    /// Live view: spawn (start the `rerun` viewer), save (a .rrd in the run directory),
+    /// off, or connect=URL (a running viewer).
+    #[arg(long, default_value = "off")]
+    viewer: String,
+    /// Only validate the flags and the configuration, then exit.
+    #[arg(long)]
+    check_config: bool,
+}
+
+fn parse_scripted(text: &str, n_agents: usize) -> Result<Vec<usize>> {
+    match text.trim() {
+        "" | "none" => Ok(Vec::new()),
+        "all" => Ok((0..n_agents).collect()),
+        list => list
+            .split(',')
+            .map(|part| {
+                let agent: usize = part
+                    .trim()
+                    .parse()
+                    .map_err(|_| anyhow::anyhow!("--scripted: {part:?} is not an agent index"))?;
+                anyhow::ensure!(agent < n_agents, "--scripted: agent {agent} does not exist (robots are 0..{n_agents})");
+                Ok(agent)
+            })
+            .collect(),
+    }
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match try_main(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(err) => {
+            eprintln!("formation-sim: error: {err:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn try_main(cli: Cli) -> Result<()> {
+    let (identity, config) = cli.run.load()?;
+    let scripted = parse_scripted(&cli.scripted, cli.run.agents)?;
+    if let Some(minutes) = cli.minutes {
+        anyhow::ensure!(minutes.is_finite() && minutes > 0.0, "--minutes must be > 0, got {minutes}");
+    }
+    anyhow::ensure!(
+        matches!(cli.viewer.as_str(), "spawn" | "save" | "off") || cli.viewer.starts_with("connect="),
+        "--viewer must be spawn, save, off or connect=URL, got {:?}",
+        cli.viewer
+    );
+    if cli.check_config {
+        return Ok(());
+    }
+    let (episodes, minutes) = match (cli.run.mode, cli.episodes, cli.minutes) {
+        (Mode::Eval, None, None) => (Some(100), None),
+        (Mode::Train, None, None) => (None, Some(30.0)),
+        (_, e, m) => (e, m),
+    };
+    prepare_run_dir(&cli.run.run_dir, &config)?;
+    set_log_level_from_env_or(LogLevel::Warn);
+    let options = SimOptions {
+        n_agents: cli.run.agents,
+        mode: cli.run.mode,
+        episodes,
+        minutes,
+        seed: cli.run.seed,
+        realtime: cli.realtime,
+        expect_critic: !cli.no_critic,
+        scripted,
+        run_dir: cli.run.run_dir.clone(),
+        config,
+    };
+    let summary = run::<ipc::Service>(&identity, &options, None)?;
+    if cli.no_critic {
+        print!("{}", summary.table());
+    }
+    Ok(())
+}

@@ -1,0 +1,98 @@
+//! Per-episode records, `episodes.csv` and the sim's part of `summary.json`.
+
+use std::path::Path;
+
+use anyhow::{Context, Result};
+use formation_protocol::summary::Summary;
+use serde::Serialize;
+
+use crate::task::Outcome;
+
+/// One row of `episodes.csv`.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct EpisodeRecord {
+    /// Episode counter.
+    pub episode: u32,
+    /// `success`, `collision`, `timeout` or `aborted`.
+    pub outcome: &'static str,
+    /// Steps taken.
+    pub steps: u32,
+    /// Undiscounted sum of rewards.
+    pub episode_return: f64,
+    /// Mean edge error at the last tick, metres.
+    pub final_edge_error_m: f64,
+    /// Centroid-to-goal distance at the last tick, metres.
+    pub final_goal_distance_m: f64,
+    /// Fraction of ticks on which C1 held.
+    pub formation_hold_rate: f64,
+    /// Agent-ticks whose command was missing.
+    pub missed_ticks: u64,
+    /// Wall-clock seconds since the run started, at the episode's end.
+    pub wall_s: f64,
+}
+
+/// Name of an outcome in files.
+pub fn outcome_name(outcome: Option<Outcome>) -> &'static str {
+    match outcome {
+        Some(Outcome::Success) => "success",
+        Some(Outcome::Collision) => "collision",
+        Some(Outcome::Timeout) => "timeout",
+        Some(Outcome::Running) | None => "aborted",
+    }
+}
+
+/// Appends records to `episodes.csv` as episodes end, so a killed run keeps what it did.
+pub struct EpisodeLog {
+    writer: csv::Writer<std::fs::File>,
+    records: Vec<EpisodeRecord>,
+}
+
+impl EpisodeLog {
+    /// Creates `episodes.csv` in the run directory.
+    pub fn create(run_dir: &Path) -> Result<Self> {
+        let path = run_dir.join("episodes.csv");
+        let writer = csv::Writer::from_path(&path).with_context(|| format!("cannot create {}", path.display()))?;
+        Ok(Self {
+            writer,
+            records: Vec::new(),
+        })
+    }
+
+    /// Adds one episode (written and flushed at once).
+    pub fn push(&mut self, record: EpisodeRecord) -> Result<()> {
+        self.writer.serialize(&record)?;
+        self.writer.flush()?;
+        self.records.push(record);
+        Ok(())
+    }
+
+    /// Episodes so far.
+    pub fn records(&self) -> &[EpisodeRecord] {
+        &self.records
+    }
+}
+
+/// Fills the episode figures of `summary` from the records (aborted episodes are left out of
+/// the rates, since they did not run to an outcome).
+pub fn fill_episode_figures(summary: &mut Summary, records: &[EpisodeRecord]) {
+    let finished: Vec<&EpisodeRecord> = records.iter().filter(|r| r.outcome != "aborted").collect();
+    let count = finished.len() as f64;
+    summary.episodes = finished.len() as u64;
+    if finished.is_empty() {
+        return;
+    }
+    let rate = |name: &str| finished.iter().filter(|r| r.outcome == name).count() as f64 / count;
+    let mean = |f: &dyn Fn(&EpisodeRecord) -> f64| finished.iter().map(|r| f(r)).sum::<f64>() / count;
+    summary.success_rate = rate("success");
+    summary.collision_rate = rate("collision");
+    summary.timeout_rate = rate("timeout");
+    summary.mean_final_edge_error_m = mean(&|r| r.final_edge_error_m);
+    summary.mean_final_goal_distance_m = mean(&|r| r.final_goal_distance_m);
+    summary.mean_return = mean(&|r| r.episode_return);
+    let total_steps: f64 = finished.iter().map(|r| f64::from(r.steps)).sum();
+    summary.formation_hold_rate = finished.iter().map(|r| r.formation_hold_rate * f64::from(r.steps)).sum::<f64>()
+        / total_steps.max(1.0);
+    let successes: Vec<f64> = finished.iter().filter(|r| r.outcome == "success").map(|r| f64::from(r.steps)).collect();
+    summary.mean_steps_to_goal =
+        (!successes.is_empty()).then(|| successes.iter().sum::<f64>() / successes.len() as f64);
+}
