@@ -114,13 +114,13 @@ for b in formation-sim formation-agent formation-critic; do
 done
 
 RUN_DIR=${RUN_DIR:-runs/$(date +%Y%m%d-%H%M%S)}
-mkdir -p "$RUN_DIR/logs"
 RUN_ID="r$(date +%s | tail -c 7)p$$"
 COMMON=(--agents "$N" --mode "$MODE" --run-id "$RUN_ID" --run-dir "$RUN_DIR" --seed "$SEED")
 [[ -n "$CONFIG" ]] && COMMON+=(--config "$CONFIG")
 
 # Validate the configuration once before anything starts.
-"$BIN/formation-sim" "${COMMON[@]}" --check-config || exit 2
+"$BIN/formation-sim" "${COMMON[@]}" --viewer "$VIEWER" --check-config || exit 2
+mkdir -p "$RUN_DIR/logs"
 
 declare -a PIDS=()
 cleanup() {
@@ -133,7 +133,7 @@ cleanup() {
 }
 trap cleanup EXIT
 
-CRITIC_ARGS=("${COMMON[@]}")
+CRITIC_ARGS=("${COMMON[@]}" --viewer "$VIEWER")
 [[ "$MODE" == train && -n "$CHECKPOINT" ]] && CRITIC_ARGS+=(--checkpoint "$CHECKPOINT")
 "$BIN/formation-critic" "${CRITIC_ARGS[@]}" 2> >(tee "$RUN_DIR/logs/critic.log" >&2) &
 CRITIC_PID=$!

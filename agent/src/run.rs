@@ -105,8 +105,7 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &AgentOptions, mut polic
     let mut heard_any = false;
 
     loop {
-        wake.timed_wait(|_| {}, Duration::from_millis(100))
-            .map_err(|e| anyhow::anyhow!("agent {agent}: wait: {e:?}"))?;
+        services::wait_for_event(&wake, Duration::from_millis(100))?;
         let mut reply_to = None;
         while let Some(sample) = observations.receive().map_err(|e| anyhow::anyhow!("agent {agent}: receive: {e:?}"))? {
             let msg = sample.payload();
@@ -135,6 +134,12 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &AgentOptions, mut polic
             reply_to = Some(msg.header);
         }
         let Some(header) = reply_to else {
+            if !heard_any {
+                // A publisher hands its history to subscribers it has seen; greet again until
+                // the sim has connected and answered.
+                commands.send_copy(hello).map_err(|e| anyhow::anyhow!("agent {agent}: hello: {e:?}"))?;
+                command_ready.notify().map_err(|e| anyhow::anyhow!("agent {agent}: notify: {e:?}"))?;
+            }
             if termination_requested() {
                 return Ok(stats);
             }

@@ -110,10 +110,7 @@ impl<S: Service> Collector<S> {
 
     /// Blocks until the sim signals new data or `timeout` passes.
     pub fn wait(&self, timeout: std::time::Duration) -> Result<()> {
-        self.wake
-            .timed_wait(|_| {}, timeout)
-            .map_err(|e| anyhow::anyhow!("critic: wait: {e:?}"))?;
-        Ok(())
+        services::wait_for_event(&self.wake, timeout)
     }
 
     /// Takes in everything waiting; returns the episodes that ended.

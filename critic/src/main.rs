@@ -9,6 +9,7 @@ use clap::Parser;
 use formation_agent::checkpoint;
 use formation_critic::run::{CriticOptions, run};
 use formation_protocol::cli::{Mode, RunArgs, prepare_run_dir};
+use formation_sim::view::ViewerMode;
 use iceoryx2::prelude::*;
 
 /// Subscribes to the sim's state and every agent's observations and commands, assembles them
@@ -25,6 +26,9 @@ struct Cli {
     /// Do not draw the progress line.
     #[arg(long)]
     quiet: bool,
+    /// Training curves: spawn|connect=URL (join the run's viewer), save (training.rrd), off.
+    #[arg(long, default_value = "off")]
+    viewer: String,
 }
 
 fn main() -> ExitCode {
@@ -38,20 +42,11 @@ fn main() -> ExitCode {
     }
 }
 
-/// Keeps glibc from returning big buffers to the OS after every update (halves update time).
-fn tune_allocator() {
-    // SAFETY: mallopt only changes allocator thresholds; called before other threads start.
-    unsafe {
-        libc::mallopt(libc::M_MMAP_THRESHOLD, 256 << 20);
-        libc::mallopt(libc::M_TRIM_THRESHOLD, 512 << 20);
-    }
-}
-
 fn try_main(cli: Cli) -> Result<()> {
     let (identity, config) = cli.run.load()?;
     // SAFETY: no other thread runs yet; candle reads this for its matmul thread count.
     unsafe { std::env::set_var("RAYON_NUM_THREADS", config.learn.threads.to_string()) };
-    tune_allocator();
+    formation_critic::tune_allocator();
     let resume = match (&cli.checkpoint, cli.run.mode) {
         (Some(path), Mode::Train) => Some(checkpoint::resolve(path)?),
         _ => None,
@@ -66,6 +61,8 @@ fn try_main(cli: Cli) -> Result<()> {
         config,
         resume,
         progress: !cli.quiet,
+        viewer: ViewerMode::parse(&cli.viewer)?,
+        run_id: identity.run_id.clone(),
     };
     let summary = run::<ipc::Service>(&identity, &options)?;
     println!("\nRun summary ({}):", options.run_dir.join("summary.json").display());

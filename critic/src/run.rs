@@ -16,6 +16,7 @@ use formation_protocol::wire::*;
 use formation_replay::buffer::ReplayBuffer;
 use formation_replay::sample::Sampler;
 use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
 use indicatif::{ProgressBar, ProgressStyle};
 use rand::SeedableRng;
@@ -24,6 +25,8 @@ use serde::Serialize;
 
 use crate::collector::{Collector, FinishedEpisode};
 use crate::learner::{Learner, Losses};
+use crate::view::CurveView;
+use formation_sim::view::ViewerMode;
 
 /// Updates done between two drains of the streams (keeps flow control responsive).
 const UPDATES_PER_DRAIN: u64 = 8;
@@ -51,6 +54,10 @@ pub struct CriticOptions {
     pub resume: Option<PathBuf>,
     /// Show the one-line progress display.
     pub progress: bool,
+    /// Where the training curves go.
+    pub viewer: ViewerMode,
+    /// The run id (names the recording).
+    pub run_id: String,
 }
 
 /// One row of `training.csv`.
@@ -128,6 +135,16 @@ impl<S: Service> WeightsPublisher<S> {
         Ok(Self { publishers, version: 0 })
     }
 
+    /// Connects subscribers that appeared since the last publication (they get the history).
+    fn update_connections(&self) -> Result<()> {
+        for publisher in &self.publishers {
+            publisher
+                .update_connections()
+                .map_err(|e| anyhow::anyhow!("critic: weights connections: {e:?}"))?;
+        }
+        Ok(())
+    }
+
     /// Publishes every actor's current weights under a new version.
     fn publish(&mut self, learner: &Learner) -> Result<()> {
         self.version += 1;
@@ -196,12 +213,12 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
         eval: VecDeque::new(),
         episodes: 0,
     };
-    let mut transitions_seen = 0usize;
     let mut losses = Losses::default();
     let mut best_eval = -1.0;
     let mut training_log = csv::Writer::from_path(options.run_dir.join("training.csv"))
         .with_context(|| format!("cannot create training.csv in {}", options.run_dir.display()))?;
     let bar = progress_bar(options.progress);
+    let curves = CurveView::open(&options.viewer, &options.run_id, &options.run_dir)?;
 
     let started = Instant::now();
     let mut last_tick_seen = Instant::now();
@@ -210,19 +227,23 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
     let mut last_bar = Instant::now();
     let silence = Duration::from_millis(config.ticks.sim_silence_ms);
     let startup = Duration::from_secs(config.ticks.startup_timeout_s);
-    publish_progress(&progress_publisher, &progress_ready, &collector, &learner, &weights)?;
+    let mut paid_ticks = u64::MAX;
+    let mut last_acknowledged = 0;
+    publish_progress(&progress_publisher, &progress_ready, 0, &learner, &weights)?;
 
     loop {
-        let owed = learner
-            .as_ref()
-            .map_or(0, |l| updates_owed(transitions_seen, learn.warmup_transitions, learn.updates_per_transition, l.updates()));
+        let owed = learner.as_ref().map_or(0, |l| {
+            updates_owed(collector.stats.ticks_received, learn.warmup_transitions, learn.updates_per_transition, l.updates())
+        });
         if owed == 0 {
             collector.wait(Duration::from_millis(100))?;
         }
         let before = collector.stats.ticks_received;
         for finished in collector.drain()? {
-            transitions_seen += finished.episode.transitions();
             rolling.push(&finished);
+            if let Some(curves) = &curves {
+                curves.episode(rolling.episodes, finished.episode_return, rolling.success_rate(), rolling.eval_success_rate())?;
+            }
             if let (true, Some(eval), Some(learner)) = (finished.eval, rolling.eval_success_rate(), &learner)
                 && eval > best_eval
             {
@@ -233,7 +254,10 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
         }
         if collector.stats.ticks_received > before {
             last_tick_seen = Instant::now();
-            publish_progress(&progress_publisher, &progress_ready, &collector, &learner, &weights)?;
+        }
+        if let Some(weights) = &weights {
+            // Hands the latest weights (history 1) to agents that connected since.
+            weights.update_connections()?;
         }
         if collector.stats.run_ended {
             break;
@@ -250,7 +274,8 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
         }
 
         if let (Some(learner), Some(weights)) = (&mut learner, &mut weights) {
-            let owed = updates_owed(transitions_seen, learn.warmup_transitions, learn.updates_per_transition, learner.updates());
+            let owed =
+                updates_owed(collector.stats.ticks_received, learn.warmup_transitions, learn.updates_per_transition, learner.updates());
             for _ in 0..owed.min(UPDATES_PER_DRAIN) {
                 let Some(batch) = sampler.sample(&replay, learn.batch_size, &mut rng) else {
                     break;
@@ -268,10 +293,25 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
                     bail!("critic: the critic loss diverged to {} after {} updates", losses.critic, learner.updates());
                 }
             }
+            if replay.transitions() == 0 {
+                // Nothing to learn from yet: let the sim run on.
+                paid_ticks = u64::MAX;
+            } else {
+                paid_ticks = learn.warmup_transitions as u64 + (learner.updates() as f64 / learn.updates_per_transition) as u64;
+            }
             if last_checkpoint.elapsed() >= Duration::from_secs(learn.checkpoint_every_s) {
                 learner.save(&options.run_dir.join(FILE_NAME), checkpoint_meta(learner, &rolling, options, None))?;
                 last_checkpoint = Instant::now();
             }
+        }
+
+        // Acknowledge only the ticks the updates have paid for: the sim stays at most
+        // `critic_window` ticks ahead, which holds the update-to-data ratio.
+        let acknowledged = collector.stats.ticks_received.min(paid_ticks);
+        if acknowledged != last_acknowledged || collector.stats.ticks_received == 0 {
+            // Before the first tick this repeats the greeting until the sim has connected.
+            last_acknowledged = acknowledged;
+            publish_progress(&progress_publisher, &progress_ready, acknowledged, &learner, &weights)?;
         }
 
         if last_bar.elapsed() >= Duration::from_millis(500) {
@@ -285,6 +325,9 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
         }
         if last_report.elapsed() >= REPORT_EVERY {
             last_report = Instant::now();
+            if let (Some(curves), true) = (&curves, learner.is_some()) {
+                curves.losses(rolling.episodes, losses.critic, losses.actor)?;
+            }
             training_log.serialize(TrainingRow {
                 wall_s: started.elapsed().as_secs_f64(),
                 episodes: rolling.episodes,
@@ -304,6 +347,9 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
     }
     if let Some(bar) = bar {
         bar.finish_and_clear();
+    }
+    if let Some(curves) = curves {
+        curves.close();
     }
 
     let checkpoint = match &learner {
@@ -337,12 +383,12 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
     Ok(summary)
 }
 
-/// Updates still due at `ratio` updates per transition after `warmup` transitions.
-fn updates_owed(transitions: usize, warmup: usize, ratio: f64, done: u64) -> u64 {
-    if transitions < warmup {
+/// Updates still due at `ratio` updates per tick after `warmup` ticks.
+fn updates_owed(ticks: u64, warmup: usize, ratio: f64, done: u64) -> u64 {
+    if ticks < warmup as u64 {
         return 0;
     }
-    let due = (transitions as f64 * ratio) as u64;
+    let due = ((ticks - warmup as u64) as f64 * ratio) as u64;
     due.saturating_sub(done)
 }
 
@@ -362,7 +408,7 @@ fn checkpoint_meta(learner: &Learner, rolling: &Rolling, options: &CriticOptions
 fn publish_progress<S: Service>(
     publisher: &Publisher<S, CriticProgressMsg, ()>,
     ready: &iceoryx2::port::notifier::Notifier<S>,
-    collector: &Collector<S>,
+    acknowledged_ticks: u64,
     learner: &Option<Learner>,
     weights: &Option<WeightsPublisher<S>>,
 ) -> Result<()> {
@@ -370,7 +416,7 @@ fn publish_progress<S: Service>(
         .send_copy(CriticProgressMsg {
             protocol_version: PROTOCOL_VERSION,
             weights_version: weights.as_ref().map_or(0, |w| w.version),
-            consumed_ticks: collector.stats.ticks_received,
+            consumed_ticks: acknowledged_ticks,
             updates: learner.as_ref().map_or(0, Learner::updates),
         })
         .map_err(|e| anyhow::anyhow!("critic: progress: {e:?}"))?;

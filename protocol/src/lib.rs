@@ -29,9 +29,18 @@ pub fn neighbours(agent: usize, n_agents: usize) -> [usize; NEIGHBOURS] {
     [(agent + 1) % n_agents, (agent + 2) % n_agents]
 }
 
-/// True when the termination signal (SIGINT, SIGTERM) reached this process.
+/// True once a termination signal (SIGINT, SIGTERM) has reached this process.
 ///
-/// iceoryx2 installs the handler when a node is created; this reads (and consumes) its flag.
+/// iceoryx2's signal handler records the signal; its flag is consumed on reading, so the answer
+/// is kept here and stays true.
 pub fn termination_requested() -> bool {
-    iceoryx2_bb_posix::signal::SignalHandler::termination_requested()
+    static REQUESTED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+    if REQUESTED.load(std::sync::atomic::Ordering::Relaxed) {
+        return true;
+    }
+    let requested = iceoryx2_bb_posix::signal::SignalHandler::termination_requested();
+    if requested {
+        REQUESTED.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+    requested
 }

@@ -8,6 +8,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use iceoryx2::prelude::*;
+use iceoryx2::port::listener::{Listener, ListenerWaitError};
 use iceoryx2::service::port_factory::{event, publish_subscribe};
 
 use crate::wire::{CommandMsg, CriticProgressMsg, ObservationMsg, StateMsg, WeightsHeader};
@@ -256,6 +257,15 @@ pub fn weights_stream<S: Service>(node: &Node<S>, sizing: &Sizing, actor_index: 
         .open_or_create()
         .with_context(|| format!("cannot open weights service {name}"))
         .map_err(|err| anyhow::anyhow!("{err:?}"))
+}
+
+/// Blocks until `listener` is notified or `timeout` passes. A signal arriving meanwhile counts
+/// as a wake-up: the caller then checks [`crate::termination_requested`].
+pub fn wait_for_event<S: Service>(listener: &Listener<S>, timeout: std::time::Duration) -> Result<()> {
+    match listener.timed_wait(|_| {}, timeout) {
+        Ok(_) | Err(ListenerWaitError::InterruptSignal) => Ok(()),
+        Err(err) => Err(anyhow::anyhow!("waiting on an iceoryx2 event failed: {err:?}")),
+    }
 }
 
 /// Converts an agent index into its event id.

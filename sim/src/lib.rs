@@ -4,6 +4,8 @@
 pub mod formation;
 pub mod lockstep;
 pub mod physics;
+pub mod plots;
 pub mod report;
 pub mod task;
+pub mod view;
 pub mod world;

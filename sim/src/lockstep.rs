@@ -25,8 +25,9 @@ use rand::SeedableRng;
 use rand::rngs::StdRng;
 
 use crate::formation::random_episode;
+use crate::plots::{EpisodeTrace, episode_errors, learning_curve};
 use crate::report::{EpisodeLog, EpisodeRecord, fill_episode_figures, outcome_name};
-use crate::task::Outcome;
+use crate::task::{Outcome, edge_error};
 use crate::world::World;
 
 /// How the sim runs.
@@ -52,6 +53,8 @@ pub struct SimOptions {
     pub run_dir: PathBuf,
     /// The configuration as run.
     pub config: RunConfig,
+    /// Write `learning_curve.png` and `episode_errors.png` at the end.
+    pub plots: bool,
 }
 
 /// Where the view gets its states: the sim offers each logged state without ever waiting.
@@ -159,6 +162,13 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
     let mut stepping_time = Duration::ZERO;
     let mut next_deadline = Instant::now();
     let mut stop = Stop::Budget;
+    let traced_edges = traced_edges(n);
+    let mut trace = EpisodeTrace {
+        dt: env.dt_s,
+        edge_names: traced_edges.iter().map(|&(i, _, j)| format!("e{i}{j}")).collect(),
+        ..EpisodeTrace::default()
+    };
+    let mut showcase: Option<EpisodeTrace> = None;
 
     'episodes: for episode in 0u32.. {
         if options.episodes.is_some_and(|e| u64::from(episode) >= e) || budget.is_some_and(|b| started.elapsed() >= b) {
@@ -178,6 +188,10 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
         let mut reward = 0.0;
         let mut missed_mask = 0u32;
         let mut applied = vec![(0.0f64, 0.0f64); n];
+        trace.episode = episode;
+        trace.edge_errors.clear();
+        trace.mean_edge_error.clear();
+        trace.goal_distance.clear();
 
         for tick in 0u32.. {
             let tick_started = Instant::now();
@@ -187,11 +201,12 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                 | if eval_episode { FLAG_EVAL_EPISODE } else { 0 };
             let header = Header::new(episode, tick, flags);
             publish_observations(&ports, &world, header)?;
-            let state = publish_state(&ports, &world, header, outcome, reward, missed_mask, &applied)?;
+            let state = publish_state(&ports, &world, header, outcome, reward, missed_mask, &applied, log_world)?;
+            trace.edge_errors.push(traced_edges.iter().map(|&(i, k, _)| edge_error(i, k, &world.poses, &world.desired)).collect());
+            trace.mean_edge_error.push(last.mean_edge_error);
+            trace.goal_distance.push(last.goal_distance);
             counters.published_ticks += 1;
-            if let Some(tap) = &tap
-                && log_world
-            {
+            if let (Some(tap), Some(state)) = (&tap, state) {
                 let _dropped_when_view_is_behind = tap.try_send(state);
             }
             if options.expect_critic
@@ -211,6 +226,11 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                     missed_ticks: missed_this_episode,
                     wall_s: started.elapsed().as_secs_f64(),
                 })?;
+                // The figure shows the first episode of an evaluation, or the latest noise-free
+                // episode of a training run.
+                if (options.mode == Mode::Eval && showcase.is_none()) || eval_episode {
+                    showcase = Some(trace.clone());
+                }
                 break;
             }
 
@@ -227,10 +247,7 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                 if now >= deadline {
                     break;
                 }
-                ports
-                    .command_ready
-                    .timed_wait(|_| {}, deadline - now)
-                    .map_err(|e| anyhow::anyhow!("waiting for commands: {e:?}"))?;
+                services::wait_for_event(&ports.command_ready, deadline - now)?;
             }
             missed_mask = 0;
             for (agent, got) in received.iter().enumerate() {
@@ -275,7 +292,7 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                 // Close the episode as aborted so the critic sees a truncation.
                 let header = Header::new(episode, tick + 1, FLAG_EPISODE_END);
                 publish_observations(&ports, &world, header)?;
-                publish_state(&ports, &world, header, Outcome::Timeout, reward, missed_mask, &applied)?;
+                publish_state(&ports, &world, header, Outcome::Timeout, reward, missed_mask, &applied, false)?;
                 log.push(EpisodeRecord {
                     episode,
                     outcome: outcome_name(None),
@@ -308,6 +325,18 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
         ..Summary::default()
     };
     fill_episode_figures(&mut summary, log.records());
+    if options.plots {
+        let curve = options.run_dir.join("learning_curve.png");
+        if let Err(err) = learning_curve(&curve, log.records()) {
+            eprintln!("sim: cannot draw {}: {err:#}", curve.display());
+        }
+        if let Some(trace) = showcase.as_ref().or((!trace.goal_distance.is_empty()).then_some(&trace)) {
+            let errors = options.run_dir.join("episode_errors.png");
+            if let Err(err) = episode_errors(&errors, trace) {
+                eprintln!("sim: cannot draw {}: {err:#}", errors.display());
+            }
+        }
+    }
     let path = options.run_dir.join("summary.json");
     write_atomically(&path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
 
@@ -327,6 +356,18 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
         eprintln!("sim: stopped by signal after {} episodes", log.records().len());
     }
     Ok(summary)
+}
+
+/// The edges shown in `episode_errors.png`: each undirected observed edge once, at most eight.
+fn traced_edges(n: usize) -> Vec<(usize, usize, usize)> {
+    let mut seen = Vec::new();
+    for (i, k, j) in crate::formation::observed_edges(n) {
+        if !seen.iter().any(|&(a, _, b)| (a, b) == (j, i)) {
+            seen.push((i, k, j));
+        }
+    }
+    seen.truncate(8);
+    seen
 }
 
 /// Waits until every agent has greeted (and the critic, when expected).
@@ -360,10 +401,7 @@ fn wait_for_peers<S: Service>(ports: &Ports<S>, options: &SimOptions, counters: 
                 if critic_ready { "" } else { "and the critic " }
             );
         }
-        ports
-            .command_ready
-            .timed_wait(|_| {}, Duration::from_millis(50))
-            .map_err(|e| anyhow::anyhow!("waiting for agents: {e:?}"))?;
+        services::wait_for_event(&ports.command_ready, Duration::from_millis(50))?;
     }
 }
 
@@ -393,10 +431,7 @@ fn wait_for_critic<S: Service>(ports: &Ports<S>, options: &SimOptions, counters:
     drain_progress(ports, counters)?;
     while counters.published_ticks.saturating_sub(counters.critic_consumed) > window {
         let step = Duration::from_millis(100);
-        ports
-            .critic_progress_ready
-            .timed_wait(|_| {}, step)
-            .map_err(|e| anyhow::anyhow!("waiting for the critic: {e:?}"))?;
+        services::wait_for_event(&ports.critic_progress_ready, step)?;
         if !drain_progress(ports, counters)? {
             waited += step;
         }
@@ -476,7 +511,8 @@ fn publish_state<S: Service>(
     reward: f64,
     missed: u32,
     applied: &[(f64, f64)],
-) -> Result<StateMsg> {
+    keep_copy: bool,
+) -> Result<Option<StateMsg>> {
     let mut sample = ports.state.loan().map_err(|e| anyhow::anyhow!("loan state: {e:?}"))?;
     let msg = sample.payload_mut();
     msg.header = header;
@@ -490,7 +526,7 @@ fn publish_state<S: Service>(
         msg.desired[agent] = [world.desired[agent][0] as f32, world.desired[agent][1] as f32];
     }
     msg.goal = [world.goal[0] as f32, world.goal[1] as f32];
-    let copy = *msg;
+    let copy = keep_copy.then_some(*msg);
     sample.send().map_err(|e| anyhow::anyhow!("send state: {e:?}"))?;
     Ok(copy)
 }

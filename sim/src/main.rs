@@ -6,6 +6,7 @@ use anyhow::Result;
 use clap::Parser;
 use formation_protocol::cli::{Mode, RunArgs, prepare_run_dir};
 use formation_sim::lockstep::{SimOptions, run};
+use formation_sim::view::{self, ViewerMode};
 use iceoryx2::prelude::*;
 
 /// Steps the unicycle physics, scores the paper's reward and drives N agent processes in
@@ -74,11 +75,7 @@ fn try_main(cli: Cli) -> Result<()> {
     if let Some(minutes) = cli.minutes {
         anyhow::ensure!(minutes.is_finite() && minutes > 0.0, "--minutes must be > 0, got {minutes}");
     }
-    anyhow::ensure!(
-        matches!(cli.viewer.as_str(), "spawn" | "save" | "off") || cli.viewer.starts_with("connect="),
-        "--viewer must be spawn, save, off or connect=URL, got {:?}",
-        cli.viewer
-    );
+    ViewerMode::parse(&cli.viewer)?;
     if cli.check_config {
         return Ok(());
     }
@@ -99,9 +96,25 @@ fn try_main(cli: Cli) -> Result<()> {
         expect_critic: !cli.no_critic,
         scripted,
         run_dir: cli.run.run_dir.clone(),
+        plots: true,
         config,
     };
-    let summary = run::<ipc::Service>(&identity, &options, None)?;
+    let viewer = ViewerMode::parse(&cli.viewer)?;
+    let view = view::start(
+        &viewer,
+        &identity.run_id,
+        &options.run_dir,
+        &options.config.env,
+        options.n_agents,
+        options.config.view.trail_ticks,
+    )?;
+    let (tap, view_thread) = view.unzip();
+    let summary = run::<ipc::Service>(&identity, &options, tap);
+    if let Some(thread) = view_thread {
+        // The tap was dropped with the loop: the thread flushes the recording and ends.
+        let _ = thread.join();
+    }
+    let summary = summary?;
     if cli.no_critic {
         print!("{}", summary.table());
     }

@@ -1,0 +1,141 @@
+//! Learning mechanics on fixed batches: the TD target, the soft update and the critic fit.
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{VarBuilder, VarMap};
+use formation_critic::learner::{Learner, soft_update};
+use formation_protocol::config::{Algorithm, EnvConfig, LearnConfig};
+use formation_protocol::{ACTION_DIM, OBS_DIM};
+use formation_replay::features::state_dim;
+use formation_replay::sample::Batch;
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+fn small_config(algorithm: Algorithm) -> (EnvConfig, LearnConfig) {
+    let env = EnvConfig { history: 3, ..EnvConfig::default() };
+    let learn = LearnConfig {
+        algorithm,
+        actor_hidden: vec![16],
+        critic_hidden: vec![32, 32],
+        batch_size: 32,
+        target_noise: 0.0,
+        ..LearnConfig::default()
+    };
+    (env, learn)
+}
+
+fn random_batch(n: usize, h: usize, b: usize, seed: u64) -> Batch {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let mut fill = |len: usize| (0..len).map(|_| rng.random_range(-1.0f32..1.0)).collect::<Vec<_>>();
+    Batch {
+        batch_size: b,
+        n_agents: n,
+        history: h,
+        observations: fill(b * n * h * OBS_DIM),
+        next_observations: fill(b * n * h * OBS_DIM),
+        states: fill(b * h * state_dim(n)),
+        next_states: fill(b * h * state_dim(n)),
+        actions: fill(b * h * n * ACTION_DIM),
+        rewards: fill(b),
+        terminals: vec![0.0; b],
+        origins: vec![(0, 0); b],
+        goals: vec![[0.0; 2]; b],
+        relabelled: vec![false; b],
+    }
+}
+
+#[test]
+fn terminal_masks_the_target_and_truncation_does_not() {
+    let (env, learn) = small_config(Algorithm::Ddpg);
+    let mut learner = Learner::new(3, &env, &learn, 1).expect("learner");
+    let mut batch = random_batch(3, env.history, 8, 2);
+    for b in 0..8 {
+        batch.terminals[b] = if b % 2 == 0 { 1.0 } else { 0.0 };
+    }
+    let y = learner.td_target(&batch).expect("target").flatten_all().expect("flat").to_vec1::<f32>().expect("vec");
+    for b in 0..8 {
+        if b % 2 == 0 {
+            assert!((y[b] - batch.rewards[b]).abs() < 1e-6, "terminal: y = r exactly");
+        } else {
+            assert!((y[b] - batch.rewards[b]).abs() > 1e-6, "non-terminal (incl. time limit): y bootstraps from Q'");
+        }
+    }
+    // Bootstrapped part scales with gamma: y - r = gamma * Q'(s', pi'(o')) for non-terminals.
+    let learn_half = LearnConfig { gamma: learn.gamma / 2.0, ..learn.clone() };
+    let mut half = Learner::new(3, &env, &learn_half, 1).expect("learner");
+    let y_half = half.td_target(&batch).expect("target").flatten_all().expect("flat").to_vec1::<f32>().expect("vec");
+    for b in (1..8).step_by(2) {
+        let full = y[b] - batch.rewards[b];
+        let halved = y_half[b] - batch.rewards[b];
+        assert!((full - 2.0 * halved).abs() < 1e-4, "{full} vs 2 * {halved}");
+    }
+}
+
+#[test]
+fn soft_update_moves_targets_by_exactly_tau() {
+    let device = Device::Cpu;
+    let online = VarMap::new();
+    let target = VarMap::new();
+    let _ = VarBuilder::from_varmap(&online, DType::F32, &device)
+        .get_with_hints(4, "w", candle_nn::Init::Const(1.0))
+        .expect("online");
+    let _ = VarBuilder::from_varmap(&target, DType::F32, &device)
+        .get_with_hints(4, "w", candle_nn::Init::Const(0.0))
+        .expect("target");
+    soft_update(&online, &target, 0.25).expect("update");
+    let value = |map: &VarMap| map.data().lock().expect("lock")["w"].as_tensor().to_vec1::<f32>().expect("vec");
+    assert_eq!(value(&target), vec![0.25; 4]);
+    soft_update(&online, &target, 0.25).expect("update");
+    assert_eq!(value(&target), vec![0.4375; 4]);
+    assert_eq!(value(&online), vec![1.0; 4], "the online network is untouched");
+}
+
+#[test]
+fn critic_loss_falls_on_a_fixed_batch() {
+    for algorithm in [Algorithm::Ddpg, Algorithm::Td3] {
+        let (env, learn) = small_config(algorithm);
+        let mut learner = Learner::new(3, &env, &learn, 3).expect("learner");
+        let mut batch = random_batch(3, env.history, 32, 4);
+        batch.terminals = vec![1.0; 32]; // y = r: a fixed regression target
+        let target = Tensor::from_slice(&batch.rewards, (32, 1), &Device::Cpu).expect("target");
+        let before = learner.critic_loss(&batch, &target).expect("loss").to_scalar::<f32>().expect("scalar");
+        for _ in 0..200 {
+            learner.update(&batch).expect("update");
+        }
+        let after = learner.critic_loss(&batch, &target).expect("loss").to_scalar::<f32>().expect("scalar");
+        assert!(after < 0.2 * before, "{algorithm:?}: loss {before} -> {after}");
+    }
+}
+
+#[test]
+fn checkpoint_round_trip_and_shape_mismatch() {
+    let (env, learn) = small_config(Algorithm::Td3);
+    let learner = Learner::new(3, &env, &learn, 5).expect("learner");
+    let dir = std::env::temp_dir().join(format!("formation-learner-ckpt-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("dir");
+    let path = dir.join("checkpoint.safetensors");
+    learner.save(&path, Default::default()).expect("save");
+    let mut other = Learner::new(3, &env, &learn, 6).expect("learner");
+    assert_ne!(other.actor_weights(0).expect("w"), learner.actor_weights(0).expect("w"));
+    other.load(&path).expect("load");
+    assert_eq!(other.actor_weights(0).expect("w"), learner.actor_weights(0).expect("w"));
+    // A different actor width is refused with a message naming the file.
+    let wider = LearnConfig { actor_hidden: vec![32], ..learn.clone() };
+    let mut mismatched = Learner::new(3, &env, &wider, 7).expect("learner");
+    let err = mismatched.load(&path).expect_err("shape mismatch").to_string();
+    assert!(err.contains("checkpoint.safetensors"), "{err}");
+    // Another swarm size is refused too.
+    let mut six = Learner::new(6, &env, &learn, 7).expect("learner");
+    assert!(six.load(&path).is_err());
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn independent_actors_have_one_network_per_robot() {
+    let (env, learn) = small_config(Algorithm::Ddpg);
+    let learn = LearnConfig { shared_actor: false, ..learn };
+    let mut learner = Learner::new(3, &env, &learn, 8).expect("learner");
+    assert_eq!(learner.n_actors(), 3);
+    let batch = random_batch(3, env.history, 16, 9);
+    let losses = learner.update(&batch).expect("update");
+    assert!(losses.critic.is_finite() && losses.actor.is_some());
+}

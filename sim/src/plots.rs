@@ -1,0 +1,201 @@
+//! PNG figures like the paper's, written into the run directory at the end of a run:
+//! `learning_curve.png` (Fig. 4: average reward per episode, with the rolling success rate)
+//! and `episode_errors.png` (Fig. 5: each edge's error and the centroid-to-goal distance
+//! against time for one evaluation episode).
+
+use std::path::Path;
+
+use anyhow::{Result, anyhow};
+use plotters::prelude::*;
+
+use crate::report::EpisodeRecord;
+
+/// Size of every figure, pixels.
+pub const FIGURE_SIZE: (u32, u32) = (1200, 500);
+/// Episodes in the rolling mean and success rate.
+const ROLLING: usize = 100;
+
+/// DejaVu Sans, embedded so the figures render on a machine without fonts.
+static FONT: &[u8] = include_bytes!("../assets/DejaVuSans.ttf");
+
+fn register_font() -> Result<()> {
+    plotters::style::register_font("sans-serif", FontStyle::Normal, FONT).map_err(|_| anyhow!("the embedded font is invalid"))
+}
+
+/// Per-tick errors of one episode.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct EpisodeTrace {
+    /// Episode number.
+    pub episode: u32,
+    /// Seconds per tick.
+    pub dt: f64,
+    /// Names of the traced edges, e.g. `e01`.
+    pub edge_names: Vec<String>,
+    /// Per tick, the error of each traced edge, metres.
+    pub edge_errors: Vec<Vec<f64>>,
+    /// Per tick, the mean error over all observed edges, metres.
+    pub mean_edge_error: Vec<f64>,
+    /// Per tick, the centroid-to-goal distance, metres.
+    pub goal_distance: Vec<f64>,
+}
+
+fn range(values: impl Iterator<Item = f64>) -> (f64, f64) {
+    let (lo, hi) = values.fold((f64::MAX, f64::MIN), |(lo, hi), v| (lo.min(v), hi.max(v)));
+    if lo > hi {
+        (0.0, 1.0)
+    } else if (hi - lo).abs() < 1e-9 {
+        (lo - 0.5, hi + 0.5)
+    } else {
+        (lo, hi)
+    }
+}
+
+fn rolling(values: &[f64]) -> Vec<f64> {
+    let mut out = Vec::with_capacity(values.len());
+    let mut sum = 0.0;
+    for (i, v) in values.iter().enumerate() {
+        sum += v;
+        if i >= ROLLING {
+            sum -= values[i - ROLLING];
+        }
+        out.push(sum / (i + 1).min(ROLLING) as f64);
+    }
+    out
+}
+
+/// Average reward per episode (raw and rolling mean) and the rolling success rate.
+pub fn learning_curve(path: &Path, records: &[EpisodeRecord]) -> Result<()> {
+    register_font()?;
+    let root = BitMapBackend::new(path, FIGURE_SIZE).into_drawing_area();
+    root.fill(&WHITE)?;
+    let (left, right) = root.split_horizontally(FIGURE_SIZE.0 / 2);
+    let returns: Vec<f64> = records.iter().map(|r| r.episode_return).collect();
+    let successes: Vec<f64> = records.iter().map(|r| if r.outcome == "success" { 1.0 } else { 0.0 }).collect();
+    let episodes = records.len().max(2) as f64;
+    let (lo, hi) = range(returns.iter().copied());
+    let mut chart = ChartBuilder::on(&left)
+        .caption("Reward per episode", ("sans-serif", 24))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0f64..episodes, lo..hi)?;
+    chart.configure_mesh().x_desc("episode").y_desc("episode return").draw()?;
+    chart
+        .draw_series(LineSeries::new(returns.iter().enumerate().map(|(i, &r)| (i as f64, r)), BLUE.mix(0.3)))?
+        .label("per episode")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE.mix(0.3)));
+    chart
+        .draw_series(LineSeries::new(rolling(&returns).into_iter().enumerate().map(|(i, r)| (i as f64, r)), BLUE.stroke_width(2)))?
+        .label(format!("mean of last {ROLLING}"))
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE.stroke_width(2)));
+    chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw()?;
+
+    let mut chart = ChartBuilder::on(&right)
+        .caption("Success rate", ("sans-serif", 24))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0f64..episodes, 0f64..1.05)?;
+    chart.configure_mesh().x_desc("episode").y_desc(format!("success, last {ROLLING} episodes")).draw()?;
+    chart.draw_series(LineSeries::new(
+        rolling(&successes).into_iter().enumerate().map(|(i, r)| (i as f64, r)),
+        GREEN.stroke_width(2),
+    ))?;
+    root.present()?;
+    Ok(())
+}
+
+/// Each edge's error and the centroid-to-goal distance against time (the paper's Fig. 5).
+pub fn episode_errors(path: &Path, trace: &EpisodeTrace) -> Result<()> {
+    register_font()?;
+    let root = BitMapBackend::new(path, FIGURE_SIZE).into_drawing_area();
+    root.fill(&WHITE)?;
+    let (left, right) = root.split_horizontally(FIGURE_SIZE.0 / 2);
+    let ticks = trace.goal_distance.len().max(2);
+    let t_max = (ticks - 1) as f64 * trace.dt;
+    let time = |i: usize| i as f64 * trace.dt;
+    let (_, err_hi) = range(trace.edge_errors.iter().flatten().copied().chain(trace.mean_edge_error.iter().copied()));
+    let mut chart = ChartBuilder::on(&left)
+        .caption(format!("Edge errors, episode {}", trace.episode), ("sans-serif", 24))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0f64..t_max, 0f64..err_hi.max(0.01) * 1.05)?;
+    chart.configure_mesh().x_desc("time (s)").y_desc("|d - d*| (m)").draw()?;
+    for (e, name) in trace.edge_names.iter().enumerate() {
+        let colour = Palette99::pick(e).to_rgba();
+        chart
+            .draw_series(LineSeries::new(trace.edge_errors.iter().enumerate().map(|(i, row)| (time(i), row[e])), colour))?
+            .label(name.clone())
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], colour));
+    }
+    chart
+        .draw_series(DashedLineSeries::new(
+            trace.mean_edge_error.iter().enumerate().map(|(i, &m)| (time(i), m)),
+            6,
+            4,
+            RED.stroke_width(2),
+        ))?
+        .label("mean")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED));
+    chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw()?;
+
+    let (_, dist_hi) = range(trace.goal_distance.iter().copied());
+    let mut chart = ChartBuilder::on(&right)
+        .caption("Centroid to goal", ("sans-serif", 24))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0f64..t_max, 0f64..dist_hi * 1.05)?;
+    chart.configure_mesh().x_desc("time (s)").y_desc("distance (m)").draw()?;
+    chart.draw_series(LineSeries::new(
+        trace.goal_distance.iter().enumerate().map(|(i, &d)| (time(i), d)),
+        BLACK.stroke_width(2),
+    ))?;
+    root.present()?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn figures_are_decodable_pngs_of_the_expected_size() {
+        let dir = std::env::temp_dir().join(format!("formation-plots-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let records: Vec<EpisodeRecord> = (0..150)
+            .map(|i| EpisodeRecord {
+                episode: i,
+                outcome: if i % 3 == 0 { "success" } else { "timeout" },
+                steps: 100,
+                episode_return: f64::from(i) * 0.1 - 5.0,
+                final_edge_error_m: 0.01,
+                final_goal_distance_m: 0.2,
+                formation_hold_rate: 0.9,
+                missed_ticks: 0,
+                wall_s: f64::from(i),
+            })
+            .collect();
+        let curve = dir.join("learning_curve.png");
+        learning_curve(&curve, &records).expect("learning curve");
+        let trace = EpisodeTrace {
+            episode: 3,
+            dt: 0.1,
+            edge_names: vec!["e01".into(), "e12".into(), "e20".into()],
+            edge_errors: (0..50).map(|t| vec![0.01 * f64::from(t % 7), 0.02, 0.005]).collect(),
+            mean_edge_error: (0..50).map(|_| 0.015).collect(),
+            goal_distance: (0..50).map(|t| 2.0 - 0.04 * f64::from(t)).collect(),
+        };
+        let errors = dir.join("episode_errors.png");
+        episode_errors(&errors, &trace).expect("episode errors");
+        for path in [curve, errors] {
+            let image = image::open(&path).expect("decodable PNG");
+            assert_eq!((image.width(), image.height()), FIGURE_SIZE, "{}", path.display());
+            let pixels = image.to_rgb8();
+            let non_white = pixels.pixels().filter(|p| p.0 != [255, 255, 255]).count();
+            assert!(non_white > 10_000, "{} is nearly blank", path.display());
+        }
+        std::fs::remove_dir_all(&dir).expect("cleanup");
+    }
+}

@@ -1,0 +1,240 @@
+//! The live view of the world in Rerun, fed from the tick loop through a bounded channel so
+//! logging never waits on the physics (a full channel drops the state instead of blocking).
+//!
+//! Entities: `world/robots` (poses, labelled, one colour each), `world/headings`,
+//! `world/edges` (coloured by error), `world/goal`, `world/centroid`, `world/trails`; series
+//! `plots/formation/edge_error/*`, `plots/formation/goal_distance`, `plots/formation/reward`.
+//! Rerun's 2-D views are y-down, so y is flipped when logging.
+
+use std::collections::VecDeque;
+use std::path::Path;
+use std::sync::mpsc::{Receiver, sync_channel};
+use std::thread::JoinHandle;
+
+use anyhow::{Context, Result, bail};
+use formation_protocol::config::EnvConfig;
+use formation_protocol::neighbours;
+use formation_protocol::wire::{FLAG_EPISODE_START, StateMsg};
+use rerun::blueprint::{Blueprint, Horizontal, Spatial2DView, TimeSeriesView, Vertical};
+use rerun::{RecordingStream, RecordingStreamBuilder};
+
+use crate::lockstep::StateTap;
+
+/// Application id shared by every process of a run, so sim and critic land in one recording.
+pub const APPLICATION_ID: &str = "formation-control";
+/// States the view may fall behind by before the sim starts dropping them.
+const TAP_CAPACITY: usize = 4096;
+
+/// Where the recording goes.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum ViewerMode {
+    /// Start the `rerun` viewer from PATH and stream to it.
+    Spawn,
+    /// Write `<stem>.rrd` into the run directory.
+    Save,
+    /// No recording.
+    Off,
+    /// Stream to a running viewer at this URL.
+    Connect(String),
+}
+
+impl ViewerMode {
+    /// Parses `spawn`, `save`, `off` or `connect=URL`.
+    pub fn parse(text: &str) -> Result<Self> {
+        Ok(match text {
+            "spawn" => Self::Spawn,
+            "save" => Self::Save,
+            "off" => Self::Off,
+            other => match other.strip_prefix("connect=") {
+                Some(url) if !url.is_empty() => Self::Connect(url.to_string()),
+                _ => bail!("--viewer must be spawn, save, off or connect=URL, got {other:?}"),
+            },
+        })
+    }
+
+    /// Opens a recording stream for this mode (`None` when off). `spawn_viewer` is false for
+    /// the processes that only join a viewer the sim spawned.
+    pub fn open(&self, run_id: &str, run_dir: &Path, stem: &str, spawn_viewer: bool) -> Result<Option<RecordingStream>> {
+        let builder = RecordingStreamBuilder::new(APPLICATION_ID).recording_id(run_id.to_string());
+        let stream = match self {
+            Self::Off => return Ok(None),
+            Self::Save => builder.save(run_dir.join(format!("{stem}.rrd")))?,
+            Self::Connect(url) => builder.connect_grpc_opts(url.clone())?,
+            Self::Spawn if spawn_viewer => builder.spawn().context("cannot start the `rerun` viewer (pip install rerun-sdk==0.36.3)")?,
+            Self::Spawn => builder.connect_grpc()?,
+        };
+        Ok(Some(stream))
+    }
+}
+
+/// The default layout: the world beside the formation and training curves.
+pub fn blueprint() -> Blueprint {
+    Blueprint::new(
+        Horizontal::new([
+            Spatial2DView::new("World").with_origin("world").into(),
+            Vertical::new([
+                TimeSeriesView::new("Formation (paper Fig. 5)").with_origin("plots/formation").into(),
+                TimeSeriesView::new("Training (paper Fig. 4)").with_origin("plots/training").into(),
+            ])
+            .into(),
+        ])
+        .with_column_shares([0.55, 0.45]),
+    )
+}
+
+/// A robot's colour.
+pub fn robot_colour(agent: usize) -> [u8; 3] {
+    const PALETTE: [[u8; 3]; 8] = [
+        [230, 25, 75],
+        [60, 180, 75],
+        [0, 130, 200],
+        [245, 130, 48],
+        [145, 30, 180],
+        [70, 240, 240],
+        [240, 50, 230],
+        [128, 128, 0],
+    ];
+    PALETTE[agent % PALETTE.len()]
+}
+
+/// Green at zero error, yellow at eps_form, red from three times eps_form.
+fn error_colour(error: f32, eps_form: f32) -> [u8; 3] {
+    let x = (error / (3.0 * eps_form)).clamp(0.0, 1.0);
+    if x < 1.0 / 3.0 {
+        let t = x * 3.0;
+        [(40.0 + t * 200.0) as u8, 200, 40]
+    } else {
+        let t = (x - 1.0 / 3.0) * 1.5;
+        [240, (200.0 - t * 180.0) as u8, 40]
+    }
+}
+
+/// Starts the logging thread; returns the tap the sim offers its states to.
+pub fn start(mode: &ViewerMode, run_id: &str, run_dir: &Path, env: &EnvConfig, n_agents: usize, trail_ticks: usize) -> Result<Option<(StateTap, JoinHandle<()>)>> {
+    let Some(stream) = mode.open(run_id, run_dir, "recording", true)? else {
+        return Ok(None);
+    };
+    blueprint().send(&stream, rerun::blueprint::BlueprintActivation { make_active: true, make_default: true })?;
+    let (tap, states) = sync_channel(TAP_CAPACITY);
+    let view = WorldView {
+        stream,
+        eps_form: env.eps_form_m as f32,
+        arena: env.effective_arena_m(n_agents) as f32,
+        trails: vec![VecDeque::with_capacity(trail_ticks); n_agents],
+        trail_ticks,
+        ticks: 0,
+    };
+    let handle = std::thread::Builder::new()
+        .name("rerun-world".into())
+        .spawn(move || view.run(states))
+        .context("cannot start the view thread")?;
+    Ok(Some((tap, handle)))
+}
+
+struct WorldView {
+    stream: RecordingStream,
+    eps_form: f32,
+    arena: f32,
+    trails: Vec<VecDeque<[f32; 2]>>,
+    trail_ticks: usize,
+    ticks: i64,
+}
+
+impl WorldView {
+    fn run(mut self, states: Receiver<StateMsg>) {
+        if let Err(err) = self.log_static() {
+            eprintln!("sim: view: {err:#}");
+            return;
+        }
+        for state in states {
+            if let Err(err) = self.log_state(&state) {
+                eprintln!("sim: view stopped: {err:#}");
+                break;
+            }
+        }
+        let _ = self.stream.flush_blocking();
+        self.stream.disconnect();
+    }
+
+    fn log_static(&self) -> Result<()> {
+        let a = self.arena;
+        self.stream.log_static(
+            "world/arena",
+            &rerun::Boxes2D::from_mins_and_sizes([(0.0, -a)], [(a, a)]).with_colors([[90, 90, 90]]),
+        )?;
+        for (path, name, colour) in [
+            ("plots/formation/goal_distance", "centroid to goal (m)", [30, 30, 30]),
+            ("plots/formation/reward", "reward", [120, 120, 120]),
+        ] {
+            self.stream.log_static(path, &rerun::SeriesLines::new().with_names([name]).with_colors([colour]))?;
+        }
+        Ok(())
+    }
+
+    fn log_state(&mut self, state: &StateMsg) -> Result<()> {
+        let n = state.n_agents as usize;
+        if state.header.has(FLAG_EPISODE_START) {
+            self.trails.iter_mut().for_each(VecDeque::clear);
+        }
+        self.ticks += 1;
+        self.stream.set_time_sequence("tick", self.ticks);
+        self.stream.set_time_sequence("episode", i64::from(state.header.episode));
+        let flip = |x: f32, y: f32| [x, -y];
+        let positions: Vec<[f32; 2]> = state.poses[..n].iter().map(|p| flip(p[0], p[1])).collect();
+        let colours: Vec<[u8; 3]> = (0..n).map(robot_colour).collect();
+        self.stream.log(
+            "world/robots",
+            &rerun::Points2D::new(positions.iter().copied())
+                .with_radii([0.12])
+                .with_colors(colours.iter().copied())
+                .with_labels((0..n).map(|i| format!("robot {i}"))),
+        )?;
+        self.stream.log(
+            "world/headings",
+            &rerun::Arrows2D::from_vectors(state.poses[..n].iter().map(|p| [0.35 * p[2].cos(), -0.35 * p[2].sin()]))
+                .with_origins(positions.iter().copied())
+                .with_colors(colours.iter().copied()),
+        )?;
+        // Each undirected observed edge once, coloured by its error.
+        let mut strips = Vec::with_capacity(2 * n);
+        let mut edge_colours = Vec::with_capacity(2 * n);
+        for i in 0..n {
+            for (k, j) in neighbours(i, n).into_iter().enumerate() {
+                if n == 3 && j < i {
+                    continue; // N = 3 observes every edge from both ends
+                }
+                let (dx, dy) = (state.poses[i][0] - state.poses[j][0], state.poses[i][1] - state.poses[j][1]);
+                let error = ((dx * dx + dy * dy).sqrt() - state.desired[i][k]).abs();
+                strips.push(vec![positions[i], positions[j]]);
+                edge_colours.push(error_colour(error, self.eps_form));
+                if n <= 8 {
+                    self.stream.log(format!("plots/formation/edge_error/e{i}{j}"), &rerun::Scalars::single(f64::from(error)))?;
+                }
+            }
+        }
+        self.stream.log(
+            "world/edges",
+            &rerun::LineStrips2D::new(strips).with_colors(edge_colours).with_radii([0.03]),
+        )?;
+        let centroid = positions.iter().fold([0.0f32; 2], |acc, p| [acc[0] + p[0] / n as f32, acc[1] + p[1] / n as f32]);
+        let goal = flip(state.goal[0], state.goal[1]);
+        self.stream.log("world/goal", &rerun::Points2D::new([goal]).with_radii([0.15]).with_colors([[255, 200, 0]]).with_labels(["goal"]))?;
+        self.stream.log("world/centroid", &rerun::Points2D::new([centroid]).with_radii([0.06]).with_colors([[20, 20, 20]]))?;
+        for (trail, p) in self.trails.iter_mut().zip(&positions) {
+            if trail.len() == self.trail_ticks {
+                trail.pop_front();
+            }
+            trail.push_back(*p);
+        }
+        self.stream.log(
+            "world/trails",
+            &rerun::LineStrips2D::new(self.trails.iter().map(|t| t.iter().copied().collect::<Vec<_>>()))
+                .with_colors(colours)
+                .with_radii([0.015]),
+        )?;
+        let distance = ((centroid[0] - goal[0]).powi(2) + (centroid[1] - goal[1]).powi(2)).sqrt();
+        self.stream.log("plots/formation/goal_distance", &rerun::Scalars::single(f64::from(distance)))?;
+        self.stream.log("plots/formation/reward", &rerun::Scalars::single(f64::from(state.reward)))?;
+        Ok(())
+    }
+}

@@ -1,0 +1,85 @@
+//! Real multi-process runs: the launcher starts the sim, the agents and the critic as OS
+//! processes over iceoryx2, exactly as a user would.
+
+use std::time::Duration;
+
+use formation_swarm::{assert_clean, run_swarm, scratch_dir};
+
+fn scripted_eval(n: &str, episodes: &str) {
+    let dir = scratch_dir(&format!("scripted-{n}"));
+    let run = run_swarm(
+        &[n, "--scripted", "all", "--mode", "eval", "--episodes", episodes, "--seed", "3", "--viewer", "off"],
+        &dir.join("run"),
+        Duration::from_secs(120),
+    )
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "launcher failed:\n{}", run.output);
+    let summary = run.summary().expect("summary.json");
+    assert_eq!(summary["episodes"], serde_json::json!(episodes.parse::<u64>().expect("number")));
+    assert_eq!(summary["n_agents"], serde_json::json!(n.parse::<u64>().expect("number")));
+    for key in [
+        "success_rate",
+        "collision_rate",
+        "timeout_rate",
+        "mean_final_edge_error_m",
+        "env_steps",
+        "env_steps_per_s",
+        "missed_ticks",
+        "transitions_received",
+    ] {
+        assert!(summary[key].is_number(), "summary lacks {key}: {summary}");
+    }
+    assert_eq!(summary["lost_transitions"], serde_json::json!(0), "{summary}");
+    assert_eq!(summary["missed_ticks"], serde_json::json!(0), "{summary}");
+    assert!(summary["env_steps"].as_u64().expect("env_steps") > 0);
+    // Every tick the sim published reached the critic (one state per step plus one per episode start).
+    let expected = summary["env_steps"].as_u64().expect("steps") + summary["episodes"].as_u64().expect("episodes");
+    assert_eq!(summary["transitions_received"].as_u64(), Some(expected), "{summary}");
+    let csv = std::fs::read_to_string(run.run_dir.join("episodes.csv")).expect("episodes.csv");
+    assert_eq!(csv.lines().count(), 1 + episodes.parse::<usize>().expect("number"));
+    assert!(run.run_dir.join("config.toml").is_file());
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn three_scripted_robots_finish_clean() {
+    scripted_eval("3", "5");
+}
+
+#[test]
+fn six_scripted_robots_finish_clean() {
+    scripted_eval("6", "3");
+}
+
+#[test]
+fn bad_input_is_refused_before_anything_starts() {
+    let dir = scratch_dir("bad-input");
+    for (args, needle) in [
+        (vec!["2"], "between 3 and 64"),
+        (vec!["65"], "between 3 and 64"),
+        (vec!["3", "--bogus"], "unknown flag"),
+        (vec!["3", "--mode", "fly"], "--mode"),
+        (vec!["3", "--scripted", "0,7"], "robot 7 does not exist"),
+    ] {
+        let run = run_swarm(&args, &dir.join("run"), Duration::from_secs(60)).expect("launch");
+        assert_eq!(run.status, Some(2), "{args:?} should fail with status 2:\n{}", run.output);
+        assert!(run.output.contains(needle), "{args:?}: expected {needle:?} in:\n{}", run.output);
+        assert!(run.run_id.is_none(), "{args:?} started a run:\n{}", run.output);
+    }
+    // A config with an impossible value names the field; nothing starts.
+    std::fs::create_dir_all(&dir).expect("dir");
+    let config = dir.join("bad.toml");
+    std::fs::write(&config, "[env]\ndt_s = -0.1\n").expect("write");
+    let run = run_swarm(&["3", "--config", config.to_str().expect("utf8")], &dir.join("run"), Duration::from_secs(60))
+        .expect("launch");
+    assert_eq!(run.status, Some(2), "{}", run.output);
+    assert!(run.output.contains("env.dt_s"), "{}", run.output);
+    assert!(run.run_id.is_none());
+    std::fs::write(&config, "[env\n").expect("write");
+    let run = run_swarm(&["3", "--config", config.to_str().expect("utf8")], &dir.join("run"), Duration::from_secs(60))
+        .expect("launch");
+    assert_eq!(run.status, Some(2));
+    assert!(run.output.contains("does not parse"), "{}", run.output);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
