@@ -26,6 +26,9 @@ Flags:
                           viewer and a display are present, else save)
   --realtime              pace ticks at dt of wall-clock time instead of as fast as possible
   --config FILE           TOML overrides of the defaults (see config.toml in any run dir)
+  --restart on|off        restart an agent or the critic that dies mid-run (default on; a
+                          restarted agent rejoins at once with the latest weights, a restarted
+                          critic resumes from the run's last checkpoint)
   -h, --help              this help
 
 Environment: FORMATION_BIN_DIR=DIR uses prebuilt binaries from DIR instead of building.
@@ -45,7 +48,7 @@ N=$1; shift
 [[ "$N" =~ ^[0-9]+$ ]] || die "N must be a whole number, got '$N'"
 (( N >= 3 && N <= 64 )) || die "N must be between 3 and 64 (each robot observes two distinct neighbours), got $N"
 
-MODE=train EPISODES="" MINUTES="" SCRIPTED="" CHECKPOINT="" SEED=1 RUN_DIR="" VIEWER="" REALTIME="" CONFIG=""
+MODE=train EPISODES="" MINUTES="" SCRIPTED="" CHECKPOINT="" SEED=1 RUN_DIR="" VIEWER="" REALTIME="" CONFIG="" RESTART=on
 need() { [[ $# -ge 2 && -n "$2" ]] || die "$1 needs a value"; }
 while [[ $# -gt 0 ]]; do
   case "$1" in
@@ -59,6 +62,7 @@ while [[ $# -gt 0 ]]; do
     --viewer) need "$@"; VIEWER=$2; shift 2 ;;
     --realtime) REALTIME=1; shift ;;
     --config) need "$@"; CONFIG=$2; shift 2 ;;
+    --restart) need "$@"; RESTART=$2; shift 2 ;;
     -h|--help) usage; exit 0 ;;
     *) die "unknown flag '$1'" ;;
   esac
@@ -70,6 +74,7 @@ done
 [[ "$SEED" =~ ^[0-9]+$ ]] || die "--seed must be a whole number, got '$SEED'"
 [[ -z "$CONFIG" || -f "$CONFIG" ]] || die "--config file '$CONFIG' does not exist"
 [[ -z "$CHECKPOINT" || -e "$CHECKPOINT" ]] || die "--checkpoint '$CHECKPOINT' does not exist"
+[[ "$RESTART" == on || "$RESTART" == off ]] || die "--restart must be on or off, got '$RESTART'"
 
 # Which robots are scripted.
 declare -a IS_SCRIPTED
@@ -106,7 +111,7 @@ if [[ -n "${FORMATION_BIN_DIR:-}" ]]; then
   BIN=$FORMATION_BIN_DIR
 else
   echo "building (release)..."
-  (cd "$ROOT" && cargo build --release --quiet --bins) || die "build failed"
+  (cd "$ROOT" && cargo build --release --quiet -p formation-sim -p formation-agent -p formation-critic) || die "build failed"
   BIN=$ROOT/target/release
 fi
 for b in formation-sim formation-agent formation-critic; do
@@ -118,8 +123,17 @@ RUN_ID="r$(date +%s | tail -c 7)p$$"
 COMMON=(--agents "$N" --mode "$MODE" --run-id "$RUN_ID" --run-dir "$RUN_DIR" --seed "$SEED")
 [[ -n "$CONFIG" ]] && COMMON+=(--config "$CONFIG")
 
-# Validate the configuration once before anything starts.
+# Validate the configuration (and a checkpoint) once, before anything starts.
 "$BIN/formation-sim" "${COMMON[@]}" --viewer "$VIEWER" --check-config || exit 2
+if [[ -n "$CHECKPOINT" && "$MODE" == eval && $LEARNED -gt 0 ]]; then
+  for ((i = 0; i < N; i++)); do
+    (( IS_SCRIPTED[i] )) && continue
+    "$BIN/formation-agent" "${COMMON[@]}" --agent "$i" --policy learned --checkpoint "$CHECKPOINT" --check || exit 2
+  done
+fi
+if [[ -n "$CHECKPOINT" && "$MODE" == train ]]; then
+  "$BIN/formation-critic" "${COMMON[@]}" --checkpoint "$CHECKPOINT" --check || exit 2
+fi
 mkdir -p "$RUN_DIR/logs"
 
 declare -a PIDS=()
@@ -133,23 +147,31 @@ cleanup() {
 }
 trap cleanup EXIT
 
-CRITIC_ARGS=("${COMMON[@]}" --viewer "$VIEWER")
-[[ "$MODE" == train && -n "$CHECKPOINT" ]] && CRITIC_ARGS+=(--checkpoint "$CHECKPOINT")
-"$BIN/formation-critic" "${CRITIC_ARGS[@]}" 2> >(tee "$RUN_DIR/logs/critic.log" >&2) &
-CRITIC_PID=$!
-PIDS+=("$CRITIC_PID")
+start_critic() { # [checkpoint to resume from]
+  local args=("${COMMON[@]}" --viewer "$VIEWER")
+  [[ "$MODE" == train && -n "${1:-}" ]] && args+=(--checkpoint "$1")
+  # tee ignores Ctrl-C so the critic can still report while the run winds down.
+  "$BIN/formation-critic" "${args[@]}" 2> >(trap '' INT; tee -a "$RUN_DIR/logs/critic.log" >&2) &
+  CRITIC_PID=$!
+  PIDS+=("$CRITIC_PID")
+}
 
-for ((i = 0; i < N; i++)); do
-  AGENT_ARGS=("${COMMON[@]}" --agent "$i")
+declare -a AGENT_PIDS=()
+start_agent() { # index
+  local i=$1 args=("${COMMON[@]}" --agent "$1")
   if (( IS_SCRIPTED[i] )); then
-    AGENT_ARGS+=(--policy scripted)
+    args+=(--policy scripted)
   else
-    AGENT_ARGS+=(--policy learned)
-    [[ "$MODE" == eval ]] && AGENT_ARGS+=(--checkpoint "$CHECKPOINT")
+    args+=(--policy learned)
+    [[ "$MODE" == eval ]] && args+=(--checkpoint "$CHECKPOINT")
   fi
-  "$BIN/formation-agent" "${AGENT_ARGS[@]}" >"$RUN_DIR/logs/agent-$i.log" 2>&1 &
+  "$BIN/formation-agent" "${args[@]}" >>"$RUN_DIR/logs/agent-$i.log" 2>&1 &
+  AGENT_PIDS[i]=$!
   PIDS+=("$!")
-done
+}
+
+start_critic "$CHECKPOINT"
+for ((i = 0; i < N; i++)); do start_agent "$i"; done
 
 SIM_ARGS=("${COMMON[@]}" --viewer "$VIEWER")
 [[ -n "$EPISODES" ]] && SIM_ARGS+=(--episodes "$EPISODES")
@@ -164,21 +186,38 @@ PIDS+=("$SIM_PID")
 trap 'echo; echo "stopping: the sim closes the episode and ends the run..."; kill -INT "$SIM_PID" 2>/dev/null || true' INT TERM
 
 echo "run $RUN_ID: sim, $N agents and the critic started; results in $RUN_DIR (logs in $RUN_DIR/logs)"
+# Watch the run: the sim's end ends it; a dead agent or critic is restarted (--restart on).
 status=0
-while true; do
-  rc=0
-  wait "$SIM_PID" || rc=$?
-  kill -0 "$SIM_PID" 2>/dev/null && continue # woken by Ctrl-C: keep waiting for the sim
-  status=$rc
-  break
+while kill -0 "$SIM_PID" 2>/dev/null; do
+  sleep 0.5 || true # Ctrl-C interrupts the sleep; the trap has already told the sim
+  [[ "$RESTART" == on ]] || continue
+  kill -0 "$SIM_PID" 2>/dev/null || break
+  for ((i = 0; i < N; i++)); do
+    [[ -n "${AGENT_PIDS[i]}" ]] && ! kill -0 "${AGENT_PIDS[i]}" 2>/dev/null || continue
+    rc=0; wait "${AGENT_PIDS[i]}" 2>/dev/null || rc=$?
+    AGENT_PIDS[i]=""
+    (( rc != 0 )) || continue # a clean exit: the run is ending
+    echo "agent $i died (status $rc); restarting it"
+    start_agent "$i"
+  done
+  if [[ -n "$CRITIC_PID" ]] && ! kill -0 "$CRITIC_PID" 2>/dev/null; then
+    rc=0; wait "$CRITIC_PID" 2>/dev/null || rc=$?
+    CRITIC_PID=""
+    (( rc != 0 )) || continue
+    resume=""
+    [[ -f "$RUN_DIR/checkpoint.safetensors" ]] && resume="$RUN_DIR/checkpoint.safetensors"
+    echo "the critic died (status $rc); restarting it${resume:+ from $resume}"
+    start_critic "${resume:-$CHECKPOINT}"
+  fi
 done
+wait "$SIM_PID" 2>/dev/null || status=$?
 if (( status != 0 )); then
   echo "run_swarm.sh: the sim exited with status $status:" >&2
   tail -n 5 "$RUN_DIR/logs/sim.log" >&2
 fi
 # The others end on the sim's end-of-run message; give them a moment, then stop them.
 for pid in "${PIDS[@]}"; do
-  for _ in $(seq 1 100); do kill -0 "$pid" 2>/dev/null || break; sleep 0.1; done
+  for _ in $(seq 1 100); do kill -0 "$pid" 2>/dev/null || break; sleep 0.1 || true; done
 done
 for ((i = 0; i < N; i++)); do
   if grep -q "error" "$RUN_DIR/logs/agent-$i.log" 2>/dev/null; then
@@ -186,7 +225,7 @@ for ((i = 0; i < N; i++)); do
   fi
 done
 critic_status=0
-wait "$CRITIC_PID" 2>/dev/null || critic_status=$?
+[[ -z "$CRITIC_PID" ]] || wait "$CRITIC_PID" 2>/dev/null || critic_status=$?
 if (( critic_status != 0 )); then
   echo "run_swarm.sh: the critic exited with status $critic_status" >&2
   (( status != 0 )) || status=$critic_status

@@ -4,5 +4,5 @@
 # that start real sim, agent and critic processes).
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
-cargo build --bins
+cargo build --workspace --bins
 cargo test --workspace "$@"

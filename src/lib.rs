@@ -68,7 +68,12 @@ pub fn run_swarm(args: &[&str], run_dir: &Path, watchdog: Duration) -> Result<Ru
 }
 
 /// As [`run_swarm`], calling `during(pid)` once with the launcher's pid right after it starts.
-pub fn run_swarm_with(args: &[&str], run_dir: &Path, watchdog: Duration, during: impl FnOnce(u32)) -> Result<RunOutcome> {
+pub fn run_swarm_with(
+    args: &[&str],
+    run_dir: &Path,
+    watchdog: Duration,
+    during: impl FnOnce(u32),
+) -> Result<RunOutcome> {
     use std::os::unix::process::CommandExt;
     let log = run_dir.with_extension("log");
     std::fs::create_dir_all(run_dir.parent().unwrap_or(Path::new("/tmp")))?;
@@ -144,8 +149,16 @@ pub fn processes_of_run(run_id: &str) -> Vec<u32> {
 /// Asserts that a finished run left no process, no shared memory and no iceoryx2 root path.
 pub fn assert_clean(outcome: &RunOutcome) {
     let run_id = outcome.run_id.as_deref().expect("the launcher announces its run id");
-    assert!(shm_leftovers(run_id).is_empty(), "shared memory left: {:?}", shm_leftovers(run_id));
-    assert!(processes_of_run(run_id).is_empty(), "processes left: {:?}", processes_of_run(run_id));
+    assert!(
+        shm_leftovers(run_id).is_empty(),
+        "shared memory left: {:?}",
+        shm_leftovers(run_id)
+    );
+    assert!(
+        processes_of_run(run_id).is_empty(),
+        "processes left: {:?}",
+        processes_of_run(run_id)
+    );
     let root = std::env::temp_dir().join("formation-iox2").join(run_id);
     assert!(!root.exists(), "iceoryx2 root path left: {}", root.display());
 }

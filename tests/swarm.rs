@@ -8,15 +8,33 @@ use formation_swarm::{assert_clean, run_swarm, scratch_dir};
 fn scripted_eval(n: &str, episodes: &str) {
     let dir = scratch_dir(&format!("scripted-{n}"));
     let run = run_swarm(
-        &[n, "--scripted", "all", "--mode", "eval", "--episodes", episodes, "--seed", "3", "--viewer", "off"],
+        &[
+            n,
+            "--scripted",
+            "all",
+            "--mode",
+            "eval",
+            "--episodes",
+            episodes,
+            "--seed",
+            "3",
+            "--viewer",
+            "off",
+        ],
         &dir.join("run"),
         Duration::from_secs(120),
     )
     .expect("launch");
     assert_eq!(run.status, Some(0), "launcher failed:\n{}", run.output);
     let summary = run.summary().expect("summary.json");
-    assert_eq!(summary["episodes"], serde_json::json!(episodes.parse::<u64>().expect("number")));
-    assert_eq!(summary["n_agents"], serde_json::json!(n.parse::<u64>().expect("number")));
+    assert_eq!(
+        summary["episodes"],
+        serde_json::json!(episodes.parse::<u64>().expect("number"))
+    );
+    assert_eq!(
+        summary["n_agents"],
+        serde_json::json!(n.parse::<u64>().expect("number"))
+    );
     for key in [
         "success_rate",
         "collision_rate",
@@ -63,22 +81,39 @@ fn bad_input_is_refused_before_anything_starts() {
         (vec!["3", "--scripted", "0,7"], "robot 7 does not exist"),
     ] {
         let run = run_swarm(&args, &dir.join("run"), Duration::from_secs(60)).expect("launch");
-        assert_eq!(run.status, Some(2), "{args:?} should fail with status 2:\n{}", run.output);
-        assert!(run.output.contains(needle), "{args:?}: expected {needle:?} in:\n{}", run.output);
+        assert_eq!(
+            run.status,
+            Some(2),
+            "{args:?} should fail with status 2:\n{}",
+            run.output
+        );
+        assert!(
+            run.output.contains(needle),
+            "{args:?}: expected {needle:?} in:\n{}",
+            run.output
+        );
         assert!(run.run_id.is_none(), "{args:?} started a run:\n{}", run.output);
     }
     // A config with an impossible value names the field; nothing starts.
     std::fs::create_dir_all(&dir).expect("dir");
     let config = dir.join("bad.toml");
     std::fs::write(&config, "[env]\ndt_s = -0.1\n").expect("write");
-    let run = run_swarm(&["3", "--config", config.to_str().expect("utf8")], &dir.join("run"), Duration::from_secs(60))
-        .expect("launch");
+    let run = run_swarm(
+        &["3", "--config", config.to_str().expect("utf8")],
+        &dir.join("run"),
+        Duration::from_secs(60),
+    )
+    .expect("launch");
     assert_eq!(run.status, Some(2), "{}", run.output);
     assert!(run.output.contains("env.dt_s"), "{}", run.output);
     assert!(run.run_id.is_none());
     std::fs::write(&config, "[env\n").expect("write");
-    let run = run_swarm(&["3", "--config", config.to_str().expect("utf8")], &dir.join("run"), Duration::from_secs(60))
-        .expect("launch");
+    let run = run_swarm(
+        &["3", "--config", config.to_str().expect("utf8")],
+        &dir.join("run"),
+        Duration::from_secs(60),
+    )
+    .expect("launch");
     assert_eq!(run.status, Some(2));
     assert!(run.output.contains("does not parse"), "{}", run.output);
     std::fs::remove_dir_all(&dir).expect("cleanup");

@@ -47,14 +47,20 @@ impl ActorShape {
             .iter()
             .enumerate()
             .flat_map(|(i, &(input, output))| {
-                [(format!("layer{i}.weight"), vec![output, input]), (format!("layer{i}.bias"), vec![output])]
+                [
+                    (format!("layer{i}.weight"), vec![output, input]),
+                    (format!("layer{i}.bias"), vec![output]),
+                ]
             })
             .collect()
     }
 
     /// Total number of f32 parameters.
     pub fn parameter_count(&self) -> usize {
-        self.parameters().iter().map(|(_, shape)| shape.iter().product::<usize>()).sum()
+        self.parameters()
+            .iter()
+            .map(|(_, shape)| shape.iter().product::<usize>())
+            .sum()
     }
 }
 
@@ -88,10 +94,16 @@ impl Actor {
         let mut offset = 0;
         for (name, dims) in shape.parameters() {
             let len: usize = dims.iter().product();
-            tensors.insert(name, Tensor::from_slice(&flat[offset..offset + len], dims, &Device::Cpu)?);
+            tensors.insert(
+                name,
+                Tensor::from_slice(&flat[offset..offset + len], dims, &Device::Cpu)?,
+            );
             offset += len;
         }
-        Ok(Self::new(VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu), shape)?)
+        Ok(Self::new(
+            VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu),
+            shape,
+        )?)
     }
 
     /// Actions in [-1, 1]^2 for a batch of flattened windows (rows of H * OBS_DIM).
@@ -99,7 +111,11 @@ impl Actor {
         let mut x = windows.clone();
         for (i, layer) in self.layers.iter().enumerate() {
             x = layer.forward(&x)?;
-            x = if i + 1 < self.layers.len() { x.relu()? } else { x.tanh()? };
+            x = if i + 1 < self.layers.len() {
+                x.relu()?
+            } else {
+                x.tanh()?
+            };
         }
         Ok(x)
     }
@@ -113,12 +129,20 @@ impl Actor {
 }
 
 /// Flattens the actor parameters stored under `prefix` in `tensors` (in flattening order).
-pub fn flatten_parameters(lookup: impl Fn(&str) -> Option<Tensor>, prefix: &str, shape: &ActorShape) -> anyhow::Result<Vec<f32>> {
+pub fn flatten_parameters(
+    lookup: impl Fn(&str) -> Option<Tensor>,
+    prefix: &str,
+    shape: &ActorShape,
+) -> anyhow::Result<Vec<f32>> {
     let mut flat = Vec::with_capacity(shape.parameter_count());
     for (name, dims) in shape.parameters() {
         let full = format!("{prefix}{name}");
         let tensor = lookup(&full).ok_or_else(|| anyhow::anyhow!("missing actor parameter {full}"))?;
-        anyhow::ensure!(tensor.dims() == dims.as_slice(), "{full} has shape {:?}, expected {dims:?}", tensor.dims());
+        anyhow::ensure!(
+            tensor.dims() == dims.as_slice(),
+            "{full} has shape {:?}, expected {dims:?}",
+            tensor.dims()
+        );
         flat.extend(tensor.flatten_all()?.to_vec1::<f32>()?);
     }
     Ok(flat)
@@ -131,7 +155,10 @@ mod tests {
 
     #[test]
     fn flat_round_trip_gives_the_same_actions() {
-        let shape = ActorShape { history: 4, hidden: vec![16, 8] };
+        let shape = ActorShape {
+            history: 4,
+            hidden: vec![16, 8],
+        };
         let varmap = VarMap::new();
         let actor = Actor::new(VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu), &shape).expect("actor");
         let data = varmap.data().lock().expect("lock").clone();

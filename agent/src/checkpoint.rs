@@ -47,7 +47,11 @@ impl CheckpointMeta {
                 .ok_or_else(|| anyhow::anyhow!("checkpoint {} has no metadata field {key:?}", path.display()))
         };
         if field("format")? != FORMAT {
-            bail!("checkpoint {} has format {:?}, expected {FORMAT:?}", path.display(), field("format")?);
+            bail!(
+                "checkpoint {} has format {:?}, expected {FORMAT:?}",
+                path.display(),
+                field("format")?
+            );
         }
         let number = |key: &str| -> Result<usize> {
             field(key)?
@@ -78,7 +82,10 @@ pub fn resolve(path: &Path) -> Result<PathBuf> {
                 return Ok(candidate);
             }
         }
-        bail!("{} is a directory without {BEST_FILE_NAME} or {FILE_NAME}", path.display());
+        bail!(
+            "{} is a directory without {BEST_FILE_NAME} or {FILE_NAME}",
+            path.display()
+        );
     }
     if !path.is_file() {
         bail!("checkpoint {} does not exist", path.display());
@@ -125,7 +132,11 @@ pub fn load(path: &Path) -> Result<Checkpoint> {
     let mut tensors = HashMap::new();
     for (name, view) in file.tensors() {
         if view.dtype() != Dtype::F32 {
-            bail!("checkpoint {}: tensor {name} is {:?}, expected F32", path.display(), view.dtype());
+            bail!(
+                "checkpoint {}: tensor {name} is {:?}, expected F32",
+                path.display(),
+                view.dtype()
+            );
         }
         let values: Vec<f32> = view
             .data()
@@ -162,8 +173,12 @@ impl Checkpoint {
                 self.meta.n_agents
             );
         }
-        crate::actor::flatten_parameters(|name| self.tensors.get(name).cloned(), &actor_prefix(index), &self.meta.actor)
-            .with_context(|| format!("checkpoint {}", self.path.display()))
+        crate::actor::flatten_parameters(
+            |name| self.tensors.get(name).cloned(),
+            &actor_prefix(index),
+            &self.meta.actor,
+        )
+        .with_context(|| format!("checkpoint {}", self.path.display()))
     }
 }
 
@@ -180,17 +195,28 @@ mod tests {
     #[test]
     fn round_trip_and_bad_files() {
         let dir = temp_dir("rt");
-        let shape = ActorShape { history: 2, hidden: vec![4] };
+        let shape = ActorShape {
+            history: 2,
+            hidden: vec![4],
+        };
         let tensors: Vec<(String, Tensor)> = shape
             .parameters()
             .into_iter()
             .map(|(name, dims)| {
                 let len: usize = dims.iter().product();
                 let values: Vec<f32> = (0..len).map(|i| i as f32 * 0.5).collect();
-                (format!("{}{name}", actor_prefix(0)), Tensor::from_vec(values, dims, &Device::Cpu).expect("t"))
+                (
+                    format!("{}{name}", actor_prefix(0)),
+                    Tensor::from_vec(values, dims, &Device::Cpu).expect("t"),
+                )
             })
             .collect();
-        let meta = CheckpointMeta { n_agents: 3, n_actors: 1, actor: shape.clone(), extra: HashMap::new() };
+        let meta = CheckpointMeta {
+            n_agents: 3,
+            n_actors: 1,
+            actor: shape.clone(),
+            extra: HashMap::new(),
+        };
         let path = dir.join(FILE_NAME);
         save(&path, &tensors, &meta).expect("save");
         let loaded = load(&path).expect("load");

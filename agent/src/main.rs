@@ -41,6 +41,13 @@ struct Cli {
     /// learned policy in eval mode; in train mode the critic streams weights.
     #[arg(long)]
     checkpoint: Option<PathBuf>,
+    /// Only validate the flags, the configuration and the checkpoint, then exit.
+    #[arg(long)]
+    check: bool,
+    /// Benchmark: time this many single-window inferences of the learned actor (from
+    /// --checkpoint), print one JSON line and exit.
+    #[arg(long, value_name = "COUNT")]
+    bench_inference: Option<usize>,
 }
 
 fn main() -> ExitCode {
@@ -61,7 +68,10 @@ fn try_main(cli: Cli) -> Result<()> {
     let (identity, config) = cli.run.load()?;
     let n_agents = cli.run.agents;
     if cli.agent >= n_agents {
-        bail!("--agent {} does not exist in a swarm of {n_agents} (robots are 0..{n_agents})", cli.agent);
+        bail!(
+            "--agent {} does not exist in a swarm of {n_agents} (robots are 0..{n_agents})",
+            cli.agent
+        );
     }
     set_log_level_from_env_or(LogLevel::Warn);
     let rng = StdRng::seed_from_u64(cli.run.seed.wrapping_mul(1_000_003).wrapping_add(cli.agent as u64));
@@ -102,6 +112,12 @@ fn try_main(cli: Cli) -> Result<()> {
             (AgentPolicy::Learned(Box::new(learned)), follow)
         }
     };
+    if cli.check {
+        return Ok(());
+    }
+    if let (Some(count), AgentPolicy::Learned(learned)) = (cli.bench_inference, &policy) {
+        return bench_inference(learned, count);
+    }
     let options = AgentOptions {
         agent: cli.agent,
         n_agents,
@@ -109,5 +125,31 @@ fn try_main(cli: Cli) -> Result<()> {
         config,
     };
     run::<ipc::Service>(&identity, &options, policy)?;
+    Ok(())
+}
+
+/// Times `count` single-window actions of the learned actor (the per-tick inference cost).
+fn bench_inference(policy: &LearnedPolicy, count: usize) -> Result<()> {
+    use formation_agent::history::ObservationHistory;
+    use formation_agent::policy::Policy;
+    let mut policy_copy = policy.clone();
+    let mut history = ObservationHistory::new(policy.shape().history);
+    history.reset(&[0.3; formation_protocol::OBS_DIM]);
+    let mut samples = Vec::with_capacity(count);
+    for i in 0..count + 1000 {
+        let started = std::time::Instant::now();
+        std::hint::black_box(policy_copy.command(&history)?);
+        if i >= 1000 {
+            samples.push(started.elapsed().as_secs_f64() * 1e6);
+        }
+    }
+    samples.sort_by(f64::total_cmp);
+    let q = |p: f64| samples[((samples.len() - 1) as f64 * p) as usize];
+    println!(
+        "{{\"kind\": \"inference\", \"calls\": {count}, \"p50_us\": {:.2}, \"p99_us\": {:.2}, \"input\": {}}}",
+        q(0.5),
+        q(0.99),
+        policy.shape().input_dim()
+    );
     Ok(())
 }

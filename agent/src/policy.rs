@@ -11,7 +11,7 @@ use crate::history::ObservationHistory;
 use crate::scripted::ScriptedBaseline;
 
 /// A robot's controller: a command from its observation window.
-pub trait Policy {
+pub trait Policy: Send {
     /// (v, w) for the window (newest observation last).
     fn command(&mut self, history: &ObservationHistory) -> Result<(f64, f64)>;
     /// Version of the weights in use (0 for scripted or not yet trained).
@@ -50,6 +50,7 @@ impl Exploration {
 }
 
 /// The learned actor, updated between ticks when the critic publishes new weights.
+#[derive(Clone)]
 pub struct LearnedPolicy {
     env: EnvConfig,
     shape: ActorShape,

@@ -88,13 +88,19 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &AgentOptions, mut polic
     };
 
     // Greet the sim (history 1 keeps the greeting for a sim that starts later).
+    let session = rand::random_range(1..u32::MAX);
     let hello = CommandMsg {
         header: Header::new(0, 0, FLAG_HELLO),
         agent: agent as u32,
+        session,
         ..CommandMsg::default()
     };
-    commands.send_copy(hello).map_err(|e| anyhow::anyhow!("agent {agent}: hello: {e:?}"))?;
-    command_ready.notify().map_err(|e| anyhow::anyhow!("agent {agent}: notify: {e:?}"))?;
+    commands
+        .send_copy(hello)
+        .map_err(|e| anyhow::anyhow!("agent {agent}: hello: {e:?}"))?;
+    command_ready
+        .notify()
+        .map_err(|e| anyhow::anyhow!("agent {agent}: notify: {e:?}"))?;
 
     let mut history = ObservationHistory::new(options.config.env.history);
     let mut stats = AgentStats::default();
@@ -107,7 +113,10 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &AgentOptions, mut polic
     loop {
         services::wait_for_event(&wake, Duration::from_millis(100))?;
         let mut reply_to = None;
-        while let Some(sample) = observations.receive().map_err(|e| anyhow::anyhow!("agent {agent}: receive: {e:?}"))? {
+        while let Some(sample) = observations
+            .receive()
+            .map_err(|e| anyhow::anyhow!("agent {agent}: receive: {e:?}"))?
+        {
             let msg = sample.payload();
             if msg.header.protocol_version != PROTOCOL_VERSION {
                 bail!(
@@ -127,7 +136,9 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &AgentOptions, mut polic
             if msg.header.has(FLAG_EPISODE_START) || episode != Some(msg.header.episode) {
                 episode = Some(msg.header.episode);
                 history.reset(&msg.obs);
-                policy.policy().begin_episode(msg.header.episode, !msg.header.has(FLAG_EVAL_EPISODE));
+                policy
+                    .policy()
+                    .begin_episode(msg.header.episode, !msg.header.has(FLAG_EVAL_EPISODE));
             } else {
                 history.push(&msg.obs);
             }
@@ -137,21 +148,31 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &AgentOptions, mut polic
             if !heard_any {
                 // A publisher hands its history to subscribers it has seen; greet again until
                 // the sim has connected and answered.
-                commands.send_copy(hello).map_err(|e| anyhow::anyhow!("agent {agent}: hello: {e:?}"))?;
-                command_ready.notify().map_err(|e| anyhow::anyhow!("agent {agent}: notify: {e:?}"))?;
+                commands
+                    .send_copy(hello)
+                    .map_err(|e| anyhow::anyhow!("agent {agent}: hello: {e:?}"))?;
+                command_ready
+                    .notify()
+                    .map_err(|e| anyhow::anyhow!("agent {agent}: notify: {e:?}"))?;
             }
             if termination_requested() {
                 return Ok(stats);
             }
             let quiet = last_heard.elapsed();
             if (heard_any && quiet > silence) || (!heard_any && quiet > startup) {
-                bail!("agent {agent}: no observation from the sim for {:.1} s; is it alive?", quiet.as_secs_f64());
+                bail!(
+                    "agent {agent}: no observation from the sim for {:.1} s; is it alive?",
+                    quiet.as_secs_f64()
+                );
             }
             continue;
         };
         // New weights only between ticks, never mid-inference.
         if let (Some(weights), AgentPolicy::Learned(learned)) = (&weights, &mut policy) {
-            while let Some(sample) = weights.receive().map_err(|e| anyhow::anyhow!("agent {agent}: weights: {e:?}"))? {
+            while let Some(sample) = weights
+                .receive()
+                .map_err(|e| anyhow::anyhow!("agent {agent}: weights: {e:?}"))?
+            {
                 let head = *sample.user_header();
                 if head.protocol_version == PROTOCOL_VERSION && head.version > learned.version() {
                     learned.load(sample.payload(), head.version)?;
@@ -161,16 +182,23 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &AgentOptions, mut polic
         }
         let (v, w) = policy.policy().command(&history)?;
         let version = policy.policy().version();
-        let mut sample = commands.loan().map_err(|e| anyhow::anyhow!("agent {agent}: loan: {e:?}"))?;
+        let mut sample = commands
+            .loan()
+            .map_err(|e| anyhow::anyhow!("agent {agent}: loan: {e:?}"))?;
         *sample.payload_mut() = CommandMsg {
             header: Header::new(header.episode, header.tick, 0),
             agent: agent as u32,
             policy_version: version,
             v: v as f32,
             w: w as f32,
+            session,
         };
-        sample.send().map_err(|e| anyhow::anyhow!("agent {agent}: send: {e:?}"))?;
-        command_ready.notify().map_err(|e| anyhow::anyhow!("agent {agent}: notify: {e:?}"))?;
+        sample
+            .send()
+            .map_err(|e| anyhow::anyhow!("agent {agent}: send: {e:?}"))?;
+        command_ready
+            .notify()
+            .map_err(|e| anyhow::anyhow!("agent {agent}: notify: {e:?}"))?;
         stats.commands += 1;
         stats.policy_version = version;
     }

@@ -72,7 +72,11 @@ impl ScriptedBaseline {
             let dist = q[0].hypot(q[1]).max(1e-6);
             let unit = [q[0] / dist, q[1] / dist];
             let pull = g.k_form * (dist - desired);
-            let push = if dist < g.repulsion_range { g.k_repulsion * (g.repulsion_range - dist) } else { 0.0 };
+            let push = if dist < g.repulsion_range {
+                g.k_repulsion * (g.repulsion_range - dist)
+            } else {
+                0.0
+            };
             u[0] += (pull - push) * unit[0];
             u[1] += (pull - push) * unit[1];
             centroid[0] += q[0] / (NEIGHBOURS + 1) as f64;
@@ -126,7 +130,11 @@ mod tests {
         let baseline = ScriptedBaseline::new(&env, BaselineGains::default());
         // Neighbours behind-left and behind-right at their desired distance; goal straight ahead
         // of the triangle's centroid.
-        let obs = obs_with([[-1.0, 0.5], [-1.0, -0.5]], [1.25f32.sqrt(), 1.25f32.sqrt()], [2.0, 0.0]);
+        let obs = obs_with(
+            [[-1.0, 0.5], [-1.0, -0.5]],
+            [1.25f32.sqrt(), 1.25f32.sqrt()],
+            [2.0, 0.0],
+        );
         let (v, w) = baseline.command(&obs);
         assert!((v - env.v_max).abs() < 1e-9, "full speed ahead, got v = {v}");
         assert!(w.abs() < 1e-6, "no turn, got w = {w}");
@@ -139,7 +147,10 @@ mod tests {
         let obs = obs_with([[0.0, 1.0], [0.0, -1.0]], [1.0, 1.0], [-2.0, 0.5]);
         let (v, w) = baseline.command(&obs);
         assert_eq!(v, 0.0, "never drives backwards");
-        assert!(w > 0.0 && (w - env.w_max).abs() < 1e-9, "turns left at full rate, got {w}");
+        assert!(
+            w > 0.0 && (w - env.w_max).abs() < 1e-9,
+            "turns left at full rate, got {w}"
+        );
     }
 
     #[test]
@@ -160,8 +171,9 @@ mod tests {
         for _ in 0..episodes {
             let mut world = World::new(&env, random_episode(n, &env, &mut rng));
             loop {
-                let commands: Vec<(f64, f64)> =
-                    (0..n).map(|agent| baseline.command(&world.observation(agent))).collect();
+                let commands: Vec<(f64, f64)> = (0..n)
+                    .map(|agent| baseline.command(&world.observation(agent)))
+                    .collect();
                 let result = world.step(&commands);
                 match result.outcome {
                     Outcome::Running => continue,

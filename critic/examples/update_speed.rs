@@ -19,22 +19,34 @@ fn main() -> anyhow::Result<()> {
     let batch_size: usize = args.next().map_or(Ok(128), |a| a.parse())?;
     let updates: usize = args.next().map_or(Ok(200), |a| a.parse())?;
     let history: usize = args.next().map_or(Ok(15), |a| a.parse())?;
-    let env = EnvConfig { history, ..EnvConfig::default() };
-    let learn = LearnConfig { batch_size, ..LearnConfig::default() };
+    let env = EnvConfig {
+        history,
+        ..EnvConfig::default()
+    };
+    let learn = LearnConfig {
+        batch_size,
+        ..LearnConfig::default()
+    };
     let n = 3;
     let mut rng = StdRng::seed_from_u64(1);
     let mut replay = ReplayBuffer::new(learn.replay_capacity);
     for number in 0..200 {
         let mut world = World::new(&env, random_episode(n, &env, &mut rng));
         let snapshot = |w: &World| Tick {
-            poses: w.poses.iter().map(|p| [p.x as f32, p.y as f32, p.theta as f32]).collect(),
+            poses: w
+                .poses
+                .iter()
+                .map(|p| [p.x as f32, p.y as f32, p.theta as f32])
+                .collect(),
             observations: (0..n).map(|a| w.observation(a)).collect(),
             actions: vec![[0.0; 2]; n],
             reward: 0.0,
         };
         let mut ticks = vec![snapshot(&world)];
         for _ in 0..env.max_steps {
-            let actions: Vec<[f32; 2]> = (0..n).map(|_| [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)]).collect();
+            let actions: Vec<[f32; 2]> = (0..n)
+                .map(|_| [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)])
+                .collect();
             let commands: Vec<(f64, f64)> = actions.iter().map(|a| env.command_from_action(*a)).collect();
             let result = world.step(&commands);
             let last = ticks.last_mut().expect("tick");
@@ -46,9 +58,19 @@ fn main() -> anyhow::Result<()> {
             }
         }
         let desired = world.desired.iter().map(|d| [d[0] as f32, d[1] as f32]).collect();
-        replay.push(Episode { number, desired, goal: [world.goal[0] as f32, world.goal[1] as f32], ticks, terminal: false });
+        replay.push(Episode {
+            number,
+            desired,
+            goal: [world.goal[0] as f32, world.goal[1] as f32],
+            ticks,
+            terminal: false,
+        });
     }
-    let sampler = Sampler { history: env.history, her_probability: learn.her_probability, env: env.clone() };
+    let sampler = Sampler {
+        history: env.history,
+        her_probability: learn.her_probability,
+        env: env.clone(),
+    };
     let mut learner = Learner::new(n, &env, &learn, 1)?;
     let (mut sampling, mut updating) = (0.0, 0.0);
     for _ in 0..updates {

@@ -5,10 +5,10 @@
 //! publishes state(t+1); so when state(t) is read, its observations are already waiting.
 
 use anyhow::Result;
+use formation_protocol::OBS_DIM;
 use formation_protocol::config::EnvConfig;
 use formation_protocol::services::{self, Sizing};
 use formation_protocol::wire::*;
-use formation_protocol::OBS_DIM;
 use formation_replay::buffer::{Episode, Tick};
 use formation_replay::features::observation;
 use iceoryx2::port::listener::Listener;
@@ -116,7 +116,11 @@ impl<S: Service> Collector<S> {
     /// Takes in everything waiting; returns the episodes that ended.
     pub fn drain(&mut self) -> Result<Vec<FinishedEpisode>> {
         let mut finished = Vec::new();
-        while let Some(sample) = self.state.receive().map_err(|e| anyhow::anyhow!("critic: state: {e:?}"))? {
+        while let Some(sample) = self
+            .state
+            .receive()
+            .map_err(|e| anyhow::anyhow!("critic: state: {e:?}"))?
+        {
             let state = *sample.payload();
             drop(sample);
             if state.header.protocol_version != PROTOCOL_VERSION {
@@ -135,7 +139,10 @@ impl<S: Service> Collector<S> {
             }
         }
         for (agent, commands) in self.commands.iter().enumerate() {
-            while let Some(sample) = commands.receive().map_err(|e| anyhow::anyhow!("critic: command: {e:?}"))? {
+            while let Some(sample) = commands
+                .receive()
+                .map_err(|e| anyhow::anyhow!("critic: command: {e:?}"))?
+            {
                 if !sample.payload().header.has(FLAG_HELLO) {
                     self.stats.commands_seen += 1;
                     self.stats.policy_versions[agent] = sample.payload().policy_version;

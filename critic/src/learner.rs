@@ -86,12 +86,17 @@ pub struct Learner {
 /// Re-draws every variable from `rng`, U(-1/sqrt(fan_in), 1/sqrt(fan_in)) (PyTorch's default
 /// for linear layers), because candle's CPU generator cannot be seeded.
 fn reinitialise(vars: &VarMap, rng: &mut StdRng) -> Result<()> {
-    let data = vars.data().lock().map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+    let data = vars
+        .data()
+        .lock()
+        .map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
     let mut names: Vec<&String> = data.keys().collect();
     names.sort();
     // Fan-in of a layer is the width of its weight's second dimension.
     let fan_in = |name: &str| -> Option<usize> {
-        let weight = name.strip_suffix(".bias").map_or_else(|| name.to_string(), |stem| format!("{stem}.weight"));
+        let weight = name
+            .strip_suffix(".bias")
+            .map_or_else(|| name.to_string(), |stem| format!("{stem}.weight"));
         data.get(&weight).and_then(|w| w.as_tensor().dims().get(1).copied())
     };
     for name in names {
@@ -105,10 +110,15 @@ fn reinitialise(vars: &VarMap, rng: &mut StdRng) -> Result<()> {
 }
 
 fn copy_vars(from: &VarMap, to: &VarMap) -> Result<()> {
-    let source = from.data().lock().map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+    let source = from
+        .data()
+        .lock()
+        .map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
     let target = to.data().lock().map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
     for (name, var) in target.iter() {
-        let src = source.get(name).ok_or_else(|| anyhow::anyhow!("no variable {name} to copy"))?;
+        let src = source
+            .get(name)
+            .ok_or_else(|| anyhow::anyhow!("no variable {name} to copy"))?;
         var.set(src.as_tensor())?;
     }
     Ok(())
@@ -116,10 +126,18 @@ fn copy_vars(from: &VarMap, to: &VarMap) -> Result<()> {
 
 /// target <- tau * online + (1 - tau) * target, for every variable.
 pub fn soft_update(online: &VarMap, target: &VarMap, tau: f64) -> Result<()> {
-    let source = online.data().lock().map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
-    let dest = target.data().lock().map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+    let source = online
+        .data()
+        .lock()
+        .map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+    let dest = target
+        .data()
+        .lock()
+        .map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
     for (name, var) in dest.iter() {
-        let src = source.get(name).ok_or_else(|| anyhow::anyhow!("no variable {name} for the soft update"))?;
+        let src = source
+            .get(name)
+            .ok_or_else(|| anyhow::anyhow!("no variable {name} for the soft update"))?;
         let blended = ((src.as_tensor() * tau)? + (var.as_tensor() * (1.0 - tau))?)?;
         var.set(&blended)?;
     }
@@ -163,7 +181,13 @@ impl Learner {
         let build_critics = |vars: &VarMap| -> Result<Vec<CriticNet>> {
             let vb = VarBuilder::from_varmap(vars, DType::F32, &device);
             (0..n_critics)
-                .map(|j| Ok(CriticNet::new(vb.pp(format!("critic{j}")), critic_input, &config.critic_hidden)?))
+                .map(|j| {
+                    Ok(CriticNet::new(
+                        vb.pp(format!("critic{j}")),
+                        critic_input,
+                        &config.critic_hidden,
+                    )?)
+                })
                 .collect()
         };
         let actor_vars = VarMap::new();
@@ -241,8 +265,9 @@ impl Learner {
         if self.config.algorithm == Algorithm::Td3 && self.config.target_noise > 0.0 {
             let normal = Normal::new(0.0f32, self.config.target_noise as f32)?;
             let clip = self.config.target_noise_clip as f32;
-            let values: Vec<f32> =
-                (0..next_actions.elem_count()).map(|_| normal.sample(&mut self.rng).clamp(-clip, clip)).collect();
+            let values: Vec<f32> = (0..next_actions.elem_count())
+                .map(|_| normal.sample(&mut self.rng).clamp(-clip, clip))
+                .collect();
             let noise = Tensor::from_vec(values, next_actions.shape(), &device)?;
             next_actions = (next_actions + noise)?.clamp(-1f32, 1f32)?;
         }
@@ -311,7 +336,10 @@ impl Learner {
             let joint = n * ACTION_DIM;
             let window = Tensor::cat(&[actions.narrow(1, 0, (h - 1) * joint)?, current.clone()], 1)?;
             let q = self.critics[0].forward(&Tensor::cat(&[states, window], 1)?)?;
-            let actor_loss = q.mean_all()?.neg()?;
+            let mut actor_loss = q.mean_all()?.neg()?;
+            if self.config.action_l2 > 0.0 {
+                actor_loss = (actor_loss + current.sqr()?.mean_all()?.affine(self.config.action_l2, 0.0)?)?;
+            }
             self.actor_optimizer.backward_step(&actor_loss)?;
             losses.actor = Some(f64::from(actor_loss.to_scalar::<f32>()?));
             losses.action_magnitude = Some(f64::from(current.abs()?.mean_all()?.to_scalar::<f32>()?));
@@ -323,8 +351,16 @@ impl Learner {
 
     /// Flat weights of actor `index`, in the order agents rebuild them.
     pub fn actor_weights(&self, index: usize) -> Result<Vec<f32>> {
-        let data = self.actor_vars.data().lock().map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
-        flatten_parameters(|name| data.get(name).map(|v| v.as_tensor().clone()), &actor_prefix(index), &self.actor_shape)
+        let data = self
+            .actor_vars
+            .data()
+            .lock()
+            .map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+        flatten_parameters(
+            |name| data.get(name).map(|v| v.as_tensor().clone()),
+            &actor_prefix(index),
+            &self.actor_shape,
+        )
     }
 
     fn all_tensors(&self) -> Result<Vec<(String, Tensor)>> {
@@ -335,7 +371,10 @@ impl Learner {
             ("", &self.critic_vars),
             ("target.", &self.critic_target_vars),
         ] {
-            let data = vars.data().lock().map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+            let data = vars
+                .data()
+                .lock()
+                .map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
             let mut names: Vec<&String> = data.keys().collect();
             names.sort();
             for name in names {
@@ -380,7 +419,10 @@ impl Learner {
             ("", &self.critic_vars),
             ("target.", &self.critic_target_vars),
         ] {
-            let data = vars.data().lock().map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+            let data = vars
+                .data()
+                .lock()
+                .map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
             for (name, var) in data.iter() {
                 let full = format!("{prefix}{name}");
                 let tensor = loaded

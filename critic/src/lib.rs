@@ -12,7 +12,9 @@ pub mod view;
 /// as much as the arithmetic. 32 MiB is the largest mmap threshold glibc accepts.
 pub fn tune_allocator() {
     // SAFETY: mallopt only changes allocator thresholds; called before other threads start.
-    let accepted = unsafe { libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20) == 1 && libc::mallopt(libc::M_TRIM_THRESHOLD, 1 << 30) == 1 };
+    let accepted = unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20) == 1 && libc::mallopt(libc::M_TRIM_THRESHOLD, 1 << 30) == 1
+    };
     if !accepted {
         eprintln!("critic: glibc refused the allocator tuning; updates will be slower");
     }

@@ -29,6 +29,9 @@ struct Cli {
     /// Training curves: spawn|connect=URL (join the run's viewer), save (training.rrd), off.
     #[arg(long, default_value = "off")]
     viewer: String,
+    /// Only validate the flags, the configuration and the checkpoint to resume, then exit.
+    #[arg(long)]
+    check: bool,
 }
 
 fn main() -> ExitCode {
@@ -51,6 +54,15 @@ fn try_main(cli: Cli) -> Result<()> {
         (Some(path), Mode::Train) => Some(checkpoint::resolve(path)?),
         _ => None,
     };
+    let viewer = ViewerMode::parse(&cli.viewer)?;
+    if cli.check {
+        if let Some(path) = &resume {
+            let mut learner =
+                formation_critic::learner::Learner::new(cli.run.agents, &config.env, &config.learn, cli.run.seed)?;
+            learner.load(path)?;
+        }
+        return Ok(());
+    }
     prepare_run_dir(&cli.run.run_dir, &config)?;
     set_log_level_from_env_or(LogLevel::Warn);
     let options = CriticOptions {
@@ -61,7 +73,7 @@ fn try_main(cli: Cli) -> Result<()> {
         config,
         resume,
         progress: !cli.quiet,
-        viewer: ViewerMode::parse(&cli.viewer)?,
+        viewer,
         run_id: identity.run_id.clone(),
     };
     let summary = run::<ipc::Service>(&identity, &options)?;

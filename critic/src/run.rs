@@ -19,8 +19,8 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
 use indicatif::{ProgressBar, ProgressStyle};
-use rand::SeedableRng;
 use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
 use serde::Serialize;
 
 use crate::collector::{Collector, FinishedEpisode};
@@ -145,9 +145,10 @@ impl<S: Service> WeightsPublisher<S> {
         Ok(())
     }
 
-    /// Publishes every actor's current weights under a new version.
+    /// Publishes every actor's current weights; the version is the update count, so it keeps
+    /// growing across a resume from a checkpoint.
     fn publish(&mut self, learner: &Learner) -> Result<()> {
-        self.version += 1;
+        self.version = u32::try_from(learner.updates().max(1)).unwrap_or(u32::MAX);
         for (index, publisher) in self.publishers.iter().enumerate() {
             let flat = learner.actor_weights(index)?;
             let mut sample = publisher
@@ -160,7 +161,9 @@ impl<S: Service> WeightsPublisher<S> {
                 len: flat.len() as u32,
             };
             let sample = sample.write_from_slice(&flat);
-            sample.send().map_err(|e| anyhow::anyhow!("critic: send weights: {e:?}"))?;
+            sample
+                .send()
+                .map_err(|e| anyhow::anyhow!("critic: send weights: {e:?}"))?;
         }
         Ok(())
     }
@@ -187,7 +190,11 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
         let mut learner = Learner::new(options.n_agents, &config.env, learn, options.seed)?;
         if let Some(path) = &options.resume {
             learner.load(path)?;
-            eprintln!("critic: resumed from {} ({} updates)", path.display(), learner.updates());
+            eprintln!(
+                "critic: resumed from {} ({} updates)",
+                path.display(),
+                learner.updates()
+            );
         }
         Some(learner)
     } else {
@@ -227,13 +234,19 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
     let mut last_bar = Instant::now();
     let silence = Duration::from_millis(config.ticks.sim_silence_ms);
     let startup = Duration::from_secs(config.ticks.startup_timeout_s);
+    let session = rng.random_range(1..u64::MAX);
     let mut paid_ticks = u64::MAX;
     let mut last_acknowledged = 0;
-    publish_progress(&progress_publisher, &progress_ready, 0, &learner, &weights)?;
+    publish_progress(&progress_publisher, &progress_ready, session, 0, &learner, &weights)?;
 
     loop {
         let owed = learner.as_ref().map_or(0, |l| {
-            updates_owed(collector.stats.ticks_received, learn.warmup_transitions, learn.updates_per_transition, l.updates())
+            updates_owed(
+                collector.stats.ticks_received,
+                learn.warmup_transitions,
+                learn.updates_per_transition,
+                l.updates(),
+            )
         });
         if owed == 0 {
             collector.wait(Duration::from_millis(100))?;
@@ -242,13 +255,21 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
         for finished in collector.drain()? {
             rolling.push(&finished);
             if let Some(curves) = &curves {
-                curves.episode(rolling.episodes, finished.episode_return, rolling.success_rate(), rolling.eval_success_rate())?;
+                curves.episode(
+                    rolling.episodes,
+                    finished.episode_return,
+                    rolling.success_rate(),
+                    rolling.eval_success_rate(),
+                )?;
             }
             if let (true, Some(eval), Some(learner)) = (finished.eval, rolling.eval_success_rate(), &learner)
                 && eval > best_eval
             {
                 best_eval = eval;
-                learner.save(&options.run_dir.join(BEST_FILE_NAME), checkpoint_meta(learner, &rolling, options, Some(eval)))?;
+                learner.save(
+                    &options.run_dir.join(BEST_FILE_NAME),
+                    checkpoint_meta(learner, &rolling, options, Some(eval)),
+                )?;
             }
             replay.push(finished.episode);
         }
@@ -265,7 +286,10 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
         let quiet = last_tick_seen.elapsed();
         if (collector.stats.ticks_received > 0 && quiet > silence) || quiet > startup {
             if let Some(learner) = &learner {
-                learner.save(&options.run_dir.join(FILE_NAME), checkpoint_meta(learner, &rolling, options, None))?;
+                learner.save(
+                    &options.run_dir.join(FILE_NAME),
+                    checkpoint_meta(learner, &rolling, options, None),
+                )?;
             }
             bail!(
                 "critic: no state from the sim for {:.1} s; is it alive? (checkpoint saved)",
@@ -274,8 +298,12 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
         }
 
         if let (Some(learner), Some(weights)) = (&mut learner, &mut weights) {
-            let owed =
-                updates_owed(collector.stats.ticks_received, learn.warmup_transitions, learn.updates_per_transition, learner.updates());
+            let owed = updates_owed(
+                collector.stats.ticks_received,
+                learn.warmup_transitions,
+                learn.updates_per_transition,
+                learner.updates(),
+            );
             for _ in 0..owed.min(UPDATES_PER_DRAIN) {
                 let Some(batch) = sampler.sample(&replay, learn.batch_size, &mut rng) else {
                     break;
@@ -290,17 +318,25 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
                     weights.publish(learner)?;
                 }
                 if !losses.critic.is_finite() {
-                    bail!("critic: the critic loss diverged to {} after {} updates", losses.critic, learner.updates());
+                    bail!(
+                        "critic: the critic loss diverged to {} after {} updates",
+                        losses.critic,
+                        learner.updates()
+                    );
                 }
             }
             if replay.transitions() == 0 {
                 // Nothing to learn from yet: let the sim run on.
                 paid_ticks = u64::MAX;
             } else {
-                paid_ticks = learn.warmup_transitions as u64 + (learner.updates() as f64 / learn.updates_per_transition) as u64;
+                paid_ticks =
+                    learn.warmup_transitions as u64 + (learner.updates() as f64 / learn.updates_per_transition) as u64;
             }
             if last_checkpoint.elapsed() >= Duration::from_secs(learn.checkpoint_every_s) {
-                learner.save(&options.run_dir.join(FILE_NAME), checkpoint_meta(learner, &rolling, options, None))?;
+                learner.save(
+                    &options.run_dir.join(FILE_NAME),
+                    checkpoint_meta(learner, &rolling, options, None),
+                )?;
                 last_checkpoint = Instant::now();
             }
         }
@@ -311,7 +347,14 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
         if acknowledged != last_acknowledged || collector.stats.ticks_received == 0 {
             // Before the first tick this repeats the greeting until the sim has connected.
             last_acknowledged = acknowledged;
-            publish_progress(&progress_publisher, &progress_ready, acknowledged, &learner, &weights)?;
+            publish_progress(
+                &progress_publisher,
+                &progress_ready,
+                session,
+                acknowledged,
+                &learner,
+                &weights,
+            )?;
         }
 
         if last_bar.elapsed() >= Duration::from_millis(500) {
@@ -354,7 +397,10 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
 
     let checkpoint = match &learner {
         Some(learner) => {
-            learner.save(&options.run_dir.join(FILE_NAME), checkpoint_meta(learner, &rolling, options, None))?;
+            learner.save(
+                &options.run_dir.join(FILE_NAME),
+                checkpoint_meta(learner, &rolling, options, None),
+            )?;
             Some(FILE_NAME.to_string())
         }
         None => None,
@@ -392,12 +438,20 @@ fn updates_owed(ticks: u64, warmup: usize, ratio: f64, done: u64) -> u64 {
     due.saturating_sub(done)
 }
 
-fn checkpoint_meta(learner: &Learner, rolling: &Rolling, options: &CriticOptions, eval: Option<f64>) -> HashMap<String, String> {
+fn checkpoint_meta(
+    learner: &Learner,
+    rolling: &Rolling,
+    options: &CriticOptions,
+    eval: Option<f64>,
+) -> HashMap<String, String> {
     let mut extra = HashMap::new();
     extra.insert("updates".into(), learner.updates().to_string());
     extra.insert("episodes".into(), rolling.episodes.to_string());
     extra.insert("seed".into(), options.seed.to_string());
-    extra.insert("algorithm".into(), format!("{:?}", options.config.learn.algorithm).to_lowercase());
+    extra.insert(
+        "algorithm".into(),
+        format!("{:?}", options.config.learn.algorithm).to_lowercase(),
+    );
     extra.insert("success_rate_100".into(), format!("{:.3}", rolling.success_rate()));
     if let Some(eval) = eval {
         extra.insert("eval_success_rate_20".into(), format!("{eval:.3}"));
@@ -408,6 +462,7 @@ fn checkpoint_meta(learner: &Learner, rolling: &Rolling, options: &CriticOptions
 fn publish_progress<S: Service>(
     publisher: &Publisher<S, CriticProgressMsg, ()>,
     ready: &iceoryx2::port::notifier::Notifier<S>,
+    session: u64,
     acknowledged_ticks: u64,
     learner: &Option<Learner>,
     weights: &Option<WeightsPublisher<S>>,
@@ -418,9 +473,12 @@ fn publish_progress<S: Service>(
             weights_version: weights.as_ref().map_or(0, |w| w.version),
             consumed_ticks: acknowledged_ticks,
             updates: learner.as_ref().map_or(0, Learner::updates),
+            session,
         })
         .map_err(|e| anyhow::anyhow!("critic: progress: {e:?}"))?;
-    ready.notify().map_err(|e| anyhow::anyhow!("critic: progress notify: {e:?}"))?;
+    ready
+        .notify()
+        .map_err(|e| anyhow::anyhow!("critic: progress notify: {e:?}"))?;
     Ok(())
 }
 

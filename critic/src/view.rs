@@ -21,11 +21,18 @@ impl CurveView {
         for (path, name, colour) in [
             ("plots/training/episode_reward", "episode reward", [0, 90, 200]),
             ("plots/training/success_rate", "success rate (last 100)", [40, 160, 40]),
-            ("plots/training/eval_success_rate", "noise-free success (last 20)", [200, 120, 0]),
+            (
+                "plots/training/eval_success_rate",
+                "noise-free success (last 20)",
+                [200, 120, 0],
+            ),
             ("plots/training/critic_loss", "critic loss", [150, 0, 150]),
             ("plots/training/actor_loss", "actor loss", [120, 120, 120]),
         ] {
-            stream.log_static(path, &rerun::SeriesLines::new().with_names([name]).with_colors([colour]))?;
+            stream.log_static(
+                path,
+                &rerun::SeriesLines::new().with_names([name]).with_colors([colour]),
+            )?;
         }
         Ok(Some(Self { stream }))
     }
@@ -33,10 +40,13 @@ impl CurveView {
     /// Logs one finished episode's figures.
     pub fn episode(&self, episode: u64, reward: f64, success_rate: f64, eval_success: Option<f64>) -> Result<()> {
         self.stream.set_time_sequence("episode", episode as i64);
-        self.stream.log("plots/training/episode_reward", &rerun::Scalars::single(reward))?;
-        self.stream.log("plots/training/success_rate", &rerun::Scalars::single(success_rate))?;
+        self.stream
+            .log("plots/training/episode_reward", &rerun::Scalars::single(reward))?;
+        self.stream
+            .log("plots/training/success_rate", &rerun::Scalars::single(success_rate))?;
         if let Some(eval) = eval_success {
-            self.stream.log("plots/training/eval_success_rate", &rerun::Scalars::single(eval))?;
+            self.stream
+                .log("plots/training/eval_success_rate", &rerun::Scalars::single(eval))?;
         }
         Ok(())
     }
@@ -44,9 +54,11 @@ impl CurveView {
     /// Logs the latest losses.
     pub fn losses(&self, episode: u64, critic: f64, actor: Option<f64>) -> Result<()> {
         self.stream.set_time_sequence("episode", episode as i64);
-        self.stream.log("plots/training/critic_loss", &rerun::Scalars::single(critic))?;
+        self.stream
+            .log("plots/training/critic_loss", &rerun::Scalars::single(critic))?;
         if let Some(actor) = actor {
-            self.stream.log("plots/training/actor_loss", &rerun::Scalars::single(actor))?;
+            self.stream
+                .log("plots/training/actor_loss", &rerun::Scalars::single(actor))?;
         }
         Ok(())
     }

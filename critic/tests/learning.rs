@@ -11,7 +11,10 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
 fn small_config(algorithm: Algorithm) -> (EnvConfig, LearnConfig) {
-    let env = EnvConfig { history: 3, ..EnvConfig::default() };
+    let env = EnvConfig {
+        history: 3,
+        ..EnvConfig::default()
+    };
     let learn = LearnConfig {
         algorithm,
         actor_hidden: vec![16],
@@ -51,18 +54,36 @@ fn terminal_masks_the_target_and_truncation_does_not() {
     for b in 0..8 {
         batch.terminals[b] = if b % 2 == 0 { 1.0 } else { 0.0 };
     }
-    let y = learner.td_target(&batch).expect("target").flatten_all().expect("flat").to_vec1::<f32>().expect("vec");
+    let y = learner
+        .td_target(&batch)
+        .expect("target")
+        .flatten_all()
+        .expect("flat")
+        .to_vec1::<f32>()
+        .expect("vec");
     for b in 0..8 {
         if b % 2 == 0 {
             assert!((y[b] - batch.rewards[b]).abs() < 1e-6, "terminal: y = r exactly");
         } else {
-            assert!((y[b] - batch.rewards[b]).abs() > 1e-6, "non-terminal (incl. time limit): y bootstraps from Q'");
+            assert!(
+                (y[b] - batch.rewards[b]).abs() > 1e-6,
+                "non-terminal (incl. time limit): y bootstraps from Q'"
+            );
         }
     }
     // Bootstrapped part scales with gamma: y - r = gamma * Q'(s', pi'(o')) for non-terminals.
-    let learn_half = LearnConfig { gamma: learn.gamma / 2.0, ..learn.clone() };
+    let learn_half = LearnConfig {
+        gamma: learn.gamma / 2.0,
+        ..learn.clone()
+    };
     let mut half = Learner::new(3, &env, &learn_half, 1).expect("learner");
-    let y_half = half.td_target(&batch).expect("target").flatten_all().expect("flat").to_vec1::<f32>().expect("vec");
+    let y_half = half
+        .td_target(&batch)
+        .expect("target")
+        .flatten_all()
+        .expect("flat")
+        .to_vec1::<f32>()
+        .expect("vec");
     for b in (1..8).step_by(2) {
         let full = y[b] - batch.rewards[b];
         let halved = y_half[b] - batch.rewards[b];
@@ -82,7 +103,12 @@ fn soft_update_moves_targets_by_exactly_tau() {
         .get_with_hints(4, "w", candle_nn::Init::Const(0.0))
         .expect("target");
     soft_update(&online, &target, 0.25).expect("update");
-    let value = |map: &VarMap| map.data().lock().expect("lock")["w"].as_tensor().to_vec1::<f32>().expect("vec");
+    let value = |map: &VarMap| {
+        map.data().lock().expect("lock")["w"]
+            .as_tensor()
+            .to_vec1::<f32>()
+            .expect("vec")
+    };
     assert_eq!(value(&target), vec![0.25; 4]);
     soft_update(&online, &target, 0.25).expect("update");
     assert_eq!(value(&target), vec![0.4375; 4]);
@@ -97,11 +123,19 @@ fn critic_loss_falls_on_a_fixed_batch() {
         let mut batch = random_batch(3, env.history, 32, 4);
         batch.terminals = vec![1.0; 32]; // y = r: a fixed regression target
         let target = Tensor::from_slice(&batch.rewards, (32, 1), &Device::Cpu).expect("target");
-        let before = learner.critic_loss(&batch, &target).expect("loss").to_scalar::<f32>().expect("scalar");
+        let before = learner
+            .critic_loss(&batch, &target)
+            .expect("loss")
+            .to_scalar::<f32>()
+            .expect("scalar");
         for _ in 0..200 {
             learner.update(&batch).expect("update");
         }
-        let after = learner.critic_loss(&batch, &target).expect("loss").to_scalar::<f32>().expect("scalar");
+        let after = learner
+            .critic_loss(&batch, &target)
+            .expect("loss")
+            .to_scalar::<f32>()
+            .expect("scalar");
         assert!(after < 0.2 * before, "{algorithm:?}: loss {before} -> {after}");
     }
 }
@@ -119,7 +153,10 @@ fn checkpoint_round_trip_and_shape_mismatch() {
     other.load(&path).expect("load");
     assert_eq!(other.actor_weights(0).expect("w"), learner.actor_weights(0).expect("w"));
     // A different actor width is refused with a message naming the file.
-    let wider = LearnConfig { actor_hidden: vec![32], ..learn.clone() };
+    let wider = LearnConfig {
+        actor_hidden: vec![32],
+        ..learn.clone()
+    };
     let mut mismatched = Learner::new(3, &env, &wider, 7).expect("learner");
     let err = mismatched.load(&path).expect_err("shape mismatch").to_string();
     assert!(err.contains("checkpoint.safetensors"), "{err}");
@@ -132,7 +169,10 @@ fn checkpoint_round_trip_and_shape_mismatch() {
 #[test]
 fn independent_actors_have_one_network_per_robot() {
     let (env, learn) = small_config(Algorithm::Ddpg);
-    let learn = LearnConfig { shared_actor: false, ..learn };
+    let learn = LearnConfig {
+        shared_actor: false,
+        ..learn
+    };
     let mut learner = Learner::new(3, &env, &learn, 8).expect("learner");
     assert_eq!(learner.n_actors(), 3);
     let batch = random_batch(3, env.history, 16, 9);

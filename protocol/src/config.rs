@@ -199,6 +199,8 @@ pub struct LearnConfig {
     pub target_noise_clip: f64,
     /// Rewards are multiplied by this before training (1 = the paper's reward).
     pub reward_scale: f64,
+    /// Weight of mean(a^2) added to the actor loss (keeps tanh out of saturation; 0 = off).
+    pub action_l2: f64,
     /// Replay capacity in ticks.
     pub replay_capacity: usize,
     /// New actor weights are published every this many updates.
@@ -233,6 +235,7 @@ impl Default for LearnConfig {
             target_noise: 0.2,
             target_noise_clip: 0.5,
             reward_scale: 1.0,
+            action_l2: 0.0,
             replay_capacity: 1_000_000,
             publish_every_updates: 50,
             checkpoint_every_s: 120,
@@ -342,14 +345,24 @@ impl RunConfig {
     /// Rejects values that make the task impossible or the numbers meaningless.
     pub fn validate(&self) -> Result<(), ConfigError> {
         let e = &self.env;
-        check(positive(e.dt_s) && e.dt_s <= 1.0, "env.dt_s", e.dt_s, "must be in (0, 1] seconds")?;
+        check(
+            positive(e.dt_s) && e.dt_s <= 1.0,
+            "env.dt_s",
+            e.dt_s,
+            "must be in (0, 1] seconds",
+        )?;
         check(e.max_steps >= 1, "env.max_steps", e.max_steps, "must be at least 1")?;
         check(positive(e.v_max), "env.v_max", e.v_max, "must be > 0")?;
         check(positive(e.w_max), "env.w_max", e.w_max, "must be > 0")?;
         check(positive(e.arena_m), "env.arena_m", e.arena_m, "must be > 0")?;
         check(positive(e.eps_form_m), "env.eps_form_m", e.eps_form_m, "must be > 0")?;
         check(positive(e.eps_goal_m), "env.eps_goal_m", e.eps_goal_m, "must be > 0")?;
-        check(e.eps_coll_m.is_finite() && e.eps_coll_m >= 0.0, "env.eps_coll_m", e.eps_coll_m, "must be >= 0")?;
+        check(
+            e.eps_coll_m.is_finite() && e.eps_coll_m >= 0.0,
+            "env.eps_coll_m",
+            e.eps_coll_m,
+            "must be >= 0",
+        )?;
         check(
             positive(e.edge_min_m) && e.edge_min_m > e.eps_coll_m + e.eps_form_m,
             "env.edge_min_m",
@@ -389,17 +402,52 @@ impl RunConfig {
         ] {
             check(value.is_finite(), field, value, "must be finite")?;
         }
-        check((1..=64).contains(&e.history), "env.history", e.history, "must be in 1..=64")?;
+        check(
+            (1..=64).contains(&e.history),
+            "env.history",
+            e.history,
+            "must be in 1..=64",
+        )?;
 
         let t = &self.ticks;
-        check(t.command_timeout_ms >= 1, "ticks.command_timeout_ms", t.command_timeout_ms, "must be >= 1")?;
-        check(t.startup_timeout_s >= 1, "ticks.startup_timeout_s", t.startup_timeout_s, "must be >= 1")?;
-        check((1..=4096).contains(&t.critic_window), "ticks.critic_window", t.critic_window, "must be in 1..=4096")?;
-        check(t.sim_silence_ms >= 100, "ticks.sim_silence_ms", t.sim_silence_ms, "must be >= 100")?;
+        check(
+            t.command_timeout_ms >= 1,
+            "ticks.command_timeout_ms",
+            t.command_timeout_ms,
+            "must be >= 1",
+        )?;
+        check(
+            t.startup_timeout_s >= 1,
+            "ticks.startup_timeout_s",
+            t.startup_timeout_s,
+            "must be >= 1",
+        )?;
+        check(
+            (1..=4096).contains(&t.critic_window),
+            "ticks.critic_window",
+            t.critic_window,
+            "must be in 1..=4096",
+        )?;
+        check(
+            t.sim_silence_ms >= 100,
+            "ticks.sim_silence_ms",
+            t.sim_silence_ms,
+            "must be >= 100",
+        )?;
 
         let l = &self.learn;
-        check((1..=65536).contains(&l.batch_size), "learn.batch_size", l.batch_size, "must be in 1..=65536")?;
-        check(l.gamma.is_finite() && (0.0..1.0).contains(&l.gamma), "learn.gamma", l.gamma, "must be in [0, 1)")?;
+        check(
+            (1..=65536).contains(&l.batch_size),
+            "learn.batch_size",
+            l.batch_size,
+            "must be in 1..=65536",
+        )?;
+        check(
+            l.gamma.is_finite() && (0.0..1.0).contains(&l.gamma),
+            "learn.gamma",
+            l.gamma,
+            "must be in [0, 1)",
+        )?;
         check(positive(l.actor_lr), "learn.actor_lr", l.actor_lr, "must be > 0")?;
         check(positive(l.critic_lr), "learn.critic_lr", l.critic_lr, "must be > 0")?;
         check(positive(l.tau) && l.tau <= 1.0, "learn.tau", l.tau, "must be in (0, 1]")?;
@@ -409,7 +457,12 @@ impl RunConfig {
             l.her_probability,
             "must be in [0, 1]",
         )?;
-        check(l.noise_std.is_finite() && l.noise_std >= 0.0, "learn.noise_std", l.noise_std, "must be >= 0")?;
+        check(
+            l.noise_std.is_finite() && l.noise_std >= 0.0,
+            "learn.noise_std",
+            l.noise_std,
+            "must be >= 0",
+        )?;
         check(
             l.noise_std_min.is_finite() && l.noise_std_min >= 0.0,
             "learn.noise_std_min",
@@ -434,17 +487,48 @@ impl RunConfig {
             format!("{:?}", l.critic_hidden),
             "needs 1 or more widths in 1..=4096",
         )?;
-        check(l.policy_delay >= 1, "learn.policy_delay", l.policy_delay, "must be >= 1")?;
-        check(positive(l.reward_scale), "learn.reward_scale", l.reward_scale, "must be > 0")?;
+        check(
+            l.policy_delay >= 1,
+            "learn.policy_delay",
+            l.policy_delay,
+            "must be >= 1",
+        )?;
+        check(
+            positive(l.reward_scale),
+            "learn.reward_scale",
+            l.reward_scale,
+            "must be > 0",
+        )?;
+        check(
+            l.action_l2.is_finite() && l.action_l2 >= 0.0,
+            "learn.action_l2",
+            l.action_l2,
+            "must be >= 0",
+        )?;
         check(
             l.replay_capacity >= 1000,
             "learn.replay_capacity",
             l.replay_capacity,
             "must be >= 1000 ticks",
         )?;
-        check(l.publish_every_updates >= 1, "learn.publish_every_updates", l.publish_every_updates, "must be >= 1")?;
-        check((1..=64).contains(&l.threads), "learn.threads", l.threads, "must be in 1..=64")?;
-        check(l.eval_every_episodes >= 1, "learn.eval_every_episodes", l.eval_every_episodes, "must be >= 1")?;
+        check(
+            l.publish_every_updates >= 1,
+            "learn.publish_every_updates",
+            l.publish_every_updates,
+            "must be >= 1",
+        )?;
+        check(
+            (1..=64).contains(&l.threads),
+            "learn.threads",
+            l.threads,
+            "must be in 1..=64",
+        )?;
+        check(
+            l.eval_every_episodes >= 1,
+            "learn.eval_every_episodes",
+            l.eval_every_episodes,
+            "must be >= 1",
+        )?;
         check(
             self.view.world_every_episodes >= 1,
             "view.world_every_episodes",

@@ -7,12 +7,12 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
-use iceoryx2::prelude::*;
 use iceoryx2::port::listener::{Listener, ListenerWaitError};
+use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::{event, publish_subscribe};
 
-use crate::wire::{CommandMsg, CriticProgressMsg, ObservationMsg, StateMsg, WeightsHeader};
 use crate::MAX_AGENTS;
+use crate::wire::{CommandMsg, CriticProgressMsg, ObservationMsg, StateMsg, WeightsHeader};
 
 /// Ports left for processes that replace a dead one before iceoryx2 has cleaned it up, and for
 /// observers such as a viewer.
@@ -30,7 +30,9 @@ impl RunIdentity {
     pub fn new(run_id: &str) -> Result<Self> {
         if run_id.is_empty()
             || run_id.len() > 24
-            || !run_id.chars().all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+            || !run_id
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
         {
             bail!("run id {run_id:?} must be 1 to 24 letters, digits, '_' or '-'");
         }
@@ -203,7 +205,11 @@ fn event_service<S: Service>(node: &Node<S>, name: &str, sizing: &Sizing, notifi
 }
 
 /// Observation stream of one agent.
-pub fn observation_stream<S: Service>(node: &Node<S>, sizing: &Sizing, agent: usize) -> Result<Stream<S, ObservationMsg>> {
+pub fn observation_stream<S: Service>(
+    node: &Node<S>,
+    sizing: &Sizing,
+    agent: usize,
+) -> Result<Stream<S, ObservationMsg>> {
     stream(node, &observation_service_name(agent), sizing, 0, 2 + SPARE_PORTS)
 }
 

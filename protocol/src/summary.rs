@@ -44,6 +44,8 @@ pub struct Summary {
     pub missed_ticks: u64,
     /// Commands rejected as malformed (non-finite, wrong tick or protocol).
     pub rejected_commands: u64,
+    /// Robots that greeted again after being absent (restarted agent processes).
+    pub rejoined_agents: u64,
     /// Real-time mode: ticks that overran their deadline.
     pub deadline_misses: u64,
     /// Wall-clock seconds of the run.
@@ -82,25 +84,39 @@ impl Summary {
             ("collision rate", format!("{:.3}", self.collision_rate)),
             ("timeout rate", format!("{:.3}", self.timeout_rate)),
             ("final edge error (m)", format!("{:.4}", self.mean_final_edge_error_m)),
-            ("final goal distance (m)", format!("{:.4}", self.mean_final_goal_distance_m)),
+            (
+                "final goal distance (m)",
+                format!("{:.4}", self.mean_final_goal_distance_m),
+            ),
             ("steps to goal", opt(self.mean_steps_to_goal, 1)),
             ("formation held (ticks)", format!("{:.3}", self.formation_hold_rate)),
             ("mean return", format!("{:.2}", self.mean_return)),
             ("env steps", self.env_steps.to_string()),
             ("env steps / s", format!("{:.0}", self.env_steps_per_s)),
-            ("tick p50 / p99 (us)", format!("{:.1} / {:.1}", self.tick_p50_us, self.tick_p99_us)),
+            (
+                "tick p50 / p99 (us)",
+                format!("{:.1} / {:.1}", self.tick_p50_us, self.tick_p99_us),
+            ),
             ("missed ticks", self.missed_ticks.to_string()),
             ("rejected commands", self.rejected_commands.to_string()),
             ("deadline misses", self.deadline_misses.to_string()),
-            ("transitions received", self.transitions_received.map_or("-".into(), |v| v.to_string())),
-            ("lost transitions", self.lost_transitions.map_or("-".into(), |v| v.to_string())),
+            ("rejoined robots", self.rejoined_agents.to_string()),
+            (
+                "transitions received",
+                self.transitions_received.map_or("-".into(), |v| v.to_string()),
+            ),
+            (
+                "lost transitions",
+                self.lost_transitions.map_or("-".into(), |v| v.to_string()),
+            ),
             ("gradient updates", self.updates.map_or("-".into(), |v| v.to_string())),
             ("updates / s", opt(self.updates_per_s, 1)),
-            ("weights version", self.weights_version.map_or("-".into(), |v| v.to_string())),
+            (
+                "weights version",
+                self.weights_version.map_or("-".into(), |v| v.to_string()),
+            ),
         ];
         let width = rows.iter().map(|(k, _)| k.len()).max().unwrap_or(0);
-        rows.iter()
-            .map(|(k, v)| format!("  {k:<width$}  {v}\n"))
-            .collect()
+        rows.iter().map(|(k, v)| format!("  {k:<width$}  {v}\n")).collect()
     }
 }

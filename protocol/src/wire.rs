@@ -83,6 +83,8 @@ pub struct CommandMsg {
     pub v: f32,
     /// Turn rate, rad/s.
     pub w: f32,
+    /// Random, non-zero, new for every agent process: a restarted robot greets with a new one.
+    pub session: u32,
 }
 
 /// `StateMsg::outcome`: the episode goes on.
@@ -150,6 +152,8 @@ pub struct CriticProgressMsg {
     pub consumed_ticks: u64,
     /// Gradient updates so far.
     pub updates: u64,
+    /// Random, non-zero, new for every critic process: a restarted critic counts from zero.
+    pub session: u64,
 }
 
 /// critic -> agents: the user header in front of one actor's flat `[f32]` weights.

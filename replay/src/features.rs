@@ -65,7 +65,12 @@ pub fn write_state(out: &mut [f32], poses: &[[f32; 3]], goal: [f32; 2], desired:
 
 /// What robot `agent` observes at `poses` with `goal`: the sim's own observation model.
 pub fn observation(agent: usize, poses: &[[f32; 3]], desired: &[[f32; NEIGHBOURS]], goal: [f32; 2]) -> [f32; OBS_DIM] {
-    observe(agent, &to_poses(poses), &to_desired(desired), [f64::from(goal[0]), f64::from(goal[1])])
+    observe(
+        agent,
+        &to_poses(poses),
+        &to_desired(desired),
+        [f64::from(goal[0]), f64::from(goal[1])],
+    )
 }
 
 /// Reward and terminal flag of reaching `poses` after `steps` steps with `goal`: the sim's own
@@ -77,7 +82,12 @@ pub fn transition_reward(
     steps: u32,
     env: &EnvConfig,
 ) -> (f32, bool) {
-    let c = conditions(&to_poses(poses), &to_desired(desired), [f64::from(goal[0]), f64::from(goal[1])], env);
+    let c = conditions(
+        &to_poses(poses),
+        &to_desired(desired),
+        [f64::from(goal[0]), f64::from(goal[1])],
+        env,
+    );
     let (r, outcome) = reward(&c, steps, env);
     (r as f32, outcome.is_terminal() && outcome != Outcome::Running)
 }

@@ -144,7 +144,13 @@ impl Sampler {
                     observations[offset..offset + OBS_DIM].copy_from_slice(&obs);
                 }
                 let offset = (b * h + k) * sd;
-                write_state(&mut states[offset..offset + sd], &tick.poses, goal, &episode.desired, frame);
+                write_state(
+                    &mut states[offset..offset + sd],
+                    &tick.poses,
+                    goal,
+                    &episode.desired,
+                    frame,
+                );
             }
         }
         for k in 0..h {
@@ -155,8 +161,13 @@ impl Sampler {
             }
         }
         let (reward, terminal) = if relabel {
-            let (r, terminal) =
-                transition_reward(&episode.ticks[t + 1].poses, &episode.desired, goal, (t + 1) as u32, &self.env);
+            let (r, terminal) = transition_reward(
+                &episode.ticks[t + 1].poses,
+                &episode.desired,
+                goal,
+                (t + 1) as u32,
+                &self.env,
+            );
             (r, terminal)
         } else {
             (episode.ticks[t].reward, episode.is_terminal_transition(t))

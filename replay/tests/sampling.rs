@@ -2,10 +2,10 @@
 //! the same ticks, and HER relabelling equals recomputing everything from the true states.
 
 use formation_protocol::config::EnvConfig;
+use formation_protocol::{ACTION_DIM, OBS_DIM};
 use formation_replay::buffer::{Episode, ReplayBuffer, Tick};
 use formation_replay::features::{centroid, observation, state_dim, transition_reward};
 use formation_replay::sample::Sampler;
-use formation_protocol::{ACTION_DIM, OBS_DIM};
 use formation_sim::formation::random_episode;
 use formation_sim::world::World;
 use rand::rngs::StdRng;
@@ -21,7 +21,11 @@ fn recorded_episodes(count: usize, n: usize, seed: u64) -> Vec<Episode> {
             let desired: Vec<[f32; 2]> = world.desired.iter().map(|d| [d[0] as f32, d[1] as f32]).collect();
             let goal = [world.goal[0] as f32, world.goal[1] as f32];
             let snapshot = |w: &World| Tick {
-                poses: w.poses.iter().map(|p| [p.x as f32, p.y as f32, p.theta as f32]).collect(),
+                poses: w
+                    .poses
+                    .iter()
+                    .map(|p| [p.x as f32, p.y as f32, p.theta as f32])
+                    .collect(),
                 observations: (0..n).map(|a| w.observation(a)).collect(),
                 actions: vec![[0.0; ACTION_DIM]; n],
                 reward: 0.0,
@@ -30,7 +34,9 @@ fn recorded_episodes(count: usize, n: usize, seed: u64) -> Vec<Episode> {
             let mut terminal = false;
             // Short episodes keep the test quick; a random walk with a forward bias.
             for _ in 0..30 {
-                let actions: Vec<[f32; 2]> = (0..n).map(|_| [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)]).collect();
+                let actions: Vec<[f32; 2]> = (0..n)
+                    .map(|_| [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)])
+                    .collect();
                 let commands: Vec<(f64, f64)> = actions.iter().map(|a| env.command_from_action(*a)).collect();
                 let result = world.step(&commands);
                 let last = ticks.last_mut().expect("tick");
@@ -42,7 +48,13 @@ fn recorded_episodes(count: usize, n: usize, seed: u64) -> Vec<Episode> {
                     break;
                 }
             }
-            Episode { number: number as u32, desired, goal, ticks, terminal }
+            Episode {
+                number: number as u32,
+                desired,
+                goal,
+                ticks,
+                terminal,
+            }
         })
         .collect()
 }
@@ -61,7 +73,11 @@ fn sequences_never_cross_episodes_and_share_ticks() {
     let h = 5;
     let episodes = recorded_episodes(20, n, 1);
     let buffer = buffer_of(&episodes);
-    let sampler = Sampler { history: h, her_probability: 0.0, env: EnvConfig::default() };
+    let sampler = Sampler {
+        history: h,
+        her_probability: 0.0,
+        env: EnvConfig::default(),
+    };
     let mut rng = StdRng::seed_from_u64(2);
     let batch = sampler.sample(&buffer, 256, &mut rng).expect("batch");
     for b in 0..batch.batch_size {
@@ -73,7 +89,10 @@ fn sequences_never_cross_episodes_and_share_ticks() {
                 // Window ending at t: tick max(t + k + 1 - h, 0) of the same episode.
                 let tick = (t + k + 1).saturating_sub(h);
                 let offset = ((b * n + agent) * h + k) * OBS_DIM;
-                assert_eq!(&batch.observations[offset..offset + OBS_DIM], &episode.ticks[tick].observations[agent]);
+                assert_eq!(
+                    &batch.observations[offset..offset + OBS_DIM],
+                    &episode.ticks[tick].observations[agent]
+                );
                 let next_tick = (t + k + 2).saturating_sub(h);
                 assert_eq!(
                     &batch.next_observations[offset..offset + OBS_DIM],
@@ -84,7 +103,10 @@ fn sequences_never_cross_episodes_and_share_ticks() {
             }
         }
         assert_eq!(batch.rewards[b], episode.ticks[t].reward);
-        assert_eq!(batch.terminals[b] == 1.0, episode.terminal && t + 2 == episode.ticks.len());
+        assert_eq!(
+            batch.terminals[b] == 1.0,
+            episode.terminal && t + 2 == episode.ticks.len()
+        );
     }
     assert_eq!(batch.states.len(), batch.batch_size * h * state_dim(n));
 }
@@ -96,7 +118,11 @@ fn her_relabelling_equals_recomputation_from_true_states() {
     let env = EnvConfig::default();
     let episodes = recorded_episodes(10, n, 5);
     let buffer = buffer_of(&episodes);
-    let sampler = Sampler { history: h, her_probability: 1.0, env: env.clone() };
+    let sampler = Sampler {
+        history: h,
+        her_probability: 1.0,
+        env: env.clone(),
+    };
     let mut rng = StdRng::seed_from_u64(6);
     let batch = sampler.sample(&buffer, 128, &mut rng).expect("batch");
     let mut saw_success = false;
@@ -119,7 +145,10 @@ fn her_relabelling_equals_recomputation_from_true_states() {
                 assert_eq!(got, &expected);
                 // Only the goal part changed; the neighbour part is what the robot saw (up to the
                 // f32 rounding of the poses on the wire).
-                for (a, b) in got[..OBS_DIM - 2].iter().zip(&episode.ticks[tick].observations[agent][..OBS_DIM - 2]) {
+                for (a, b) in got[..OBS_DIM - 2]
+                    .iter()
+                    .zip(&episode.ticks[tick].observations[agent][..OBS_DIM - 2])
+                {
                     assert!((a - b).abs() < 1e-5, "{a} vs {b}");
                 }
                 // The goal in the robot's frame, checked by hand: rotate (g - p) by -theta.
@@ -130,12 +159,21 @@ fn her_relabelling_equals_recomputation_from_true_states() {
                 assert!((got[OBS_DIM - 1] - (-s * dx + c * dy)).abs() < 1e-4);
             }
         }
-        let (reward, terminal) = transition_reward(&episode.ticks[t + 1].poses, &episode.desired, goal, (t + 1) as u32, &env);
+        let (reward, terminal) = transition_reward(
+            &episode.ticks[t + 1].poses,
+            &episode.desired,
+            goal,
+            (t + 1) as u32,
+            &env,
+        );
         assert_eq!(batch.rewards[b], reward);
         assert_eq!(batch.terminals[b] == 1.0, terminal);
         saw_success |= reward == env.r_goal as f32;
     }
-    assert!(saw_success, "relabelling to a reached centroid should produce some successes");
+    assert!(
+        saw_success,
+        "relabelling to a reached centroid should produce some successes"
+    );
 }
 
 #[test]
@@ -144,8 +182,13 @@ fn recomputed_reward_matches_the_sim() {
     let env = EnvConfig::default();
     for episode in recorded_episodes(10, 4, 9) {
         for t in 0..episode.ticks.len() - 1 {
-            let (reward, _) =
-                transition_reward(&episode.ticks[t + 1].poses, &episode.desired, episode.goal, (t + 1) as u32, &env);
+            let (reward, _) = transition_reward(
+                &episode.ticks[t + 1].poses,
+                &episode.desired,
+                episode.goal,
+                (t + 1) as u32,
+                &env,
+            );
             // Poses went through f32 on the wire; allow the rare tie at a tolerance boundary.
             assert_eq!(reward, episode.ticks[t].reward, "episode {} t {t}", episode.number);
         }

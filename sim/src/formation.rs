@@ -50,7 +50,11 @@ pub fn random_shape<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> Vec<[f64;
         let mut points: Vec<[f64; 2]> = (0..n)
             .map(|i| {
                 let angle = i as f64 * step + rng.random_range(-0.35..0.35) * step;
-                let zigzag = if n >= 5 && i % 2 == 1 { -0.35 * env.edge_min_m } else { 0.0 };
+                let zigzag = if n >= 5 && i % 2 == 1 {
+                    -0.35 * env.edge_min_m
+                } else {
+                    0.0
+                };
                 let radius = base_radius * rng.random_range(0.75..1.25) + zigzag;
                 [radius * angle.cos(), radius * angle.sin()]
             })
@@ -88,13 +92,22 @@ pub fn random_shape<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> Vec<[f64;
                 break;
             }
         }
-        let valid = observed_edges(n).all(|(i, _, j)| {
-            edge_ok((points[j][0] - points[i][0]).hypot(points[j][1] - points[i][1]), env)
-        }) && (0..n).all(|i| {
-            (i + 1..n).all(|j| (points[j][0] - points[i][0]).hypot(points[j][1] - points[i][1]) >= min_sep)
-        });
+        let valid = observed_edges(n)
+            .all(|(i, _, j)| edge_ok((points[j][0] - points[i][0]).hypot(points[j][1] - points[i][1]), env))
+            && (0..n).all(|i| {
+                (i + 1..n).all(|j| (points[j][0] - points[i][0]).hypot(points[j][1] - points[i][1]) >= min_sep)
+            });
         if valid {
-            let c = centroid(&points.iter().map(|p| Pose { x: p[0], y: p[1], theta: 0.0 }).collect::<Vec<_>>());
+            let c = centroid(
+                &points
+                    .iter()
+                    .map(|p| Pose {
+                        x: p[0],
+                        y: p[1],
+                        theta: 0.0,
+                    })
+                    .collect::<Vec<_>>(),
+            );
             return points.iter().map(|p| [p[0] - c[0], p[1] - c[1]]).collect();
         }
     }
@@ -110,10 +123,16 @@ pub fn random_episode<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> Episode
     let heading = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
     let (s, c) = heading.sin_cos();
     loop {
-        let centre = [rng.random_range(margin..arena - margin), rng.random_range(margin..arena - margin)];
+        let centre = [
+            rng.random_range(margin..arena - margin),
+            rng.random_range(margin..arena - margin),
+        ];
         let goal_angle = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
         let goal_dist = rng.random_range(env.goal_min_m..=env.goal_max_m);
-        let goal = [centre[0] + goal_dist * goal_angle.cos(), centre[1] + goal_dist * goal_angle.sin()];
+        let goal = [
+            centre[0] + goal_dist * goal_angle.cos(),
+            centre[1] + goal_dist * goal_angle.sin(),
+        ];
         if !(margin..=arena - margin).contains(&goal[0]) || !(margin..=arena - margin).contains(&goal[1]) {
             continue;
         }
@@ -161,7 +180,11 @@ mod tests {
                 let dist = (start[0] - init.goal[0]).hypot(start[1] - init.goal[1]);
                 assert!((env.goal_min_m - 1e-9..=env.goal_max_m + 1e-9).contains(&dist));
                 let arena = env.effective_arena_m(n);
-                assert!(init.poses.iter().all(|p| (0.0..=arena).contains(&p.x) && (0.0..=arena).contains(&p.y)));
+                assert!(
+                    init.poses
+                        .iter()
+                        .all(|p| (0.0..=arena).contains(&p.x) && (0.0..=arena).contains(&p.y))
+                );
             }
         }
     }
@@ -176,8 +199,7 @@ mod tests {
         let mut rng = StdRng::seed_from_u64(3);
         for n in 3..=64 {
             let shape = random_shape(n, &env, &mut rng);
-            let mut edges: Vec<(usize, usize)> =
-                observed_edges(n).map(|(i, _, j)| (i.min(j), i.max(j))).collect();
+            let mut edges: Vec<(usize, usize)> = observed_edges(n).map(|(i, _, j)| (i.min(j), i.max(j))).collect();
             edges.sort_unstable();
             edges.dedup();
             let rows: Vec<Vec<f64>> = edges

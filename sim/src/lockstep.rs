@@ -127,8 +127,20 @@ struct StreamCounters {
     missed_ticks: u64,
     rejected_commands: u64,
     deadline_misses: u64,
-    critic_consumed: u64,
     published_ticks: u64,
+    rejoins: u64,
+    critic: CriticLink,
+}
+
+/// What the sim knows of the critic: its session (a restarted critic starts a new one and
+/// counts from zero) and whether it is keeping up.
+#[derive(Debug, Default)]
+struct CriticLink {
+    session: u64,
+    /// Ticks published before the current session began.
+    baseline: u64,
+    consumed: u64,
+    absent: bool,
 }
 
 /// Why the loop stopped.
@@ -147,7 +159,8 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
     let mut log = EpisodeLog::create(&options.run_dir)?;
     let mut counters = StreamCounters::default();
 
-    wait_for_peers(&ports, options, &mut counters)?;
+    let mut presence = Presence::new(options.n_agents);
+    wait_for_peers(&ports, options, &mut presence, &mut counters)?;
 
     let env = &options.config.env;
     let mut rng = StdRng::seed_from_u64(options.seed);
@@ -175,11 +188,10 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
             break;
         }
         let mut world = World::new(env, random_episode(n, env, &mut rng));
-        let log_world = tap.is_some()
-            && (options.mode == Mode::Eval || episode % options.config.view.world_every_episodes == 0);
+        let log_world =
+            tap.is_some() && (options.mode == Mode::Eval || episode % options.config.view.world_every_episodes == 0);
         last_commands.iter_mut().for_each(|c| *c = (0.0, 0.0));
-        let eval_episode =
-            options.mode == Mode::Train && episode % options.config.learn.eval_every_episodes == 0;
+        let eval_episode = options.mode == Mode::Train && episode % options.config.learn.eval_every_episodes == 0;
         let mut episode_return = 0.0;
         let mut formation_ticks = 0u32;
         let mut missed_this_episode = 0u64;
@@ -201,8 +213,22 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                 | if eval_episode { FLAG_EVAL_EPISODE } else { 0 };
             let header = Header::new(episode, tick, flags);
             publish_observations(&ports, &world, header)?;
-            let state = publish_state(&ports, &world, header, outcome, reward, missed_mask, &applied, log_world)?;
-            trace.edge_errors.push(traced_edges.iter().map(|&(i, k, _)| edge_error(i, k, &world.poses, &world.desired)).collect());
+            let state = publish_state(
+                &ports,
+                &world,
+                header,
+                outcome,
+                reward,
+                missed_mask,
+                &applied,
+                log_world,
+            )?;
+            trace.edge_errors.push(
+                traced_edges
+                    .iter()
+                    .map(|&(i, k, _)| edge_error(i, k, &world.poses, &world.desired))
+                    .collect(),
+            );
             trace.mean_edge_error.push(last.mean_edge_error);
             trace.goal_distance.push(last.goal_distance);
             counters.published_ticks += 1;
@@ -212,7 +238,10 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
             if options.expect_critic
                 && (ends || counters.published_ticks % u64::from((options.config.ticks.critic_window / 2).max(1)) == 0)
             {
-                ports.critic_wake.notify().map_err(|e| anyhow::anyhow!("critic wake: {e:?}"))?;
+                ports
+                    .critic_wake
+                    .notify()
+                    .map_err(|e| anyhow::anyhow!("critic wake: {e:?}"))?;
             }
             if ends {
                 log.push(EpisodeRecord {
@@ -234,13 +263,24 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                 break;
             }
 
-            // Wait for this tick's commands.
-            let deadline = if options.realtime { next_deadline.max(tick_started) + dt } else { tick_started + timeout };
+            // Wait for this tick's commands; robots that missed several ticks in a row are not
+            // waited for until they answer (or greet) again.
+            let deadline = if options.realtime {
+                next_deadline.max(tick_started) + dt
+            } else {
+                tick_started + timeout
+            };
             received.iter_mut().for_each(|r| *r = false);
-            let mut pending = n;
             loop {
-                pending -= drain_commands(&ports, header, &mut received, &mut last_commands, &mut counters);
-                if pending == 0 {
+                drain_commands(
+                    &ports,
+                    header,
+                    &mut received,
+                    &mut last_commands,
+                    &mut presence,
+                    &mut counters,
+                );
+                if presence.all_present_answered(&received) {
                     break;
                 }
                 let now = Instant::now();
@@ -250,13 +290,16 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                 services::wait_for_event(&ports.command_ready, deadline - now)?;
             }
             missed_mask = 0;
-            for (agent, got) in received.iter().enumerate() {
+            let mut missed_now = 0u64;
+            for (agent, &got) in received.iter().enumerate() {
+                presence.record(agent, got);
                 if !got {
                     missed_mask |= 1 << agent.min(31);
+                    missed_now += 1;
                 }
             }
-            counters.missed_ticks += pending as u64;
-            missed_this_episode += pending as u64;
+            counters.missed_ticks += missed_now;
+            missed_this_episode += missed_now;
             applied.copy_from_slice(&last_commands);
             let result = world.step(&applied);
             for a in applied.iter_mut() {
@@ -292,7 +335,16 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                 // Close the episode as aborted so the critic sees a truncation.
                 let header = Header::new(episode, tick + 1, FLAG_EPISODE_END);
                 publish_observations(&ports, &world, header)?;
-                publish_state(&ports, &world, header, Outcome::Timeout, reward, missed_mask, &applied, false)?;
+                publish_state(
+                    &ports,
+                    &world,
+                    header,
+                    Outcome::Timeout,
+                    reward,
+                    missed_mask,
+                    &applied,
+                    false,
+                )?;
                 log.push(EpisodeRecord {
                     episode,
                     outcome: outcome_name(None),
@@ -320,6 +372,7 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
         tick_p99_us: histogram.value_at_quantile(0.99) as f64,
         missed_ticks: counters.missed_ticks,
         rejected_commands: counters.rejected_commands,
+        rejoined_agents: counters.rejoins,
         deadline_misses: counters.deadline_misses,
         wall_s: started.elapsed().as_secs_f64(),
         ..Summary::default()
@@ -330,7 +383,10 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
         if let Err(err) = learning_curve(&curve, log.records()) {
             eprintln!("sim: cannot draw {}: {err:#}", curve.display());
         }
-        if let Some(trace) = showcase.as_ref().or((!trace.goal_distance.is_empty()).then_some(&trace)) {
+        if let Some(trace) = showcase
+            .as_ref()
+            .or((!trace.goal_distance.is_empty()).then_some(&trace))
+        {
             let errors = options.run_dir.join("episode_errors.png");
             if let Err(err) = episode_errors(&errors, trace) {
                 eprintln!("sim: cannot draw {}: {err:#}", errors.display());
@@ -351,7 +407,10 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
     let mut sample = ports.state.loan().map_err(|e| anyhow::anyhow!("loan: {e:?}"))?;
     sample.payload_mut().header = header;
     sample.send().map_err(|e| anyhow::anyhow!("send: {e:?}"))?;
-    ports.critic_wake.notify().map_err(|e| anyhow::anyhow!("notify: {e:?}"))?;
+    ports
+        .critic_wake
+        .notify()
+        .map_err(|e| anyhow::anyhow!("notify: {e:?}"))?;
     if stop == Stop::Signal {
         eprintln!("sim: stopped by signal after {} episodes", log.records().len());
     }
@@ -371,7 +430,12 @@ fn traced_edges(n: usize) -> Vec<(usize, usize, usize)> {
 }
 
 /// Waits until every agent has greeted (and the critic, when expected).
-fn wait_for_peers<S: Service>(ports: &Ports<S>, options: &SimOptions, counters: &mut StreamCounters) -> Result<()> {
+fn wait_for_peers<S: Service>(
+    ports: &Ports<S>,
+    options: &SimOptions,
+    presence: &mut Presence,
+    counters: &mut StreamCounters,
+) -> Result<()> {
     let deadline = Instant::now() + Duration::from_secs(options.config.ticks.startup_timeout_s);
     let mut greeted = vec![false; ports.agents.len()];
     let mut critic_ready = !options.expect_critic;
@@ -380,6 +444,7 @@ fn wait_for_peers<S: Service>(ports: &Ports<S>, options: &SimOptions, counters: 
             while let Some(sample) = ports.command.receive().map_err(|e| anyhow::anyhow!("receive: {e:?}"))? {
                 if sample.payload().header.has(FLAG_HELLO) {
                     check_protocol(sample.payload().header.protocol_version, &format!("agent {agent}"))?;
+                    presence.greeted(agent, sample.payload().session);
                     greeted[agent] = true;
                 }
             }
@@ -407,38 +472,72 @@ fn wait_for_peers<S: Service>(ports: &Ports<S>, options: &SimOptions, counters: 
 
 fn check_protocol(version: u32, who: &str) -> Result<()> {
     if version != PROTOCOL_VERSION {
-        bail!("{who} speaks protocol version {version}, this sim speaks {PROTOCOL_VERSION}: rebuild all binaries together");
+        bail!(
+            "{who} speaks protocol version {version}, this sim speaks {PROTOCOL_VERSION}: rebuild all binaries together"
+        );
     }
     Ok(())
 }
 
-/// Reads the critic's latest progress; true when any arrived.
+/// Reads the critic's latest progress; true when any arrived. A new session (a restarted
+/// critic) counts from the ticks published when it appeared.
 fn drain_progress<S: Service>(ports: &Ports<S>, counters: &mut StreamCounters) -> Result<bool> {
     let mut any = false;
-    while let Some(sample) = ports.critic_progress.receive().map_err(|e| anyhow::anyhow!("receive: {e:?}"))? {
-        check_protocol(sample.payload().protocol_version, "the critic")?;
-        counters.critic_consumed = sample.payload().consumed_ticks;
+    while let Some(sample) = ports
+        .critic_progress
+        .receive()
+        .map_err(|e| anyhow::anyhow!("receive: {e:?}"))?
+    {
+        let progress = *sample.payload();
+        check_protocol(progress.protocol_version, "the critic")?;
+        let link = &mut counters.critic;
+        if progress.session != link.session {
+            if link.session != 0 {
+                eprintln!("sim: a new critic joined at tick {}", counters.published_ticks);
+            }
+            link.session = progress.session;
+            link.baseline = counters.published_ticks;
+        }
+        link.consumed = progress.consumed_ticks;
+        if link.absent {
+            eprintln!("sim: the critic is back");
+            link.absent = false;
+        }
         any = true;
     }
     Ok(any)
 }
 
 /// Blocks (event-driven) while the sim is more than `critic_window` ticks ahead of the critic.
+/// A critic silent for a quarter of the agents' silence limit is treated as gone: the swarm runs on
+/// unthrottled (the agents keep their last weights) until a critic speaks again.
 fn wait_for_critic<S: Service>(ports: &Ports<S>, options: &SimOptions, counters: &mut StreamCounters) -> Result<()> {
     let window = u64::from(options.config.ticks.critic_window);
-    let silence = Duration::from_millis(options.config.ticks.sim_silence_ms.max(1000) * 5);
-    let mut waited = Duration::ZERO;
+    let give_up = Duration::from_millis(options.config.ticks.sim_silence_ms / 4);
+    let mut last_progress = Instant::now();
     drain_progress(ports, counters)?;
-    while counters.published_ticks.saturating_sub(counters.critic_consumed) > window {
-        let step = Duration::from_millis(100);
-        services::wait_for_event(&ports.critic_progress_ready, step)?;
-        if !drain_progress(ports, counters)? {
-            waited += step;
+    while !counters.critic.absent
+        && counters
+            .published_ticks
+            .saturating_sub(counters.critic.baseline + counters.critic.consumed)
+            > window
+    {
+        services::wait_for_event(&ports.critic_progress_ready, Duration::from_millis(20))?;
+        if drain_progress(ports, counters)? {
+            last_progress = Instant::now();
+            continue;
         }
-        if waited >= silence {
-            bail!("sim: the critic has consumed nothing for {} s; is it alive?", silence.as_secs());
+        if last_progress.elapsed() >= give_up {
+            eprintln!(
+                "sim: the critic has acknowledged nothing for {} ms; running on without it",
+                give_up.as_millis()
+            );
+            counters.critic.absent = true;
         }
-        ports.critic_wake.notify().map_err(|e| anyhow::anyhow!("critic wake: {e:?}"))?;
+        ports
+            .critic_wake
+            .notify()
+            .map_err(|e| anyhow::anyhow!("critic wake: {e:?}"))?;
         if termination_requested() {
             return Ok(());
         }
@@ -446,50 +545,120 @@ fn wait_for_critic<S: Service>(ports: &Ports<S>, options: &SimOptions, counters:
     Ok(())
 }
 
-/// Takes every pending command; returns how many agents delivered this tick's command.
+/// Which robots the sim waits for: one that missed `ABSENT_AFTER` ticks in a row is treated as
+/// gone (its last command is held without waiting) until it answers or greets again.
+struct Presence {
+    consecutive_misses: Vec<u32>,
+    sessions: Vec<u32>,
+}
+
+/// Consecutive missed ticks after which the sim stops waiting for a robot.
+const ABSENT_AFTER: u32 = 3;
+/// Malformed commands logged one by one before the log goes quiet (they are still counted).
+const REJECTIONS_LOGGED: u64 = 10;
+
+impl Presence {
+    fn new(n: usize) -> Self {
+        Self {
+            consecutive_misses: vec![0; n],
+            sessions: vec![0; n],
+        }
+    }
+
+    fn is_absent(&self, agent: usize) -> bool {
+        self.consecutive_misses[agent] >= ABSENT_AFTER
+    }
+
+    fn all_present_answered(&self, received: &[bool]) -> bool {
+        received
+            .iter()
+            .enumerate()
+            .all(|(agent, &got)| got || self.is_absent(agent))
+    }
+
+    fn record(&mut self, agent: usize, answered: bool) {
+        if answered {
+            self.consecutive_misses[agent] = 0;
+        } else {
+            self.consecutive_misses[agent] = self.consecutive_misses[agent].saturating_add(1);
+            if self.consecutive_misses[agent] == ABSENT_AFTER {
+                eprintln!(
+                    "sim: agent {agent} missed {ABSENT_AFTER} ticks in a row; holding its last command without waiting"
+                );
+            }
+        }
+    }
+
+    /// Records a greeting; true when it comes from a new process of a robot already known.
+    fn greeted(&mut self, agent: usize, session: u32) -> bool {
+        let previous = std::mem::replace(&mut self.sessions[agent], session);
+        if previous == session {
+            return false;
+        }
+        self.consecutive_misses[agent] = 0;
+        previous != 0
+    }
+}
+
+/// Takes every pending command, keeping this tick's valid one per robot.
 fn drain_commands<S: Service>(
     ports: &Ports<S>,
     header: Header,
     received: &mut [bool],
     last_commands: &mut [(f64, f64)],
+    presence: &mut Presence,
     counters: &mut StreamCounters,
-) -> usize {
-    let mut arrived = 0;
+) {
     for (agent, agent_ports) in ports.agents.iter().enumerate() {
-        if received[agent] {
-            continue;
-        }
         while let Ok(Some(sample)) = agent_ports.command.receive() {
             let cmd = sample.payload();
             if cmd.header.has(FLAG_HELLO) {
+                if cmd.header.protocol_version == PROTOCOL_VERSION && presence.greeted(agent, cmd.session) {
+                    counters.rejoins += 1;
+                    eprintln!(
+                        "sim: agent {agent} rejoined at episode {} tick {}",
+                        header.episode, header.tick
+                    );
+                }
                 continue;
             }
-            let valid = cmd.header.protocol_version == PROTOCOL_VERSION
-                && cmd.agent as usize == agent
-                && cmd.v.is_finite()
-                && cmd.w.is_finite();
-            if !valid {
+            let key = (cmd.header.episode, cmd.header.tick);
+            let now = (header.episode, header.tick);
+            let rejection = if cmd.header.protocol_version != PROTOCOL_VERSION {
+                Some("protocol version")
+            } else if cmd.agent as usize != agent {
+                Some("robot index")
+            } else if !(cmd.v.is_finite() && cmd.w.is_finite()) {
+                Some("non-finite (v, w)")
+            } else if key > now {
+                Some("episode or tick in the future")
+            } else {
+                None
+            };
+            if let Some(reason) = rejection {
                 counters.rejected_commands += 1;
-                eprintln!("sim: rejected a malformed command from agent {agent}: {cmd:?}");
+                if counters.rejected_commands <= REJECTIONS_LOGGED {
+                    eprintln!("sim: rejected a command from agent {agent} ({reason}): {cmd:?}");
+                }
                 continue;
             }
-            if cmd.header.episode != header.episode || cmd.header.tick != header.tick {
+            if key < now || received[agent] {
                 // A late answer to an earlier tick: already counted as missed.
                 continue;
             }
             last_commands[agent] = (f64::from(cmd.v), f64::from(cmd.w));
             received[agent] = true;
-            arrived += 1;
-            break;
         }
     }
-    arrived
 }
 
 fn publish_observations<S: Service>(ports: &Ports<S>, world: &World, header: Header) -> Result<()> {
     let n = world.n_agents() as u32;
     for (agent, agent_ports) in ports.agents.iter().enumerate() {
-        let mut sample = agent_ports.observation.loan().map_err(|e| anyhow::anyhow!("loan observation: {e:?}"))?;
+        let mut sample = agent_ports
+            .observation
+            .loan()
+            .map_err(|e| anyhow::anyhow!("loan observation: {e:?}"))?;
         let msg = sample.payload_mut();
         msg.header = header;
         msg.agent = agent as u32;
@@ -497,7 +666,10 @@ fn publish_observations<S: Service>(ports: &Ports<S>, world: &World, header: Hea
         msg.obs = world.observation(agent);
         sample.send().map_err(|e| anyhow::anyhow!("send observation: {e:?}"))?;
         if !header.has(FLAG_EPISODE_END) {
-            agent_ports.wake.notify().map_err(|e| anyhow::anyhow!("wake agent {agent}: {e:?}"))?;
+            agent_ports
+                .wake
+                .notify()
+                .map_err(|e| anyhow::anyhow!("wake agent {agent}: {e:?}"))?;
         }
     }
     Ok(())

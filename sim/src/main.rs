@@ -51,7 +51,10 @@ fn parse_scripted(text: &str, n_agents: usize) -> Result<Vec<usize>> {
                     .trim()
                     .parse()
                     .map_err(|_| anyhow::anyhow!("--scripted: {part:?} is not an agent index"))?;
-                anyhow::ensure!(agent < n_agents, "--scripted: agent {agent} does not exist (robots are 0..{n_agents})");
+                anyhow::ensure!(
+                    agent < n_agents,
+                    "--scripted: agent {agent} does not exist (robots are 0..{n_agents})"
+                );
                 Ok(agent)
             })
             .collect(),
@@ -73,7 +76,10 @@ fn try_main(cli: Cli) -> Result<()> {
     let (identity, config) = cli.run.load()?;
     let scripted = parse_scripted(&cli.scripted, cli.run.agents)?;
     if let Some(minutes) = cli.minutes {
-        anyhow::ensure!(minutes.is_finite() && minutes > 0.0, "--minutes must be > 0, got {minutes}");
+        anyhow::ensure!(
+            minutes.is_finite() && minutes > 0.0,
+            "--minutes must be > 0, got {minutes}"
+        );
     }
     ViewerMode::parse(&cli.viewer)?;
     if cli.check_config {

@@ -19,7 +19,11 @@ fn sinc(h: f64) -> f64 {
 /// Wraps an angle to (-pi, pi].
 pub fn wrap_angle(angle: f64) -> f64 {
     let wrapped = angle.rem_euclid(std::f64::consts::TAU);
-    if wrapped > std::f64::consts::PI { wrapped - std::f64::consts::TAU } else { wrapped }
+    if wrapped > std::f64::consts::PI {
+        wrapped - std::f64::consts::TAU
+    } else {
+        wrapped
+    }
 }
 
 /// Integrates x' = v cos(theta), y' = v sin(theta), theta' = w exactly over `dt` with constant
@@ -43,7 +47,16 @@ mod tests {
 
     #[test]
     fn straight_line_and_spin_in_place() {
-        let p = integrate(Pose { x: 1.0, y: 2.0, theta: 0.0 }, 0.5, 0.0, 0.1);
+        let p = integrate(
+            Pose {
+                x: 1.0,
+                y: 2.0,
+                theta: 0.0,
+            },
+            0.5,
+            0.0,
+            0.1,
+        );
         assert!((p.x - 1.05).abs() < 1e-12 && (p.y - 2.0).abs() < 1e-12);
         let q = integrate(Pose::default(), 0.0, 1.0, 0.1);
         assert!(q.x.abs() < 1e-12 && q.y.abs() < 1e-12 && (q.theta - 0.1).abs() < 1e-12);
@@ -53,7 +66,11 @@ mod tests {
     fn matches_closed_form_arc() {
         // Closed form: x(t) = x0 + v/w (sin(th0 + w t) - sin th0), y(t) = y0 - v/w (cos(th0 + w t) - cos th0).
         let (v, w, th0) = (0.4, -0.8, 0.7);
-        let mut pose = Pose { x: 3.0, y: -1.0, theta: th0 };
+        let mut pose = Pose {
+            x: 3.0,
+            y: -1.0,
+            theta: th0,
+        };
         for step in 1..=50 {
             pose = integrate(pose, v, w, 0.1);
             let t = step as f64 * 0.1;
@@ -70,7 +87,10 @@ mod tests {
         for a in [-10.0, -std::f64::consts::PI, 0.0, 3.5, 7.0] {
             let w = wrap_angle(a);
             assert!(w > -std::f64::consts::PI - 1e-12 && w <= std::f64::consts::PI);
-            assert!(((w - a) / std::f64::consts::TAU).fract().abs() < 1e-9 || ((w - a) / std::f64::consts::TAU).fract().abs() > 1.0 - 1e-9);
+            assert!(
+                ((w - a) / std::f64::consts::TAU).fract().abs() < 1e-9
+                    || ((w - a) / std::f64::consts::TAU).fract().abs() > 1.0 - 1e-9
+            );
         }
     }
 }

@@ -19,7 +19,8 @@ const ROLLING: usize = 100;
 static FONT: &[u8] = include_bytes!("../assets/DejaVuSans.ttf");
 
 fn register_font() -> Result<()> {
-    plotters::style::register_font("sans-serif", FontStyle::Normal, FONT).map_err(|_| anyhow!("the embedded font is invalid"))
+    plotters::style::register_font("sans-serif", FontStyle::Normal, FONT)
+        .map_err(|_| anyhow!("the embedded font is invalid"))
 }
 
 /// Per-tick errors of one episode.
@@ -70,7 +71,10 @@ pub fn learning_curve(path: &Path, records: &[EpisodeRecord]) -> Result<()> {
     root.fill(&WHITE)?;
     let (left, right) = root.split_horizontally(FIGURE_SIZE.0 / 2);
     let returns: Vec<f64> = records.iter().map(|r| r.episode_return).collect();
-    let successes: Vec<f64> = records.iter().map(|r| if r.outcome == "success" { 1.0 } else { 0.0 }).collect();
+    let successes: Vec<f64> = records
+        .iter()
+        .map(|r| if r.outcome == "success" { 1.0 } else { 0.0 })
+        .collect();
     let episodes = records.len().max(2) as f64;
     let (lo, hi) = range(returns.iter().copied());
     let mut chart = ChartBuilder::on(&left)
@@ -79,16 +83,30 @@ pub fn learning_curve(path: &Path, records: &[EpisodeRecord]) -> Result<()> {
         .x_label_area_size(40)
         .y_label_area_size(60)
         .build_cartesian_2d(0f64..episodes, lo..hi)?;
-    chart.configure_mesh().x_desc("episode").y_desc("episode return").draw()?;
     chart
-        .draw_series(LineSeries::new(returns.iter().enumerate().map(|(i, &r)| (i as f64, r)), BLUE.mix(0.3)))?
+        .configure_mesh()
+        .x_desc("episode")
+        .y_desc("episode return")
+        .draw()?;
+    chart
+        .draw_series(LineSeries::new(
+            returns.iter().enumerate().map(|(i, &r)| (i as f64, r)),
+            BLUE.mix(0.3),
+        ))?
         .label("per episode")
         .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE.mix(0.3)));
     chart
-        .draw_series(LineSeries::new(rolling(&returns).into_iter().enumerate().map(|(i, r)| (i as f64, r)), BLUE.stroke_width(2)))?
+        .draw_series(LineSeries::new(
+            rolling(&returns).into_iter().enumerate().map(|(i, r)| (i as f64, r)),
+            BLUE.stroke_width(2),
+        ))?
         .label(format!("mean of last {ROLLING}"))
         .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE.stroke_width(2)));
-    chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw()?;
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()?;
 
     let mut chart = ChartBuilder::on(&right)
         .caption("Success rate", ("sans-serif", 24))
@@ -96,7 +114,11 @@ pub fn learning_curve(path: &Path, records: &[EpisodeRecord]) -> Result<()> {
         .x_label_area_size(40)
         .y_label_area_size(60)
         .build_cartesian_2d(0f64..episodes, 0f64..1.05)?;
-    chart.configure_mesh().x_desc("episode").y_desc(format!("success, last {ROLLING} episodes")).draw()?;
+    chart
+        .configure_mesh()
+        .x_desc("episode")
+        .y_desc(format!("success, last {ROLLING} episodes"))
+        .draw()?;
     chart.draw_series(LineSeries::new(
         rolling(&successes).into_iter().enumerate().map(|(i, r)| (i as f64, r)),
         GREEN.stroke_width(2),
@@ -114,18 +136,32 @@ pub fn episode_errors(path: &Path, trace: &EpisodeTrace) -> Result<()> {
     let ticks = trace.goal_distance.len().max(2);
     let t_max = (ticks - 1) as f64 * trace.dt;
     let time = |i: usize| i as f64 * trace.dt;
-    let (_, err_hi) = range(trace.edge_errors.iter().flatten().copied().chain(trace.mean_edge_error.iter().copied()));
+    let (_, err_hi) = range(
+        trace
+            .edge_errors
+            .iter()
+            .flatten()
+            .copied()
+            .chain(trace.mean_edge_error.iter().copied()),
+    );
     let mut chart = ChartBuilder::on(&left)
         .caption(format!("Edge errors, episode {}", trace.episode), ("sans-serif", 24))
         .margin(12)
         .x_label_area_size(40)
         .y_label_area_size(60)
         .build_cartesian_2d(0f64..t_max, 0f64..err_hi.max(0.01) * 1.05)?;
-    chart.configure_mesh().x_desc("time (s)").y_desc("|d - d*| (m)").draw()?;
+    chart
+        .configure_mesh()
+        .x_desc("time (s)")
+        .y_desc("|d - d*| (m)")
+        .draw()?;
     for (e, name) in trace.edge_names.iter().enumerate() {
         let colour = Palette99::pick(e).to_rgba();
         chart
-            .draw_series(LineSeries::new(trace.edge_errors.iter().enumerate().map(|(i, row)| (time(i), row[e])), colour))?
+            .draw_series(LineSeries::new(
+                trace.edge_errors.iter().enumerate().map(|(i, row)| (time(i), row[e])),
+                colour,
+            ))?
             .label(name.clone())
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], colour));
     }
@@ -138,7 +174,11 @@ pub fn episode_errors(path: &Path, trace: &EpisodeTrace) -> Result<()> {
         ))?
         .label("mean")
         .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED));
-    chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw()?;
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()?;
 
     let (_, dist_hi) = range(trace.goal_distance.iter().copied());
     let mut chart = ChartBuilder::on(&right)
@@ -147,7 +187,11 @@ pub fn episode_errors(path: &Path, trace: &EpisodeTrace) -> Result<()> {
         .x_label_area_size(40)
         .y_label_area_size(60)
         .build_cartesian_2d(0f64..t_max, 0f64..dist_hi * 1.05)?;
-    chart.configure_mesh().x_desc("time (s)").y_desc("distance (m)").draw()?;
+    chart
+        .configure_mesh()
+        .x_desc("time (s)")
+        .y_desc("distance (m)")
+        .draw()?;
     chart.draw_series(LineSeries::new(
         trace.goal_distance.iter().enumerate().map(|(i, &d)| (time(i), d)),
         BLACK.stroke_width(2),

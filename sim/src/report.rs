@@ -90,9 +90,16 @@ pub fn fill_episode_figures(summary: &mut Summary, records: &[EpisodeRecord]) {
     summary.mean_final_goal_distance_m = mean(&|r| r.final_goal_distance_m);
     summary.mean_return = mean(&|r| r.episode_return);
     let total_steps: f64 = finished.iter().map(|r| f64::from(r.steps)).sum();
-    summary.formation_hold_rate = finished.iter().map(|r| r.formation_hold_rate * f64::from(r.steps)).sum::<f64>()
+    summary.formation_hold_rate = finished
+        .iter()
+        .map(|r| r.formation_hold_rate * f64::from(r.steps))
+        .sum::<f64>()
         / total_steps.max(1.0);
-    let successes: Vec<f64> = finished.iter().filter(|r| r.outcome == "success").map(|r| f64::from(r.steps)).collect();
+    let successes: Vec<f64> = finished
+        .iter()
+        .filter(|r| r.outcome == "success")
+        .map(|r| f64::from(r.steps))
+        .collect();
     summary.mean_steps_to_goal =
         (!successes.is_empty()).then(|| successes.iter().sum::<f64>() / successes.len() as f64);
 }

@@ -142,7 +142,11 @@ pub fn reward(conditions: &Conditions, steps: u32, env: &EnvConfig) -> (f64, Out
     } else {
         (env.r_penalty, Outcome::Running)
     };
-    let outcome = if outcome == Outcome::Running && steps >= env.max_steps { Outcome::Timeout } else { outcome };
+    let outcome = if outcome == Outcome::Running && steps >= env.max_steps {
+        Outcome::Timeout
+    } else {
+        outcome
+    };
     (reward, outcome)
 }
 
@@ -152,9 +156,21 @@ mod tests {
 
     fn triangle() -> (Vec<Pose>, Vec<[f64; 2]>) {
         let poses = vec![
-            Pose { x: 0.0, y: 0.0, theta: 0.0 },
-            Pose { x: 1.0, y: 0.0, theta: 0.0 },
-            Pose { x: 0.5, y: 0.8, theta: 0.0 },
+            Pose {
+                x: 0.0,
+                y: 0.0,
+                theta: 0.0,
+            },
+            Pose {
+                x: 1.0,
+                y: 0.0,
+                theta: 0.0,
+            },
+            Pose {
+                x: 0.5,
+                y: 0.8,
+                theta: 0.0,
+            },
         ];
         let desired = (0..3)
             .map(|i| {
@@ -168,11 +184,18 @@ mod tests {
 
     #[test]
     fn neighbour_straight_ahead_is_plus_x() {
-        let me = Pose { x: 1.0, y: 1.0, theta: std::f64::consts::FRAC_PI_2 };
+        let me = Pose {
+            x: 1.0,
+            y: 1.0,
+            theta: std::f64::consts::FRAC_PI_2,
+        };
         let p = to_robot_frame(&me, [1.0, 3.0]);
         assert!((p[0] - 2.0).abs() < 1e-12 && p[1].abs() < 1e-12);
         let left = to_robot_frame(&me, [0.0, 1.0]);
-        assert!(left[0].abs() < 1e-12 && (left[1] - 1.0).abs() < 1e-12, "a point to the robot's left is at +y");
+        assert!(
+            left[0].abs() < 1e-12 && (left[1] - 1.0).abs() < 1e-12,
+            "a point to the robot's left is at +y"
+        );
     }
 
     #[test]

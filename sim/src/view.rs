@@ -54,13 +54,21 @@ impl ViewerMode {
 
     /// Opens a recording stream for this mode (`None` when off). `spawn_viewer` is false for
     /// the processes that only join a viewer the sim spawned.
-    pub fn open(&self, run_id: &str, run_dir: &Path, stem: &str, spawn_viewer: bool) -> Result<Option<RecordingStream>> {
+    pub fn open(
+        &self,
+        run_id: &str,
+        run_dir: &Path,
+        stem: &str,
+        spawn_viewer: bool,
+    ) -> Result<Option<RecordingStream>> {
         let builder = RecordingStreamBuilder::new(APPLICATION_ID).recording_id(run_id.to_string());
         let stream = match self {
             Self::Off => return Ok(None),
             Self::Save => builder.save(run_dir.join(format!("{stem}.rrd")))?,
             Self::Connect(url) => builder.connect_grpc_opts(url.clone())?,
-            Self::Spawn if spawn_viewer => builder.spawn().context("cannot start the `rerun` viewer (pip install rerun-sdk==0.36.3)")?,
+            Self::Spawn if spawn_viewer => builder
+                .spawn()
+                .context("cannot start the `rerun` viewer (pip install rerun-sdk==0.36.3)")?,
             Self::Spawn => builder.connect_grpc()?,
         };
         Ok(Some(stream))
@@ -73,8 +81,12 @@ pub fn blueprint() -> Blueprint {
         Horizontal::new([
             Spatial2DView::new("World").with_origin("world").into(),
             Vertical::new([
-                TimeSeriesView::new("Formation (paper Fig. 5)").with_origin("plots/formation").into(),
-                TimeSeriesView::new("Training (paper Fig. 4)").with_origin("plots/training").into(),
+                TimeSeriesView::new("Formation (paper Fig. 5)")
+                    .with_origin("plots/formation")
+                    .into(),
+                TimeSeriesView::new("Training (paper Fig. 4)")
+                    .with_origin("plots/training")
+                    .into(),
             ])
             .into(),
         ])
@@ -110,11 +122,24 @@ fn error_colour(error: f32, eps_form: f32) -> [u8; 3] {
 }
 
 /// Starts the logging thread; returns the tap the sim offers its states to.
-pub fn start(mode: &ViewerMode, run_id: &str, run_dir: &Path, env: &EnvConfig, n_agents: usize, trail_ticks: usize) -> Result<Option<(StateTap, JoinHandle<()>)>> {
+pub fn start(
+    mode: &ViewerMode,
+    run_id: &str,
+    run_dir: &Path,
+    env: &EnvConfig,
+    n_agents: usize,
+    trail_ticks: usize,
+) -> Result<Option<(StateTap, JoinHandle<()>)>> {
     let Some(stream) = mode.open(run_id, run_dir, "recording", true)? else {
         return Ok(None);
     };
-    blueprint().send(&stream, rerun::blueprint::BlueprintActivation { make_active: true, make_default: true })?;
+    blueprint().send(
+        &stream,
+        rerun::blueprint::BlueprintActivation {
+            make_active: true,
+            make_default: true,
+        },
+    )?;
     let (tap, states) = sync_channel(TAP_CAPACITY);
     let view = WorldView {
         stream,
@@ -166,7 +191,10 @@ impl WorldView {
             ("plots/formation/goal_distance", "centroid to goal (m)", [30, 30, 30]),
             ("plots/formation/reward", "reward", [120, 120, 120]),
         ] {
-            self.stream.log_static(path, &rerun::SeriesLines::new().with_names([name]).with_colors([colour]))?;
+            self.stream.log_static(
+                path,
+                &rerun::SeriesLines::new().with_names([name]).with_colors([colour]),
+            )?;
         }
         Ok(())
     }
@@ -178,7 +206,8 @@ impl WorldView {
         }
         self.ticks += 1;
         self.stream.set_time_sequence("tick", self.ticks);
-        self.stream.set_time_sequence("episode", i64::from(state.header.episode));
+        self.stream
+            .set_time_sequence("episode", i64::from(state.header.episode));
         let flip = |x: f32, y: f32| [x, -y];
         let positions: Vec<[f32; 2]> = state.poses[..n].iter().map(|p| flip(p[0], p[1])).collect();
         let colours: Vec<[u8; 3]> = (0..n).map(robot_colour).collect();
@@ -203,23 +232,44 @@ impl WorldView {
                 if n == 3 && j < i {
                     continue; // N = 3 observes every edge from both ends
                 }
-                let (dx, dy) = (state.poses[i][0] - state.poses[j][0], state.poses[i][1] - state.poses[j][1]);
+                let (dx, dy) = (
+                    state.poses[i][0] - state.poses[j][0],
+                    state.poses[i][1] - state.poses[j][1],
+                );
                 let error = ((dx * dx + dy * dy).sqrt() - state.desired[i][k]).abs();
                 strips.push(vec![positions[i], positions[j]]);
                 edge_colours.push(error_colour(error, self.eps_form));
                 if n <= 8 {
-                    self.stream.log(format!("plots/formation/edge_error/e{i}{j}"), &rerun::Scalars::single(f64::from(error)))?;
+                    self.stream.log(
+                        format!("plots/formation/edge_error/e{i}{j}"),
+                        &rerun::Scalars::single(f64::from(error)),
+                    )?;
                 }
             }
         }
         self.stream.log(
             "world/edges",
-            &rerun::LineStrips2D::new(strips).with_colors(edge_colours).with_radii([0.03]),
+            &rerun::LineStrips2D::new(strips)
+                .with_colors(edge_colours)
+                .with_radii([0.03]),
         )?;
-        let centroid = positions.iter().fold([0.0f32; 2], |acc, p| [acc[0] + p[0] / n as f32, acc[1] + p[1] / n as f32]);
+        let centroid = positions.iter().fold([0.0f32; 2], |acc, p| {
+            [acc[0] + p[0] / n as f32, acc[1] + p[1] / n as f32]
+        });
         let goal = flip(state.goal[0], state.goal[1]);
-        self.stream.log("world/goal", &rerun::Points2D::new([goal]).with_radii([0.15]).with_colors([[255, 200, 0]]).with_labels(["goal"]))?;
-        self.stream.log("world/centroid", &rerun::Points2D::new([centroid]).with_radii([0.06]).with_colors([[20, 20, 20]]))?;
+        self.stream.log(
+            "world/goal",
+            &rerun::Points2D::new([goal])
+                .with_radii([0.15])
+                .with_colors([[255, 200, 0]])
+                .with_labels(["goal"]),
+        )?;
+        self.stream.log(
+            "world/centroid",
+            &rerun::Points2D::new([centroid])
+                .with_radii([0.06])
+                .with_colors([[20, 20, 20]]),
+        )?;
         for (trail, p) in self.trails.iter_mut().zip(&positions) {
             if trail.len() == self.trail_ticks {
                 trail.pop_front();
@@ -233,8 +283,14 @@ impl WorldView {
                 .with_radii([0.015]),
         )?;
         let distance = ((centroid[0] - goal[0]).powi(2) + (centroid[1] - goal[1]).powi(2)).sqrt();
-        self.stream.log("plots/formation/goal_distance", &rerun::Scalars::single(f64::from(distance)))?;
-        self.stream.log("plots/formation/reward", &rerun::Scalars::single(f64::from(state.reward)))?;
+        self.stream.log(
+            "plots/formation/goal_distance",
+            &rerun::Scalars::single(f64::from(distance)),
+        )?;
+        self.stream.log(
+            "plots/formation/reward",
+            &rerun::Scalars::single(f64::from(state.reward)),
+        )?;
         Ok(())
     }
 }

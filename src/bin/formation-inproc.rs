@@ -1,0 +1,99 @@
+//! The lockstep loop with every role in one process: the sim on the main thread and one thread
+//! per robot (scripted baseline), over the same code as the multi-process swarm but with the
+//! iceoryx2 `local` service (or `ipc`, still in one process). Used by `scripts/bench.sh` to put a
+//! number on the cost of process isolation.
+
+use std::path::PathBuf;
+
+use anyhow::{Result, anyhow};
+use clap::{Parser, ValueEnum};
+use formation_agent::run::{AgentOptions, AgentPolicy, run as run_agent};
+use formation_agent::scripted::{BaselineGains, ScriptedBaseline};
+use formation_protocol::cli::Mode;
+use formation_protocol::config::{RunConfig, validate_agent_count};
+use formation_protocol::services::RunIdentity;
+use formation_sim::lockstep::{SimOptions, run as run_sim};
+use iceoryx2::prelude::*;
+
+/// Which iceoryx2 service type carries the messages.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Transport {
+    /// Process-local (no shared memory files, no sockets).
+    Local,
+    /// Inter-process shared memory, used between threads of this process.
+    Ipc,
+}
+
+/// Runs sim and N scripted robots as threads of one process and prints the sim's figures.
+#[derive(Debug, Parser)]
+#[command(version, about)]
+struct Cli {
+    /// Robots in the swarm (3 to 64).
+    #[arg(long, default_value_t = 3)]
+    agents: usize,
+    /// Episodes to run.
+    #[arg(long, default_value_t = 100)]
+    episodes: u64,
+    /// Seed of the episodes.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// iceoryx2 service type.
+    #[arg(long, value_enum, default_value_t = Transport::Local)]
+    transport: Transport,
+    /// Where episodes.csv and summary.json go.
+    #[arg(long, default_value = "runs/inproc")]
+    run_dir: PathBuf,
+}
+
+fn run<S: Service>(cli: &Cli, identity: &RunIdentity, config: &RunConfig) -> Result<()> {
+    let agents = std::thread::scope(|scope| -> Result<formation_protocol::summary::Summary> {
+        let handles: Vec<_> = (0..cli.agents)
+            .map(|agent| {
+                let options = AgentOptions {
+                    agent,
+                    n_agents: cli.agents,
+                    weights_from: None,
+                    config: config.clone(),
+                };
+                let policy = AgentPolicy::Fixed(Box::new(ScriptedBaseline::new(&config.env, BaselineGains::default())));
+                std::thread::Builder::new()
+                    .name(format!("agent{agent}"))
+                    .spawn_scoped(scope, move || run_agent::<S>(identity, &options, policy))
+            })
+            .collect::<std::io::Result<_>>()?;
+        let options = SimOptions {
+            n_agents: cli.agents,
+            mode: Mode::Eval,
+            episodes: Some(cli.episodes),
+            minutes: None,
+            seed: cli.seed,
+            realtime: false,
+            expect_critic: false,
+            scripted: (0..cli.agents).collect(),
+            run_dir: cli.run_dir.clone(),
+            config: config.clone(),
+            plots: false,
+        };
+        let summary = run_sim::<S>(identity, &options, None)?;
+        for handle in handles {
+            handle.join().map_err(|_| anyhow!("an agent thread panicked"))??;
+        }
+        Ok(summary)
+    })?;
+    print!("{}", agents.table());
+    Ok(())
+}
+
+fn main() -> Result<()> {
+    let cli = Cli::parse();
+    validate_agent_count(cli.agents)?;
+    std::fs::create_dir_all(&cli.run_dir)?;
+    let identity = RunIdentity::new(&format!("inproc{}", std::process::id()))?;
+    let config = RunConfig::default();
+    let result = match cli.transport {
+        Transport::Local => run::<local_threadsafe::Service>(&cli, &identity, &config),
+        Transport::Ipc => run::<ipc_threadsafe::Service>(&cli, &identity, &config),
+    };
+    identity.remove_leftovers();
+    result
+}

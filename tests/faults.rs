@@ -1,0 +1,241 @@
+//! Faults with real processes: killed agents, critic and sim, malformed commands, bad files,
+//! two runs at once, and Ctrl-C. Each run is under a watchdog and must leave nothing behind.
+
+use std::path::Path;
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use formation_swarm::{assert_clean, bin_dir, processes_of_run, run_swarm, run_swarm_with, scratch_dir};
+
+/// Waits until the launcher `pid` has announced its run id in `log`, then returns it.
+fn run_id_of(log: &Path) -> String {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let text = std::fs::read_to_string(log).unwrap_or_default();
+        if let Some(id) = text
+            .lines()
+            .find_map(|l| l.strip_prefix("run ").and_then(|r| r.split(':').next()))
+        {
+            return id.to_string();
+        }
+        assert!(Instant::now() < deadline, "no run id announced:\n{text}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// Pid of the process of run `run_id` whose command line contains `needle`.
+fn pid_of(run_id: &str, needle: &str) -> Option<u32> {
+    processes_of_run(run_id).into_iter().find(|pid| {
+        std::fs::read(format!("/proc/{pid}/cmdline"))
+            .map(|c| String::from_utf8_lossy(&c).replace('\0', " ").contains(needle))
+            .unwrap_or(false)
+    })
+}
+
+fn kill(pid: u32, signal: i32) {
+    // SAFETY: kill(2) on a pid of our own run.
+    unsafe { libc::kill(pid as i32, signal) };
+}
+
+/// A long scripted evaluation, so there is time to hurt it.
+const LONG_EVAL: [&str; 9] = [
+    "3",
+    "--scripted",
+    "all",
+    "--mode",
+    "eval",
+    "--episodes",
+    "1500",
+    "--viewer",
+    "off",
+];
+
+#[test]
+fn killed_agent_is_held_then_restarted_and_rejoins() {
+    let dir = scratch_dir("kill-agent");
+    let run_dir = dir.join("run");
+    let log = run_dir.with_extension("log");
+    let run = run_swarm_with(&LONG_EVAL, &run_dir, Duration::from_secs(180), |_| {
+        let run_id = run_id_of(&log);
+        std::thread::sleep(Duration::from_millis(1500));
+        let pid = pid_of(&run_id, "--agent 1").expect("agent 1 runs");
+        kill(pid, libc::SIGKILL);
+    })
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "{}", run.output);
+    assert!(run.output.contains("agent 1 died"), "{}", run.output);
+    let summary = run.summary().expect("summary");
+    assert!(summary["missed_ticks"].as_u64().expect("missed") > 0, "{summary}");
+    assert!(summary["rejoined_agents"].as_u64().expect("rejoined") >= 1, "{summary}");
+    assert_eq!(summary["lost_transitions"], serde_json::json!(0), "{summary}");
+    assert_eq!(summary["episodes"], serde_json::json!(1500));
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn killed_critic_does_not_stop_the_swarm() {
+    let dir = scratch_dir("kill-critic");
+    let run_dir = dir.join("run");
+    let log = run_dir.with_extension("log");
+    let run = run_swarm_with(&LONG_EVAL, &run_dir, Duration::from_secs(180), |_| {
+        let run_id = run_id_of(&log);
+        std::thread::sleep(Duration::from_millis(1500));
+        let pid = pid_of(&run_id, "formation-critic").expect("critic runs");
+        kill(pid, libc::SIGKILL);
+    })
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "{}", run.output);
+    assert!(run.output.contains("the critic died"), "{}", run.output);
+    let summary = run.summary().expect("summary");
+    assert_eq!(
+        summary["episodes"],
+        serde_json::json!(1500),
+        "the swarm ran every episode: {summary}"
+    );
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn killed_sim_is_noticed_by_everyone() {
+    let dir = scratch_dir("kill-sim");
+    let run_dir = dir.join("run");
+    let log = run_dir.with_extension("log");
+    let started = Instant::now();
+    let run = run_swarm_with(&LONG_EVAL, &run_dir, Duration::from_secs(120), |_| {
+        let run_id = run_id_of(&log);
+        std::thread::sleep(Duration::from_millis(1500));
+        let pid = pid_of(&run_id, "formation-sim").expect("sim runs");
+        kill(pid, libc::SIGKILL);
+    })
+    .expect("launch");
+    assert_ne!(run.status, Some(0), "{}", run.output);
+    assert!(run.output.contains("the sim exited"), "{}", run.output);
+    assert!(
+        run.output.contains("is it alive"),
+        "agents or critic should say the sim is gone:\n{}",
+        run.output
+    );
+    assert!(started.elapsed() < Duration::from_secs(60));
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn malformed_commands_are_rejected_and_never_integrated() {
+    let dir = scratch_dir("bad-wire");
+    let run_dir = dir.join("run");
+    let log = run_dir.with_extension("log");
+    let injector = bin_dir().expect("bins").join("fault-injector");
+    let run = run_swarm_with(&LONG_EVAL, &run_dir, Duration::from_secs(180), |_| {
+        let run_id = run_id_of(&log);
+        let status = Command::new(&injector)
+            .args(["--run-id", &run_id, "--agents", "3", "--agent", "1", "--seconds", "1.5"])
+            .status()
+            .expect("injector runs");
+        assert!(status.success());
+    })
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "{}", run.output);
+    let summary = run.summary().expect("summary");
+    assert!(
+        summary["rejected_commands"].as_u64().expect("rejected") > 10,
+        "{summary}"
+    );
+    // The real agents kept the swarm on task: nothing non-finite reached the physics.
+    assert!(summary["success_rate"].as_f64().expect("success") > 0.9, "{summary}");
+    assert!(summary["mean_final_edge_error_m"].as_f64().expect("error").is_finite());
+    let sim_log = std::fs::read_to_string(run_dir.join("logs/sim.log")).expect("sim log");
+    assert!(sim_log.contains("rejected a command from agent 1"), "{sim_log}");
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn two_runs_at_once_are_isolated() {
+    let dir = scratch_dir("two-runs");
+    let args = [
+        "3",
+        "--scripted",
+        "all",
+        "--mode",
+        "eval",
+        "--episodes",
+        "300",
+        "--viewer",
+        "off",
+    ];
+    let (a, b) = std::thread::scope(|scope| {
+        let a = scope.spawn(|| run_swarm(&args, &dir.join("a"), Duration::from_secs(180)).expect("launch a"));
+        let b = scope.spawn(|| run_swarm(&args, &dir.join("b"), Duration::from_secs(180)).expect("launch b"));
+        (a.join().expect("a"), b.join().expect("b"))
+    });
+    for run in [&a, &b] {
+        assert_eq!(run.status, Some(0), "{}", run.output);
+        let summary = run.summary().expect("summary");
+        assert_eq!(summary["episodes"], serde_json::json!(300));
+        assert_eq!(summary["lost_transitions"], serde_json::json!(0), "{summary}");
+        assert_eq!(summary["missed_ticks"], serde_json::json!(0), "{summary}");
+        assert_clean(run);
+    }
+    assert_ne!(a.run_id, b.run_id);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn ctrl_c_ends_the_run_cleanly() {
+    let dir = scratch_dir("ctrl-c");
+    let run_dir = dir.join("run");
+    let log = run_dir.with_extension("log");
+    let run = run_swarm_with(&LONG_EVAL, &run_dir, Duration::from_secs(120), |launcher| {
+        run_id_of(&log);
+        std::thread::sleep(Duration::from_millis(1500));
+        // A terminal's Ctrl-C reaches the whole foreground process group.
+        // SAFETY: kill(2) on the process group the test created.
+        unsafe { libc::kill(-(launcher as i32), libc::SIGINT) };
+    })
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "{}", run.output);
+    let summary = run.summary().expect("summary written on Ctrl-C");
+    let episodes = summary["episodes"].as_u64().expect("episodes");
+    assert!(episodes < 1500, "the run stopped early: {summary}");
+    assert!(
+        summary["lost_transitions"].is_number(),
+        "the critic merged its figures: {summary}"
+    );
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn bad_checkpoints_are_refused_before_anything_starts() {
+    let dir = scratch_dir("bad-ckpt");
+    std::fs::create_dir_all(&dir).expect("dir");
+    let corrupt = dir.join("corrupt.safetensors");
+    std::fs::write(&corrupt, b"\x10\x00\x00\x00\x00\x00\x00\x00{\"oops\": trunc").expect("write");
+    for mode in ["eval", "train"] {
+        let run = run_swarm(
+            &[
+                "3",
+                "--mode",
+                mode,
+                "--checkpoint",
+                corrupt.to_str().expect("utf8"),
+                "--viewer",
+                "off",
+            ],
+            &dir.join("run"),
+            Duration::from_secs(60),
+        )
+        .expect("launch");
+        assert_eq!(run.status, Some(2), "{mode}: {}", run.output);
+        assert!(
+            run.output.contains("corrupt.safetensors"),
+            "{mode}: the error names the file:\n{}",
+            run.output
+        );
+        assert!(run.run_id.is_none(), "{mode}: nothing may start:\n{}", run.output);
+    }
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
