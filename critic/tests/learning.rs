@@ -61,12 +61,12 @@ fn terminal_masks_the_target_and_truncation_does_not() {
         .expect("flat")
         .to_vec1::<f32>()
         .expect("vec");
-    for b in 0..8 {
+    for (b, (target, reward)) in y.iter().zip(&batch.rewards).enumerate() {
         if b % 2 == 0 {
-            assert!((y[b] - batch.rewards[b]).abs() < 1e-6, "terminal: y = r exactly");
+            assert!((target - reward).abs() < 1e-6, "terminal: y = r exactly");
         } else {
             assert!(
-                (y[b] - batch.rewards[b]).abs() > 1e-6,
+                (target - reward).abs() > 1e-6,
                 "non-terminal (incl. time limit): y bootstraps from Q'"
             );
         }

@@ -217,10 +217,12 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                 &ports,
                 &world,
                 header,
-                outcome,
-                reward,
-                missed_mask,
-                &applied,
+                &Transition {
+                    outcome,
+                    reward,
+                    missed: missed_mask,
+                    applied: &applied,
+                },
                 log_world,
             )?;
             trace.edge_errors.push(
@@ -339,10 +341,12 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                     &ports,
                     &world,
                     header,
-                    Outcome::Timeout,
-                    reward,
-                    missed_mask,
-                    &applied,
+                    &Transition {
+                        outcome: Outcome::Timeout,
+                        reward,
+                        missed: missed_mask,
+                        applied: &applied,
+                    },
                     false,
                 )?;
                 log.push(EpisodeRecord {
@@ -675,16 +679,27 @@ fn publish_observations<S: Service>(ports: &Ports<S>, world: &World, header: Hea
     Ok(())
 }
 
+/// What led to the state being published.
+struct Transition<'a> {
+    outcome: Outcome,
+    reward: f64,
+    missed: u32,
+    applied: &'a [(f64, f64)],
+}
+
 fn publish_state<S: Service>(
     ports: &Ports<S>,
     world: &World,
     header: Header,
-    outcome: Outcome,
-    reward: f64,
-    missed: u32,
-    applied: &[(f64, f64)],
+    transition: &Transition,
     keep_copy: bool,
 ) -> Result<Option<StateMsg>> {
+    let Transition {
+        outcome,
+        reward,
+        missed,
+        applied,
+    } = *transition;
     let mut sample = ports.state.loan().map_err(|e| anyhow::anyhow!("loan state: {e:?}"))?;
     let msg = sample.payload_mut();
     msg.header = header;
