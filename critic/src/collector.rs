@@ -28,6 +28,8 @@ pub struct CollectorStats {
     pub policy_versions: Vec<u32>,
     /// The sim announced the end of the run.
     pub run_ended: bool,
+    /// `StateMsg::sequence` of the first and the latest state taken in.
+    pub sequence_range: Option<(u64, u64)>,
 }
 
 /// An episode as it ended.
@@ -134,6 +136,10 @@ impl<S: Service> Collector<S> {
                 break;
             }
             self.stats.ticks_received += 1;
+            self.stats.sequence_range = Some(match self.stats.sequence_range {
+                Some((first, _)) => (first, state.sequence),
+                None => (state.sequence, state.sequence),
+            });
             if let Some(done) = self.take_tick(&state) {
                 finished.push(done);
             }
@@ -150,6 +156,15 @@ impl<S: Service> Collector<S> {
             }
         }
         Ok(finished)
+    }
+
+    /// The state sequence the critic may acknowledge: the latest it has read, but no further
+    /// than `paid_ticks` past the first it read.
+    pub fn acknowledgeable(&self, paid_ticks: u64) -> u64 {
+        match self.stats.sequence_range {
+            Some((first, last)) => last.min(first.saturating_add(paid_ticks)),
+            None => 0,
+        }
     }
 
     /// The observation of `agent` for (episode, tick), or `None` when it never arrived.

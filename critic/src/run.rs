@@ -343,7 +343,7 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
 
         // Acknowledge only the ticks the updates have paid for: the sim stays at most
         // `critic_window` ticks ahead, which holds the update-to-data ratio.
-        let acknowledged = collector.stats.ticks_received.min(paid_ticks);
+        let acknowledged = collector.acknowledgeable(paid_ticks);
         if acknowledged != last_acknowledged || collector.stats.ticks_received == 0 {
             // Before the first tick this repeats the greeting until the sim has connected.
             last_acknowledged = acknowledged;
@@ -463,7 +463,7 @@ fn publish_progress<S: Service>(
     publisher: &Publisher<S, CriticProgressMsg, ()>,
     ready: &iceoryx2::port::notifier::Notifier<S>,
     session: u64,
-    acknowledged_ticks: u64,
+    acknowledged_sequence: u64,
     learner: &Option<Learner>,
     weights: &Option<WeightsPublisher<S>>,
 ) -> Result<()> {
@@ -471,7 +471,7 @@ fn publish_progress<S: Service>(
         .send_copy(CriticProgressMsg {
             protocol_version: PROTOCOL_VERSION,
             weights_version: weights.as_ref().map_or(0, |w| w.version),
-            consumed_ticks: acknowledged_ticks,
+            acknowledged_sequence,
             updates: learner.as_ref().map_or(0, Learner::updates),
             session,
         })

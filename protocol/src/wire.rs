@@ -113,6 +113,8 @@ pub struct StateMsg {
     pub reward: f32,
     /// Robots whose command for the previous tick was missing (their last one was held).
     pub missed: u32,
+    /// Counts every state the sim publishes in this run, from 1 (flow control).
+    pub sequence: u64,
     /// World poses (x, y, theta).
     pub poses: [[f32; 3]; MAX_AGENTS],
     /// Commands (v, w) applied in the transition into this tick.
@@ -131,6 +133,7 @@ impl Default for StateMsg {
             outcome: OUTCOME_RUNNING,
             reward: 0.0,
             missed: 0,
+            sequence: 0,
             poses: [[0.0; 3]; MAX_AGENTS],
             applied: [[0.0; ACTION_DIM]; MAX_AGENTS],
             desired: [[0.0; NEIGHBOURS]; MAX_AGENTS],
@@ -148,8 +151,10 @@ pub struct CriticProgressMsg {
     pub protocol_version: u32,
     /// Latest published actor weights version.
     pub weights_version: u32,
-    /// Ticks (state messages) taken into the replay so far.
-    pub consumed_ticks: u64,
+    /// The critic has processed every state up to this `StateMsg::sequence` (as far as its
+    /// gradient updates have paid for them in train mode). States lost on the way do not hold
+    /// it back.
+    pub acknowledged_sequence: u64,
     /// Gradient updates so far.
     pub updates: u64,
     /// Random, non-zero, new for every critic process: a restarted critic counts from zero.

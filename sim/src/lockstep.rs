@@ -137,9 +137,7 @@ struct StreamCounters {
 #[derive(Debug, Default)]
 struct CriticLink {
     session: u64,
-    /// Ticks published before the current session began.
-    baseline: u64,
-    consumed: u64,
+    acknowledged: u64,
     absent: bool,
 }
 
@@ -223,6 +221,7 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                     missed: missed_mask,
                     applied: &applied,
                 },
+                &mut counters,
                 log_world,
             )?;
             trace.edge_errors.push(
@@ -233,7 +232,6 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
             );
             trace.mean_edge_error.push(last.mean_edge_error);
             trace.goal_distance.push(last.goal_distance);
-            counters.published_ticks += 1;
             if let (Some(tap), Some(state)) = (&tap, state) {
                 let _dropped_when_view_is_behind = tap.try_send(state);
             }
@@ -347,6 +345,7 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                         missed: missed_mask,
                         applied: &applied,
                     },
+                    &mut counters,
                     false,
                 )?;
                 log.push(EpisodeRecord {
@@ -483,8 +482,7 @@ fn check_protocol(version: u32, who: &str) -> Result<()> {
     Ok(())
 }
 
-/// Reads the critic's latest progress; true when any arrived. A new session (a restarted
-/// critic) counts from the ticks published when it appeared.
+/// Reads the critic's latest progress; true when any arrived.
 fn drain_progress<S: Service>(ports: &Ports<S>, counters: &mut StreamCounters) -> Result<bool> {
     let mut any = false;
     while let Some(sample) = ports
@@ -500,9 +498,8 @@ fn drain_progress<S: Service>(ports: &Ports<S>, counters: &mut StreamCounters) -
                 eprintln!("sim: a new critic joined at tick {}", counters.published_ticks);
             }
             link.session = progress.session;
-            link.baseline = counters.published_ticks;
         }
-        link.consumed = progress.consumed_ticks;
+        link.acknowledged = progress.acknowledged_sequence;
         if link.absent {
             eprintln!("sim: the critic is back");
             link.absent = false;
@@ -520,12 +517,7 @@ fn wait_for_critic<S: Service>(ports: &Ports<S>, options: &SimOptions, counters:
     let give_up = Duration::from_millis(options.config.ticks.sim_silence_ms / 4);
     let mut last_progress = Instant::now();
     drain_progress(ports, counters)?;
-    while !counters.critic.absent
-        && counters
-            .published_ticks
-            .saturating_sub(counters.critic.baseline + counters.critic.consumed)
-            > window
-    {
+    while !counters.critic.absent && counters.published_ticks.saturating_sub(counters.critic.acknowledged) > window {
         services::wait_for_event(&ports.critic_progress_ready, Duration::from_millis(20))?;
         if drain_progress(ports, counters)? {
             last_progress = Instant::now();
@@ -692,8 +684,11 @@ fn publish_state<S: Service>(
     world: &World,
     header: Header,
     transition: &Transition,
+    counters: &mut StreamCounters,
     keep_copy: bool,
 ) -> Result<Option<StateMsg>> {
+    counters.published_ticks += 1;
+    let sequence = counters.published_ticks;
     let Transition {
         outcome,
         reward,
@@ -707,6 +702,7 @@ fn publish_state<S: Service>(
     msg.outcome = outcome.code();
     msg.reward = reward as f32;
     msg.missed = missed;
+    msg.sequence = sequence;
     for (agent, pose) in world.poses.iter().enumerate() {
         msg.poses[agent] = [pose.x as f32, pose.y as f32, pose.theta as f32];
         msg.applied[agent] = [applied[agent].0 as f32, applied[agent].1 as f32];
