@@ -4,14 +4,16 @@
 # socket), real-time deadline misses, training throughput and memory. Prints a table and
 # writes bench.json. Takes about 10 minutes; run it on a quiet machine.
 #
-#   scripts/bench.sh [--quick] [--out DIR]
+#   scripts/bench.sh [--quick] [--skip-realtime] [--skip-training] [--out DIR]
 set -euo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$ROOT"
-QUICK=0 OUT=runs/bench
+QUICK=0 OUT=runs/bench SKIP_REALTIME=0 SKIP_TRAINING=0
 while [[ $# -gt 0 ]]; do
   case "$1" in
     --quick) QUICK=1; shift ;;
+    --skip-realtime) SKIP_REALTIME=1; shift ;;
+    --skip-training) SKIP_TRAINING=1; shift ;;
     --out) OUT=$2; shift 2 ;;
     -h|--help) sed -n '2,7p' "$0"; exit 0 ;;
     *) echo "bench.sh: unknown flag $1" >&2; exit 2 ;;
@@ -42,8 +44,6 @@ for policy in scripted learned; do
     args=("$n" --mode eval --episodes "$episodes" --seed 7 --viewer off --run-dir "$dir")
     [[ $policy == scripted ]] && args+=(--scripted all)
     scripts/run_swarm.sh "${args[@]}" >"$dir.log" 2>&1 || { echo "run failed: $dir.log" >&2; exit 1; }
-    # Memory: resident set of the run's processes was sampled by the launcher's logs? Read it
-    # from the summary-independent probe below instead.
     record "$(python3 - "$dir/summary.json" "$policy" "$n" <<'PY'
 import json, sys
 s = json.load(open(sys.argv[1]))
@@ -79,8 +79,8 @@ for transport in iceoryx2 uds; do
 done
 
 # 4. Real time at 10 Hz: deadline misses over about 1000 ticks, up to 64 robot processes.
-RT_SIZES=(16 64); (( QUICK )) && RT_SIZES=(16)
-for n in "${RT_SIZES[@]}"; do
+RT_SIZES=(16 64); (( QUICK )) && RT_SIZES=(16); (( SKIP_REALTIME )) && RT_SIZES=()
+for n in "${RT_SIZES[@]+"${RT_SIZES[@]}"}"; do
   dir=$OUT/realtime-$n
   scripts/run_swarm.sh "$n" --scripted all --mode eval --realtime --episodes 9 --seed 7 --viewer off --run-dir "$dir" >"$dir.log" 2>&1 &
   launcher=$!
@@ -101,6 +101,7 @@ PY
 done
 
 # 5. Training throughput (default config, 2 minutes).
+if (( ! SKIP_TRAINING )); then
 dir=$OUT/train-3
 scripts/run_swarm.sh 3 --minutes 2 --seed 7 --viewer off --run-dir "$dir" >"$dir.log" 2>&1
 record "$(python3 - "$dir/summary.json" <<'PY'
@@ -110,6 +111,7 @@ print(json.dumps({"kind": "training", "n": 3, "env_steps_per_wall_s": round(s["e
                   "updates_per_s": round(s["updates_per_s"], 1), "lost_transitions": s["lost_transitions"]}))
 PY
 )"
+fi
 
 # 6. Single-observation actor inference.
 if [[ -f "$MODEL" ]]; then

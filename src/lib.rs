@@ -108,6 +108,13 @@ pub fn run_swarm_with(
         .lines()
         .find_map(|l| l.strip_prefix("run ").and_then(|rest| rest.split(':').next()))
         .map(str::to_string);
+    if let (None, Some(id)) = (status, &run_id) {
+        // The watchdog killed the launcher before its own clean-up: do it here so a failed
+        // test leaves nothing behind (the test still fails on the missing status).
+        if let Ok(identity) = formation_protocol::services::RunIdentity::new(id) {
+            identity.remove_leftovers();
+        }
+    }
     Ok(RunOutcome {
         status,
         output,

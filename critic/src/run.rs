@@ -271,7 +271,10 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
                     checkpoint_meta(learner, &rolling, options, Some(eval)),
                 )?;
             }
-            replay.push(finished.episode);
+            if training {
+                // Eval mode only records figures: keeping episodes would grow memory for nothing.
+                replay.push(finished.episode);
+            }
         }
         if collector.stats.ticks_received > before {
             last_tick_seen = Instant::now();

@@ -111,15 +111,28 @@ impl EnvConfig {
         (v.clamp(0.0, self.v_max), w.clamp(-self.w_max, self.w_max))
     }
 
-    /// The arena side actually used for `n_agents`: large swarms need room for a closed strip
-    /// of robots plus the goal distance, so the arena grows to fit them.
+    /// The arena side actually used for `n_agents`: large swarms need room for their closed
+    /// strip of robots plus the goal distance, so the arena grows to fit them.
     pub fn effective_arena_m(&self, n_agents: usize) -> f64 {
-        // A closed triangle strip advances about edge_min/2 per robot along its loop.
-        let loop_radius = n_agents as f64 * self.edge_min_m * 0.5 / std::f64::consts::TAU;
-        let needed = 2.0 * (loop_radius + self.edge_max_m + self.goal_max_m + 1.0);
+        let needed = 2.0 * (self.formation_reach_m(n_agents) + self.goal_max_m + 1.0);
         self.arena_m.max(needed)
     }
+
+    /// The farthest a robot of a random formation of `n_agents` can start from its centroid.
+    pub fn formation_reach_m(&self, n_agents: usize) -> f64 {
+        if n_agents < LARGE_SWARM {
+            self.edge_max_m
+        } else {
+            // A ring whose second-neighbour chord is at most 1.3 edge_min, plus room for the
+            // zig-zag and what the relaxation moves.
+            let ring = 1.3 * self.edge_min_m / (2.0 * (std::f64::consts::TAU / n_agents as f64).sin());
+            ring + self.edge_min_m
+        }
+    }
 }
+
+/// From this many robots on, formations are compact rings (smaller swarms get freer shapes).
+pub const LARGE_SWARM: usize = 8;
 
 /// The tick protocol.
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]

@@ -1,7 +1,7 @@
 //! Random formations and episodes: robots start exactly in formation around a random centroid,
 //! with a random goal 1 to 2.5 m away.
 
-use formation_protocol::config::EnvConfig;
+use formation_protocol::config::{EnvConfig, LARGE_SWARM};
 use formation_protocol::{NEIGHBOURS, neighbours};
 use rand::Rng;
 
@@ -46,16 +46,24 @@ pub fn random_shape<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> Vec<[f64;
         let step = std::f64::consts::TAU / n as f64;
         // Ring radius that puts the second neighbour (the longer chord for n >= 5) near mid range.
         let chord_angle = if n >= 5 { 2.0 * step } else { step };
-        let base_radius = rng.random_range(0.6..1.2) * mid_edge / (2.0 * (0.5 * chord_angle).sin());
+        let large = n >= LARGE_SWARM;
+        // Small swarms: any ring that puts the constraining chord around mid range. Large ones:
+        // the most compact ring whose second-neighbour chord clears edge_min, so they fit.
+        let (chord, jitter) = if large {
+            (rng.random_range(1.05..1.2) * env.edge_min_m, 0.03)
+        } else {
+            (rng.random_range(0.6..1.2) * mid_edge, 0.25)
+        };
+        let base_radius = chord / (2.0 * (0.5 * chord_angle).sin());
         let mut points: Vec<[f64; 2]> = (0..n)
             .map(|i| {
-                let angle = i as f64 * step + rng.random_range(-0.35..0.35) * step;
+                let angle = i as f64 * step + rng.random_range(-0.35..0.35) * step * if large { 0.2 } else { 1.0 };
                 let zigzag = if n >= 5 && i % 2 == 1 {
                     -0.35 * env.edge_min_m
                 } else {
                     0.0
                 };
-                let radius = base_radius * rng.random_range(0.75..1.25) + zigzag;
+                let radius = base_radius * rng.random_range(1.0 - jitter..1.0 + jitter) + zigzag;
                 [radius * angle.cos(), radius * angle.sin()]
             })
             .collect();
@@ -119,10 +127,11 @@ pub fn random_episode<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> Episode
     let arena = env.effective_arena_m(n);
     let shape = random_shape(n, env, rng);
     let reach = shape.iter().map(|p| p[0].hypot(p[1])).fold(0.0, f64::max);
-    let margin = reach + 0.5;
+    // Never more than half the arena, so the ranges below are never empty.
+    let margin = (reach + 0.5).min(0.5 * arena - 0.01);
     let heading = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
     let (s, c) = heading.sin_cos();
-    loop {
+    for attempt in 0u32.. {
         let centre = [
             rng.random_range(margin..arena - margin),
             rng.random_range(margin..arena - margin),
@@ -133,7 +142,11 @@ pub fn random_episode<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> Episode
             centre[0] + goal_dist * goal_angle.cos(),
             centre[1] + goal_dist * goal_angle.sin(),
         ];
-        if !(margin..=arena - margin).contains(&goal[0]) || !(margin..=arena - margin).contains(&goal[1]) {
+        // The goal needs the formation's room around it too; a swarm too big for that (only with
+        // a hand-shrunk arena) takes a goal merely inside the arena.
+        let inside =
+            |v: f64| (margin..=arena - margin).contains(&v) || (attempt > 10_000 && (0.0..=arena).contains(&v));
+        if !inside(goal[0]) || !inside(goal[1]) {
             continue;
         }
         let poses: Vec<Pose> = shape
@@ -153,6 +166,7 @@ pub fn random_episode<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> Episode
             .collect();
         return EpisodeInit { poses, desired, goal };
     }
+    unreachable!("the attempt counter is unbounded")
 }
 
 #[cfg(test)]
@@ -166,8 +180,8 @@ mod tests {
     fn episodes_start_in_formation_with_valid_edges_for_many_sizes() {
         let env = EnvConfig::default();
         let mut rng = StdRng::seed_from_u64(7);
-        for n in [3, 4, 5, 6, 7, 12, 24, 48, 64] {
-            for _ in 0..5 {
+        for n in (3..=64).step_by(1) {
+            for _ in 0..if n <= 8 || n % 8 == 0 { 6 } else { 1 } {
                 let init = random_episode(n, &env, &mut rng);
                 let c = conditions(&init.poses, &init.desired, init.goal, &env);
                 assert!(c.in_formation && !c.collision, "n={n}: {c:?}");
@@ -180,6 +194,17 @@ mod tests {
                 let dist = (start[0] - init.goal[0]).hypot(start[1] - init.goal[1]);
                 assert!((env.goal_min_m - 1e-9..=env.goal_max_m + 1e-9).contains(&dist));
                 let arena = env.effective_arena_m(n);
+                let start = centroid(&init.poses);
+                let reach = init
+                    .poses
+                    .iter()
+                    .map(|p| (p.x - start[0]).hypot(p.y - start[1]))
+                    .fold(0.0, f64::max);
+                assert!(
+                    reach <= env.formation_reach_m(n),
+                    "n={n}: reach {reach} > {}",
+                    env.formation_reach_m(n)
+                );
                 assert!(
                     init.poses
                         .iter()

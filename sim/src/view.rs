@@ -3,7 +3,7 @@
 //!
 //! Entities: `world/robots` (poses, labelled, one colour each), `world/headings`,
 //! `world/edges` (coloured by error), `world/goal`, `world/centroid`, `world/trails`; series
-//! `plots/formation/edge_error/*`, `plots/formation/goal_distance`, `plots/formation/reward`.
+//! `plots/formation/edge_error/*`, `plots/formation/goal_distance`, `plots/reward`.
 //! Rerun's 2-D views are y-down, so y is flipped when logging.
 
 use std::collections::VecDeque;
@@ -84,10 +84,14 @@ pub fn blueprint() -> Blueprint {
                 TimeSeriesView::new("Formation (paper Fig. 5)")
                     .with_origin("plots/formation")
                     .into(),
+                TimeSeriesView::new("Reward per tick")
+                    .with_origin("plots/reward")
+                    .into(),
                 TimeSeriesView::new("Training (paper Fig. 4)")
                     .with_origin("plots/training")
                     .into(),
             ])
+            .with_row_shares([0.45, 0.2, 0.35])
             .into(),
         ])
         .with_column_shares([0.55, 0.45]),
@@ -189,7 +193,7 @@ impl WorldView {
         )?;
         for (path, name, colour) in [
             ("plots/formation/goal_distance", "centroid to goal (m)", [30, 30, 30]),
-            ("plots/formation/reward", "reward", [120, 120, 120]),
+            ("plots/reward", "reward", [120, 120, 120]),
         ] {
             self.stream.log_static(
                 path,
@@ -287,10 +291,8 @@ impl WorldView {
             "plots/formation/goal_distance",
             &rerun::Scalars::single(f64::from(distance)),
         )?;
-        self.stream.log(
-            "plots/formation/reward",
-            &rerun::Scalars::single(f64::from(state.reward)),
-        )?;
+        self.stream
+            .log("plots/reward", &rerun::Scalars::single(f64::from(state.reward)))?;
         Ok(())
     }
 }
