@@ -239,3 +239,52 @@ fn bad_checkpoints_are_refused_before_anything_starts() {
     }
     std::fs::remove_dir_all(&dir).expect("cleanup");
 }
+
+#[test]
+fn killed_training_critic_resumes_from_its_checkpoint() {
+    let dir = scratch_dir("kill-critic-train");
+    std::fs::create_dir_all(&dir).expect("dir");
+    // A small, fast learner that checkpoints every second.
+    let config = dir.join("small.toml");
+    std::fs::write(
+        &config,
+        "[learn]\nbatch_size = 16\nwarmup_transitions = 1000\nactor_hidden = [16]\ncritic_hidden = [32]\ncheckpoint_every_s = 1\n",
+    )
+    .expect("config");
+    let run_dir = dir.join("run");
+    let log = run_dir.with_extension("log");
+    let checkpoint = run_dir.join("checkpoint.safetensors");
+    let run = run_swarm_with(
+        &[
+            "3",
+            "--minutes",
+            "0.5",
+            "--viewer",
+            "off",
+            "--config",
+            config.to_str().expect("utf8"),
+        ],
+        &run_dir,
+        Duration::from_secs(240),
+        |_| {
+            let run_id = run_id_of(&log);
+            let deadline = Instant::now() + Duration::from_secs(120);
+            while !checkpoint.is_file() {
+                assert!(Instant::now() < deadline, "no checkpoint was written");
+                std::thread::sleep(Duration::from_millis(100));
+            }
+            std::thread::sleep(Duration::from_millis(1500));
+            let pid = pid_of(&run_id, "formation-critic").expect("critic runs");
+            kill(pid, libc::SIGKILL);
+        },
+    )
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "{}", run.output);
+    assert!(run.output.contains("restarting it from"), "{}", run.output);
+    let critic_log = std::fs::read_to_string(run_dir.join("logs/critic.log")).expect("critic log");
+    assert!(critic_log.contains("critic: resumed from"), "{critic_log}");
+    let summary = run.summary().expect("summary");
+    assert!(summary["updates"].as_u64().expect("updates") > 0, "{summary}");
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}

@@ -19,8 +19,8 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
 use indicatif::{ProgressBar, ProgressStyle};
+use rand::SeedableRng;
 use rand::rngs::StdRng;
-use rand::{Rng, SeedableRng};
 use serde::Serialize;
 
 use crate::collector::{Collector, FinishedEpisode};
@@ -234,7 +234,8 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
     let mut last_bar = Instant::now();
     let silence = Duration::from_millis(config.ticks.sim_silence_ms);
     let startup = Duration::from_secs(config.ticks.startup_timeout_s);
-    let session = rng.random_range(1..u64::MAX);
+    // Not from the seeded generator: a restarted critic must differ from the one it replaces.
+    let session = rand::random_range(1..u64::MAX);
     let mut paid_ticks = u64::MAX;
     let mut last_acknowledged = 0;
     publish_progress(&progress_publisher, &progress_ready, session, 0, &learner, &weights)?;

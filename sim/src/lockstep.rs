@@ -137,6 +137,8 @@ struct StreamCounters {
 #[derive(Debug, Default)]
 struct CriticLink {
     session: u64,
+    /// States published when the current session first spoke.
+    joined_at: u64,
     acknowledged: u64,
     absent: bool,
 }
@@ -498,8 +500,10 @@ fn drain_progress<S: Service>(ports: &Ports<S>, counters: &mut StreamCounters) -
                 eprintln!("sim: a new critic joined at tick {}", counters.published_ticks);
             }
             link.session = progress.session;
+            link.joined_at = counters.published_ticks;
         }
-        link.acknowledged = progress.acknowledged_sequence;
+        // A critic that just joined owes nothing for the states published before it came.
+        link.acknowledged = progress.acknowledged_sequence.max(link.joined_at);
         if link.absent {
             eprintln!("sim: the critic is back");
             link.absent = false;
