@@ -50,18 +50,30 @@ const LONG_EVAL: [&str; 9] = [
     "off",
 ];
 
-#[test]
-fn killed_agent_is_held_then_restarted_and_rejoins() {
-    let dir = scratch_dir("kill-agent");
+/// Runs [`LONG_EVAL`] in a fresh directory named `name`; 1.5 s after the run starts, calls
+/// `hurt(run id, launcher pid)`. Returns the outcome and the directory to remove.
+fn long_eval_hurt_by(name: &str, hurt: impl FnOnce(&str, u32)) -> (formation_swarm::RunOutcome, std::path::PathBuf) {
+    let dir = scratch_dir(name);
     let run_dir = dir.join("run");
     let log = run_dir.with_extension("log");
-    let run = run_swarm_with(&LONG_EVAL, &run_dir, Duration::from_secs(180), |_| {
+    let run = run_swarm_with(&LONG_EVAL, &run_dir, Duration::from_secs(180), |launcher| {
         let run_id = run_id_of(&log);
         std::thread::sleep(Duration::from_millis(1500));
-        let pid = pid_of(&run_id, "--agent 1").expect("agent 1 runs");
-        kill(pid, libc::SIGKILL);
+        hurt(&run_id, launcher);
     })
     .expect("launch");
+    (run, dir)
+}
+
+/// Kills the process of run `run_id` whose command line contains `needle`.
+fn kill_process(run_id: &str, needle: &str) {
+    let pid = pid_of(run_id, needle).unwrap_or_else(|| panic!("no process matching {needle:?} runs"));
+    kill(pid, libc::SIGKILL);
+}
+
+#[test]
+fn killed_agent_is_held_then_restarted_and_rejoins() {
+    let (run, dir) = long_eval_hurt_by("kill-agent", |run_id, _| kill_process(run_id, "--agent 1"));
     assert_eq!(run.status, Some(0), "{}", run.output);
     assert!(run.output.contains("agent 1 died"), "{}", run.output);
     let summary = run.summary().expect("summary");
@@ -75,16 +87,7 @@ fn killed_agent_is_held_then_restarted_and_rejoins() {
 
 #[test]
 fn killed_critic_does_not_stop_the_swarm() {
-    let dir = scratch_dir("kill-critic");
-    let run_dir = dir.join("run");
-    let log = run_dir.with_extension("log");
-    let run = run_swarm_with(&LONG_EVAL, &run_dir, Duration::from_secs(180), |_| {
-        let run_id = run_id_of(&log);
-        std::thread::sleep(Duration::from_millis(1500));
-        let pid = pid_of(&run_id, "formation-critic").expect("critic runs");
-        kill(pid, libc::SIGKILL);
-    })
-    .expect("launch");
+    let (run, dir) = long_eval_hurt_by("kill-critic", |run_id, _| kill_process(run_id, "formation-critic"));
     assert_eq!(run.status, Some(0), "{}", run.output);
     assert!(run.output.contains("the critic died"), "{}", run.output);
     let summary = run.summary().expect("summary");
@@ -99,17 +102,8 @@ fn killed_critic_does_not_stop_the_swarm() {
 
 #[test]
 fn killed_sim_is_noticed_by_everyone() {
-    let dir = scratch_dir("kill-sim");
-    let run_dir = dir.join("run");
-    let log = run_dir.with_extension("log");
     let started = Instant::now();
-    let run = run_swarm_with(&LONG_EVAL, &run_dir, Duration::from_secs(120), |_| {
-        let run_id = run_id_of(&log);
-        std::thread::sleep(Duration::from_millis(1500));
-        let pid = pid_of(&run_id, "formation-sim").expect("sim runs");
-        kill(pid, libc::SIGKILL);
-    })
-    .expect("launch");
+    let (run, dir) = long_eval_hurt_by("kill-sim", |run_id, _| kill_process(run_id, "formation-sim"));
     assert_ne!(run.status, Some(0), "{}", run.output);
     assert!(run.output.contains("the sim exited"), "{}", run.output);
     assert!(
@@ -185,17 +179,11 @@ fn two_runs_at_once_are_isolated() {
 
 #[test]
 fn ctrl_c_ends_the_run_cleanly() {
-    let dir = scratch_dir("ctrl-c");
-    let run_dir = dir.join("run");
-    let log = run_dir.with_extension("log");
-    let run = run_swarm_with(&LONG_EVAL, &run_dir, Duration::from_secs(120), |launcher| {
-        run_id_of(&log);
-        std::thread::sleep(Duration::from_millis(1500));
+    let (run, dir) = long_eval_hurt_by("ctrl-c", |_, launcher| {
         // A terminal's Ctrl-C reaches the whole foreground process group.
         // SAFETY: kill(2) on the process group the test created.
         unsafe { libc::kill(-(launcher as i32), libc::SIGINT) };
-    })
-    .expect("launch");
+    });
     assert_eq!(run.status, Some(0), "{}", run.output);
     let summary = run.summary().expect("summary written on Ctrl-C");
     let episodes = summary["episodes"].as_u64().expect("episodes");
