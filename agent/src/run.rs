@@ -95,12 +95,16 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &AgentOptions, mut polic
         session,
         ..CommandMsg::default()
     };
-    commands
-        .send_copy(hello)
-        .map_err(|e| anyhow::anyhow!("agent {agent}: hello: {e:?}"))?;
-    command_ready
-        .notify()
-        .map_err(|e| anyhow::anyhow!("agent {agent}: notify: {e:?}"))?;
+    let greet = || -> Result<()> {
+        commands
+            .send_copy(hello)
+            .map_err(|e| anyhow::anyhow!("agent {agent}: hello: {e:?}"))?;
+        command_ready
+            .notify()
+            .map_err(|e| anyhow::anyhow!("agent {agent}: notify: {e:?}"))?;
+        Ok(())
+    };
+    greet()?;
 
     let mut history = ObservationHistory::new(options.config.env.history);
     let mut stats = AgentStats::default();
@@ -148,12 +152,7 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &AgentOptions, mut polic
             if !heard_any {
                 // A publisher hands its history to subscribers it has seen; greet again until
                 // the sim has connected and answered.
-                commands
-                    .send_copy(hello)
-                    .map_err(|e| anyhow::anyhow!("agent {agent}: hello: {e:?}"))?;
-                command_ready
-                    .notify()
-                    .map_err(|e| anyhow::anyhow!("agent {agent}: notify: {e:?}"))?;
+                greet()?;
             }
             if termination_requested() {
                 return Ok(stats);
