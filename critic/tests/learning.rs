@@ -46,6 +46,17 @@ fn random_batch(n: usize, h: usize, b: usize, seed: u64) -> Batch {
     }
 }
 
+/// The TD targets of a batch as plain numbers.
+fn td_targets(learner: &mut Learner, batch: &Batch) -> Vec<f32> {
+    learner
+        .td_target(batch)
+        .expect("target")
+        .flatten_all()
+        .expect("flat")
+        .to_vec1::<f32>()
+        .expect("vec")
+}
+
 #[test]
 fn terminal_masks_the_target_and_truncation_does_not() {
     let (env, learn) = small_config(Algorithm::Ddpg);
@@ -54,13 +65,7 @@ fn terminal_masks_the_target_and_truncation_does_not() {
     for b in 0..8 {
         batch.terminals[b] = if b % 2 == 0 { 1.0 } else { 0.0 };
     }
-    let y = learner
-        .td_target(&batch)
-        .expect("target")
-        .flatten_all()
-        .expect("flat")
-        .to_vec1::<f32>()
-        .expect("vec");
+    let y = td_targets(&mut learner, &batch);
     for (b, (target, reward)) in y.iter().zip(&batch.rewards).enumerate() {
         if b % 2 == 0 {
             assert!((target - reward).abs() < 1e-6, "terminal: y = r exactly");
@@ -77,13 +82,7 @@ fn terminal_masks_the_target_and_truncation_does_not() {
         ..learn.clone()
     };
     let mut half = Learner::new(3, &env, &learn_half, 1).expect("learner");
-    let y_half = half
-        .td_target(&batch)
-        .expect("target")
-        .flatten_all()
-        .expect("flat")
-        .to_vec1::<f32>()
-        .expect("vec");
+    let y_half = td_targets(&mut half, &batch);
     for b in (1..8).step_by(2) {
         let full = y[b] - batch.rewards[b];
         let halved = y_half[b] - batch.rewards[b];

@@ -27,7 +27,7 @@ use rand::rngs::StdRng;
 use crate::formation::random_episode;
 use crate::plots::{EpisodeTrace, episode_errors, learning_curve};
 use crate::report::{EpisodeLog, EpisodeRecord, fill_episode_figures, outcome_name};
-use crate::task::{Outcome, edge_error};
+use crate::task::{Conditions, Outcome, edge_error};
 use crate::world::World;
 
 /// How the sim runs.
@@ -143,6 +143,32 @@ struct CriticLink {
     absent: bool,
 }
 
+/// What one episode has added up so far.
+struct EpisodeTally {
+    episode_return: f64,
+    formation_ticks: u32,
+    missed_ticks: u64,
+    /// C1-C3 at the latest state.
+    last: Conditions,
+}
+
+impl EpisodeTally {
+    /// The `episodes.csv` row of an episode that ended with `outcome` (`None`: aborted).
+    fn record(&self, episode: u32, outcome: Option<Outcome>, steps: u32, started: Instant) -> EpisodeRecord {
+        EpisodeRecord {
+            episode,
+            outcome: outcome_name(outcome),
+            steps,
+            episode_return: self.episode_return,
+            final_edge_error_m: self.last.mean_edge_error,
+            final_goal_distance_m: self.last.goal_distance,
+            formation_hold_rate: f64::from(self.formation_ticks) / f64::from(steps.max(1)),
+            missed_ticks: self.missed_ticks,
+            wall_s: started.elapsed().as_secs_f64(),
+        }
+    }
+}
+
 /// Why the loop stopped.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Stop {
@@ -192,10 +218,12 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
             tap.is_some() && (options.mode == Mode::Eval || episode % options.config.view.world_every_episodes == 0);
         last_commands.iter_mut().for_each(|c| *c = (0.0, 0.0));
         let eval_episode = options.mode == Mode::Train && episode % options.config.learn.eval_every_episodes == 0;
-        let mut episode_return = 0.0;
-        let mut formation_ticks = 0u32;
-        let mut missed_this_episode = 0u64;
-        let mut last = world.conditions();
+        let mut tally = EpisodeTally {
+            episode_return: 0.0,
+            formation_ticks: 0,
+            missed_ticks: 0,
+            last: world.conditions(),
+        };
         let mut outcome = Outcome::Running;
         let mut reward = 0.0;
         let mut missed_mask = 0u32;
@@ -232,8 +260,8 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                     .map(|&(i, k, _)| edge_error(i, k, &world.poses, &world.desired))
                     .collect(),
             );
-            trace.mean_edge_error.push(last.mean_edge_error);
-            trace.goal_distance.push(last.goal_distance);
+            trace.mean_edge_error.push(tally.last.mean_edge_error);
+            trace.goal_distance.push(tally.last.goal_distance);
             if let (Some(tap), Some(state)) = (&tap, state) {
                 let _dropped_when_view_is_behind = tap.try_send(state);
             }
@@ -246,17 +274,7 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                     .map_err(|e| anyhow::anyhow!("critic wake: {e:?}"))?;
             }
             if ends {
-                log.push(EpisodeRecord {
-                    episode,
-                    outcome: outcome_name(Some(outcome)),
-                    steps: world.steps,
-                    episode_return,
-                    final_edge_error_m: last.mean_edge_error,
-                    final_goal_distance_m: last.goal_distance,
-                    formation_hold_rate: f64::from(formation_ticks) / f64::from(world.steps.max(1)),
-                    missed_ticks: missed_this_episode,
-                    wall_s: started.elapsed().as_secs_f64(),
-                })?;
+                log.push(tally.record(episode, Some(outcome), world.steps, started))?;
                 // The figure shows the first episode of an evaluation, or the latest noise-free
                 // episode of a training run.
                 if (options.mode == Mode::Eval && showcase.is_none()) || eval_episode {
@@ -301,7 +319,7 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                 }
             }
             counters.missed_ticks += missed_now;
-            missed_this_episode += missed_now;
+            tally.missed_ticks += missed_now;
             applied.copy_from_slice(&last_commands);
             let result = world.step(&applied);
             for a in applied.iter_mut() {
@@ -309,11 +327,11 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
             }
             counters.env_steps += 1;
             reward = result.reward;
-            episode_return += result.reward;
+            tally.episode_return += result.reward;
             outcome = result.outcome;
-            last = result.conditions;
-            if last.in_formation {
-                formation_ticks += 1;
+            tally.last = result.conditions;
+            if tally.last.in_formation {
+                tally.formation_ticks += 1;
             }
             let tick_time = tick_started.elapsed();
             stepping_time += tick_time;
@@ -350,17 +368,7 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                     &mut counters,
                     false,
                 )?;
-                log.push(EpisodeRecord {
-                    episode,
-                    outcome: outcome_name(None),
-                    steps: world.steps,
-                    episode_return,
-                    final_edge_error_m: last.mean_edge_error,
-                    final_goal_distance_m: last.goal_distance,
-                    formation_hold_rate: f64::from(formation_ticks) / f64::from(world.steps.max(1)),
-                    missed_ticks: missed_this_episode,
-                    wall_s: started.elapsed().as_secs_f64(),
-                })?;
+                log.push(tally.record(episode, None, world.steps, started))?;
                 break 'episodes;
             }
         }
