@@ -254,11 +254,10 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                 &mut counters,
                 log_world,
             )?;
-            trace.edge_errors.push(
+            trace.edge_errors.extend(
                 traced_edges
                     .iter()
-                    .map(|&(i, k, _)| edge_error(i, k, &world.poses, &world.desired))
-                    .collect(),
+                    .map(|&(i, k, _)| edge_error(i, k, &world.poses, &world.desired)),
             );
             trace.mean_edge_error.push(tally.last.mean_edge_error);
             trace.goal_distance.push(tally.last.goal_distance);

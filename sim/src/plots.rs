@@ -32,8 +32,9 @@ pub struct EpisodeTrace {
     pub dt: f64,
     /// Names of the traced edges, e.g. `e01`.
     pub edge_names: Vec<String>,
-    /// Per tick, the error of each traced edge, metres.
-    pub edge_errors: Vec<Vec<f64>>,
+    /// Per tick, the error of each traced edge, metres: rows of `edge_names.len()` values, flat
+    /// so the tick loop allocates nothing.
+    pub edge_errors: Vec<f64>,
     /// Per tick, the mean error over all observed edges, metres.
     pub mean_edge_error: Vec<f64>,
     /// Per tick, the centroid-to-goal distance, metres.
@@ -136,11 +137,11 @@ pub fn episode_errors(path: &Path, trace: &EpisodeTrace) -> Result<()> {
     let ticks = trace.goal_distance.len().max(2);
     let t_max = (ticks - 1) as f64 * trace.dt;
     let time = |i: usize| i as f64 * trace.dt;
+    let edges = trace.edge_names.len().max(1);
     let (_, err_hi) = range(
         trace
             .edge_errors
             .iter()
-            .flatten()
             .copied()
             .chain(trace.mean_edge_error.iter().copied()),
     );
@@ -159,7 +160,11 @@ pub fn episode_errors(path: &Path, trace: &EpisodeTrace) -> Result<()> {
         let colour = Palette99::pick(e).to_rgba();
         chart
             .draw_series(LineSeries::new(
-                trace.edge_errors.iter().enumerate().map(|(i, row)| (time(i), row[e])),
+                trace
+                    .edge_errors
+                    .chunks_exact(edges)
+                    .enumerate()
+                    .map(|(i, row)| (time(i), row[e])),
                 colour,
             ))?
             .label(name.clone())
@@ -227,7 +232,7 @@ mod tests {
             episode: 3,
             dt: 0.1,
             edge_names: vec!["e01".into(), "e12".into(), "e20".into()],
-            edge_errors: (0..50).map(|t| vec![0.01 * f64::from(t % 7), 0.02, 0.005]).collect(),
+            edge_errors: (0..50).flat_map(|t| [0.01 * f64::from(t % 7), 0.02, 0.005]).collect(),
             mean_edge_error: (0..50).map(|_| 0.015).collect(),
             goal_distance: (0..50).map(|t| 2.0 - 0.04 * f64::from(t)).collect(),
         };
