@@ -35,27 +35,32 @@ summary_field() { # file key
   python3 -c "import json,sys; print(json.load(open(sys.argv[1]))[sys.argv[2]])" "$1" "$2"
 }
 
-# 1. Lockstep across processes: sim + N agents + critic (eval), scripted and learned robots.
-for policy in scripted learned; do
-  [[ $policy == learned && ! -f "$MODEL" ]] && { echo "no $MODEL: skipping learned runs" >&2; continue; }
-  for n in "${SIZES[@]}"; do
-    episodes=$(( 24000 / (n * 60) + 5 ))
-    dir=$OUT/lockstep-$policy-$n
-    args=("$n" --mode eval --episodes "$episodes" --seed 7 --viewer off --run-dir "$dir")
-    [[ $policy == scripted ]] && args+=(--scripted all)
-    scripts/run_swarm.sh "${args[@]}" >"$dir.log" 2>&1 || { echo "run failed: $dir.log" >&2; exit 1; }
-    record "$(python3 - "$dir/summary.json" "$policy" "$n" <<'PY'
+# 1. Lockstep across processes: sim + N agents + critic (eval), scripted and learned robots,
+#    placed as the launcher does by default; then a few sizes with placement left to the OS.
+lockstep() { # policy n placement
+  local policy=$1 n=$2 placement=$3 episodes dir
+  episodes=$(( 24000 / (n * 60) + 5 ))
+  dir=$OUT/lockstep-$policy-$n-$placement
+  local args=("$n" --mode eval --episodes "$episodes" --seed 7 --viewer off --placement "$placement" --run-dir "$dir")
+  [[ $policy == scripted ]] && args+=(--scripted all)
+  scripts/run_swarm.sh "${args[@]}" >"$dir.log" 2>&1 || { echo "run failed: $dir.log" >&2; exit 1; }
+  record "$(python3 - "$dir/summary.json" "$policy" "$n" "$placement" <<'PY'
 import json, sys
 s = json.load(open(sys.argv[1]))
-print(json.dumps({"kind": "lockstep", "processes": "separate", "policy": sys.argv[2], "n": int(sys.argv[3]),
-                  "ticks_per_s": round(s["env_steps_per_s"]), "p50_us": s["tick_p50_us"], "p99_us": s["tick_p99_us"],
-                  "missed_ticks": s["missed_ticks"], "lost_transitions": s["lost_transitions"]}))
+print(json.dumps({"kind": "lockstep", "processes": "separate", "placement": sys.argv[4], "policy": sys.argv[2],
+                  "n": int(sys.argv[3]), "ticks_per_s": round(s["env_steps_per_s"]), "p50_us": s["tick_p50_us"],
+                  "p99_us": s["tick_p99_us"], "missed_ticks": s["missed_ticks"], "lost_transitions": s["lost_transitions"]}))
 PY
 )"
-  done
+}
+for policy in scripted learned; do
+  [[ $policy == learned && ! -f "$MODEL" ]] && { echo "no $MODEL: skipping learned runs" >&2; continue; }
+  for n in "${SIZES[@]}"; do lockstep "$policy" "$n" auto; done
 done
+OFF_SIZES=(3 12 48); (( QUICK )) && OFF_SIZES=(3)
+for n in "${OFF_SIZES[@]}"; do lockstep scripted "$n" off; done
 
-# 2. The same loop in one process (threads), local and ipc service types.
+# 2. The same loop in one process (threads on the lockstep CPU), local and ipc service types.
 for transport in local ipc; do
   for n in "${SIZES[@]}"; do
     episodes=$(( 24000 / (n * 60) + 5 ))
@@ -64,18 +69,20 @@ for transport in local ipc; do
     record "$(python3 - "$dir/summary.json" "$transport" "$n" <<'PY'
 import json, sys
 s = json.load(open(sys.argv[1]))
-print(json.dumps({"kind": "lockstep", "processes": "one (" + sys.argv[2] + ")", "policy": "scripted", "n": int(sys.argv[3]),
-                  "ticks_per_s": round(s["env_steps_per_s"]), "p50_us": s["tick_p50_us"], "p99_us": s["tick_p99_us"],
-                  "missed_ticks": s["missed_ticks"], "lost_transitions": None}))
+print(json.dumps({"kind": "lockstep", "processes": "one (" + sys.argv[2] + ")", "placement": "auto", "policy": "scripted",
+                  "n": int(sys.argv[3]), "ticks_per_s": round(s["env_steps_per_s"]), "p50_us": s["tick_p50_us"],
+                  "p99_us": s["tick_p99_us"], "missed_ticks": s["missed_ticks"], "lost_transitions": None}))
 PY
 )"
   done
 done
 
-# 3. The floor: one round trip between two processes.
-for transport in iceoryx2 uds; do
-  line=$("$FORMATION_BIN_DIR/formation-pingpong" --transport "$transport" --round-trips 20000)
-  record "$(python3 -c "import json,sys; d=json.loads(sys.argv[1]); d['kind']='round_trip'; print(json.dumps(d))" "$line")"
+# 3. The floor: one round trip between two processes, on one CPU and placed by the OS.
+for placement in auto off; do
+  for transport in iceoryx2 uds; do
+    line=$("$FORMATION_BIN_DIR/formation-pingpong" --transport "$transport" --placement "$placement" --round-trips 20000)
+    record "$(python3 -c "import json,sys; d=json.loads(sys.argv[1]); d['kind']='round_trip'; print(json.dumps(d))" "$line")"
+  done
 done
 
 # 4. Real time at 10 Hz: deadline misses over about 1000 ticks, up to 64 robot processes.
@@ -125,10 +132,10 @@ rows = [json.loads(l) for l in open(sys.argv[1]) if l.strip()]
 cpu = next((l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name")), "?")
 json.dump({"machine": {"cpu": cpu, "cores": os.cpu_count()}, "results": rows}, open(sys.argv[2], "w"), indent=2)
 print(f"machine: {cpu}, {os.cpu_count()} cores")
-print(f"{'kind':<14} {'processes':<16} {'policy':<9} {'N':>3} {'ticks/s':>9} {'p50 us':>8} {'p99 us':>8}  other")
+print(f"{'kind':<14} {'processes':<16} {'placement':<9} {'policy':<9} {'N':>3} {'ticks/s':>9} {'p50 us':>8} {'p99 us':>8}  other")
 for r in rows:
     if r["kind"] == "lockstep":
-        print(f"{'lockstep':<14} {r['processes']:<16} {r['policy']:<9} {r['n']:>3} {r['ticks_per_s']:>9} {r['p50_us']:>8.1f} {r['p99_us']:>8.1f}  missed {r['missed_ticks']} lost {r['lost_transitions']}")
+        print(f"{'lockstep':<14} {r['processes']:<16} {r['placement']:<9} {r['policy']:<9} {r['n']:>3} {r['ticks_per_s']:>9} {r['p50_us']:>8.1f} {r['p99_us']:>8.1f}  missed {r['missed_ticks']} lost {r['lost_transitions']}")
     else:
         rest = {k: v for k, v in r.items() if k != "kind"}
         print(f"{r['kind']:<14} {json.dumps(rest)}")

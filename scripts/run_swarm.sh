@@ -26,6 +26,10 @@ Flags:
                           viewer and a display are present, else save)
   --realtime              pace ticks at dt of wall-clock time instead of as fast as possible
   --config FILE           TOML overrides of the defaults (see config.toml in any run dir)
+  --placement auto|off    auto (default): the sim's tick thread and the robots share the
+                          last CPU this shell may use, the critic and the view get the
+                          others (ticks are 2-4x faster than letting the OS place them);
+                          off: the OS places every process
   --restart on|off        restart an agent or the critic that dies mid-run (default on; a
                           restarted agent rejoins at once with the latest weights, a restarted
                           critic resumes from the run's last checkpoint)
@@ -48,7 +52,7 @@ N=$1; shift
 [[ "$N" =~ ^[0-9]+$ ]] || die "N must be a whole number, got '$N'"
 (( N >= 3 && N <= 64 )) || die "N must be between 3 and 64 (each robot observes two distinct neighbours), got $N"
 
-MODE=train EPISODES="" MINUTES="" SCRIPTED="" CHECKPOINT="" SEED=1 RUN_DIR="" VIEWER="" REALTIME="" CONFIG="" RESTART=on
+MODE=train EPISODES="" MINUTES="" SCRIPTED="" CHECKPOINT="" SEED=1 RUN_DIR="" VIEWER="" REALTIME="" CONFIG="" RESTART=on PLACEMENT=auto
 need() { [[ $# -ge 2 && -n "$2" ]] || die "$1 needs a value"; }
 while [[ $# -gt 0 ]]; do
   case "$1" in
@@ -63,6 +67,7 @@ while [[ $# -gt 0 ]]; do
     --realtime) REALTIME=1; shift ;;
     --config) need "$@"; CONFIG=$2; shift 2 ;;
     --restart) need "$@"; RESTART=$2; shift 2 ;;
+    --placement) need "$@"; PLACEMENT=$2; shift 2 ;;
     -h|--help) usage; exit 0 ;;
     *) die "unknown flag '$1'" ;;
   esac
@@ -75,6 +80,7 @@ done
 [[ -z "$CONFIG" || -f "$CONFIG" ]] || die "--config file '$CONFIG' does not exist"
 [[ -z "$CHECKPOINT" || -e "$CHECKPOINT" ]] || die "--checkpoint '$CHECKPOINT' does not exist"
 [[ "$RESTART" == on || "$RESTART" == off ]] || die "--restart must be on or off, got '$RESTART'"
+[[ "$PLACEMENT" == auto || "$PLACEMENT" == off ]] || die "--placement must be auto or off, got '$PLACEMENT'"
 
 # Which robots are scripted.
 declare -a IS_SCRIPTED
@@ -120,7 +126,7 @@ done
 
 RUN_DIR=${RUN_DIR:-runs/$(date +%Y%m%d-%H%M%S)}
 RUN_ID="r$(date +%s | tail -c 7)p$$"
-COMMON=(--agents "$N" --mode "$MODE" --run-id "$RUN_ID" --run-dir "$RUN_DIR" --seed "$SEED")
+COMMON=(--agents "$N" --mode "$MODE" --run-id "$RUN_ID" --run-dir "$RUN_DIR" --seed "$SEED" --placement "$PLACEMENT")
 [[ -n "$CONFIG" ]] && COMMON+=(--config "$CONFIG")
 
 # Validate the configuration (and a checkpoint) once, before anything starts.

@@ -118,3 +118,103 @@ fn bad_input_is_refused_before_anything_starts() {
     assert!(run.output.contains("does not parse"), "{}", run.output);
     std::fs::remove_dir_all(&dir).expect("cleanup");
 }
+
+/// CPUs in a `Cpus_allowed_list` line such as `0-1,3`.
+fn parse_cpu_list(text: &str) -> Vec<usize> {
+    text.trim()
+        .split(',')
+        .flat_map(|part| {
+            let (first, last) = part.split_once('-').unwrap_or((part, part));
+            first.parse::<usize>().expect("cpu")..=last.parse::<usize>().expect("cpu")
+        })
+        .collect()
+}
+
+/// The CPUs thread `tid` of process `pid` may run on.
+fn thread_cpus(pid: u32, tid: u32) -> Option<Vec<usize>> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/task/{tid}/status")).ok()?;
+    let list = status.lines().find_map(|l| l.strip_prefix("Cpus_allowed_list:"))?;
+    Some(parse_cpu_list(list))
+}
+
+#[test]
+fn robots_share_the_sim_cpu_and_the_critic_gets_the_others() {
+    use std::collections::BTreeMap;
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicBool, Ordering};
+
+    let dir = scratch_dir("placement");
+    let run_dir = dir.join("run");
+    let allowed = thread_cpus(std::process::id(), std::process::id()).expect("own affinity");
+    // Watch the run's processes (their main threads) until it ends; keep what each showed last.
+    let done = Arc::new(AtomicBool::new(false));
+    let watcher = {
+        let done = Arc::clone(&done);
+        let needle = run_dir.to_string_lossy().into_owned();
+        std::thread::spawn(move || {
+            let mut seen: BTreeMap<String, Vec<usize>> = BTreeMap::new();
+            while !done.load(Ordering::Relaxed) {
+                for entry in std::fs::read_dir("/proc").expect("/proc").flatten() {
+                    let Some(pid) = entry.file_name().to_str().and_then(|s| s.parse::<u32>().ok()) else {
+                        continue;
+                    };
+                    let Ok(cmdline) = std::fs::read(entry.path().join("cmdline")) else {
+                        continue;
+                    };
+                    let args: Vec<String> = cmdline
+                        .split(|&b| b == 0)
+                        .map(|a| String::from_utf8_lossy(a).into_owned())
+                        .collect();
+                    if !args.contains(&needle) || !args[0].contains("formation-") {
+                        continue;
+                    }
+                    let role = match args.iter().position(|a| a == "--agent") {
+                        Some(i) => format!("agent {}", args[i + 1]),
+                        None => args[0].rsplit('/').next().expect("name").to_string(),
+                    };
+                    if args.iter().any(|a| a == "--check" || a == "--check-config") {
+                        continue;
+                    }
+                    if let Some(cpus) = thread_cpus(pid, pid) {
+                        seen.insert(role, cpus);
+                    }
+                }
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            seen
+        })
+    };
+    let run = run_swarm(
+        &[
+            "4",
+            "--scripted",
+            "all",
+            "--mode",
+            "eval",
+            "--episodes",
+            "60",
+            "--viewer",
+            "off",
+        ],
+        &run_dir,
+        Duration::from_secs(120),
+    )
+    .expect("launch");
+    done.store(true, Ordering::Relaxed);
+    let seen = watcher.join().expect("watcher");
+    assert_eq!(run.status, Some(0), "launcher failed:\n{}", run.output);
+    assert_eq!(seen.len(), 6, "expected sim, critic and 4 agents, saw {seen:?}");
+    let (lockstep, others) = match allowed.split_last() {
+        Some((&last, rest)) if !rest.is_empty() => (vec![last], rest.to_vec()),
+        _ => (allowed.clone(), allowed.clone()),
+    };
+    for (role, cpus) in &seen {
+        let expected = if role == "formation-critic" { &others } else { &lockstep };
+        assert_eq!(
+            cpus, expected,
+            "{role} runs on {cpus:?} (this test may use {allowed:?})"
+        );
+    }
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}

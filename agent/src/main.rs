@@ -11,6 +11,7 @@ use formation_agent::policy::{Exploration, LearnedPolicy};
 use formation_agent::run::{AgentOptions, AgentPolicy, run};
 use formation_agent::scripted::{BaselineGains, ScriptedBaseline};
 use formation_protocol::cli::{Mode, RunArgs};
+use formation_protocol::placement::Role;
 use iceoryx2::prelude::*;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
@@ -118,6 +119,7 @@ fn try_main(cli: Cli) -> Result<()> {
     if let (Some(count), AgentPolicy::Learned(learned)) = (cli.bench_inference, &policy) {
         return bench_inference(learned, count);
     }
+    cli.run.place(Role::Agent(cli.agent))?;
     let options = AgentOptions {
         agent: cli.agent,
         n_agents,

@@ -9,6 +9,7 @@ use clap::Parser;
 use formation_agent::checkpoint;
 use formation_critic::run::{CriticOptions, run};
 use formation_protocol::cli::{Mode, RunArgs, prepare_run_dir};
+use formation_protocol::placement::Role;
 use formation_sim::view::ViewerMode;
 use iceoryx2::prelude::*;
 
@@ -65,6 +66,8 @@ fn try_main(cli: Cli) -> Result<()> {
     }
     prepare_run_dir(&cli.run.run_dir, &config)?;
     set_log_level_from_env_or(LogLevel::Warn);
+    // Before any worker thread starts, so they all inherit the critic's CPUs.
+    cli.run.place(Role::Background)?;
     let options = CriticOptions {
         n_agents: cli.run.agents,
         mode: cli.run.mode,

@@ -6,6 +6,7 @@ use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
 
 use crate::config::{RunConfig, validate_agent_count};
+use crate::placement::{self, Placement, Role};
 use crate::services::RunIdentity;
 
 /// Train (explore, learn, checkpoint) or evaluate (no noise, no learning).
@@ -50,6 +51,11 @@ pub struct RunArgs {
     /// Seed for episodes, noise and network initialisation.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// CPU placement: auto keeps the sim's tick thread and the robots on one CPU and the
+    /// critic on the others (a tick is a chain of wake-ups, cheapest on one CPU); off leaves
+    /// placement to the operating system.
+    #[arg(long, value_enum, default_value_t = Placement::Auto)]
+    pub placement: Placement,
 }
 
 impl RunArgs {
@@ -62,6 +68,12 @@ impl RunArgs {
             None => RunConfig::default(),
         };
         Ok((identity, config))
+    }
+
+    /// Moves the calling thread (and the threads it starts later) to the CPUs `--placement`
+    /// gives `role`; returns them, if any.
+    pub fn place(&self, role: Role) -> Result<Option<Vec<usize>>> {
+        placement::apply(self.placement, role)
     }
 }
 

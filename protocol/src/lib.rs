@@ -3,10 +3,12 @@
 //! * [`wire`]: the `#[repr(C)]` payloads that travel over iceoryx2 shared memory;
 //! * [`services`]: service names, the run-unique iceoryx2 configuration and port helpers;
 //! * [`config`]: the one serde configuration every process reads (environment, ticks, learning);
+//! * [`placement`]: which CPU each process works on;
 //! * [`summary`]: the figures a run leaves behind in `summary.json`.
 
 pub mod cli;
 pub mod config;
+pub mod placement;
 pub mod services;
 pub mod summary;
 pub mod wire;

@@ -268,7 +268,17 @@ pub fn weights_stream<S: Service>(node: &Node<S>, sizing: &Sizing, actor_index: 
 /// Blocks until `listener` is notified or `timeout` passes. A signal arriving meanwhile counts
 /// as a wake-up: the caller then checks [`crate::termination_requested`].
 pub fn wait_for_event<S: Service>(listener: &Listener<S>, timeout: std::time::Duration) -> Result<()> {
-    match listener.timed_wait(|_| {}, timeout) {
+    wait_for_events(listener, timeout, |_| {})
+}
+
+/// As [`wait_for_event`], handing every event id that arrived to `seen` (once per id, however
+/// often it was notified).
+pub fn wait_for_events<S: Service>(
+    listener: &Listener<S>,
+    timeout: std::time::Duration,
+    mut seen: impl FnMut(usize),
+) -> Result<()> {
+    match listener.timed_wait(|activation| seen(activation.id.as_value()), timeout) {
         Ok(_) | Err(ListenerWaitError::InterruptSignal) => Ok(()),
         Err(err) => Err(anyhow::anyhow!("waiting on an iceoryx2 event failed: {err:?}")),
     }

@@ -197,6 +197,7 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
     let n = options.n_agents;
     let mut last_commands = vec![(0.0f64, 0.0f64); n];
     let mut received = vec![false; n];
+    let mut notified = Vec::with_capacity(n);
     let started = Instant::now();
     let mut stepping_time = Duration::ZERO;
     let mut next_deadline = Instant::now();
@@ -282,8 +283,9 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                 break;
             }
 
-            // Wait for this tick's commands; robots that missed several ticks in a row are not
-            // waited for until they answer (or greet) again.
+            // Wait for this tick's commands, reading only the robots whose event arrived; robots
+            // that missed several ticks in a row are not waited for until they answer (or greet)
+            // again.
             let deadline = if options.realtime {
                 next_deadline.max(tick_started) + dt
             } else {
@@ -291,14 +293,6 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
             };
             received.iter_mut().for_each(|r| *r = false);
             loop {
-                drain_commands(
-                    &ports,
-                    header,
-                    &mut received,
-                    &mut last_commands,
-                    &mut presence,
-                    &mut counters,
-                );
                 if presence.all_present_answered(&received) {
                     break;
                 }
@@ -306,7 +300,29 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option
                 if now >= deadline {
                     break;
                 }
-                services::wait_for_event(&ports.command_ready, deadline - now)?;
+                notified.clear();
+                let mut stranger = false;
+                services::wait_for_events(&ports.command_ready, deadline - now, |id| {
+                    if id < n {
+                        notified.push(id);
+                    } else {
+                        stranger = true;
+                    }
+                })?;
+                if stranger {
+                    // An event id no robot owns: read every robot.
+                    notified.clear();
+                    notified.extend(0..n);
+                }
+                drain_commands(
+                    &ports,
+                    &notified,
+                    header,
+                    &mut received,
+                    &mut last_commands,
+                    &mut presence,
+                    &mut counters,
+                );
             }
             missed_mask = 0;
             let mut missed_now = 0u64;
@@ -607,17 +623,18 @@ impl Presence {
     }
 }
 
-/// Takes every pending command, keeping this tick's valid one per robot.
+/// Takes every pending command of `agents`, keeping this tick's valid one per robot.
 fn drain_commands<S: Service>(
     ports: &Ports<S>,
+    agents: &[usize],
     header: Header,
     received: &mut [bool],
     last_commands: &mut [(f64, f64)],
     presence: &mut Presence,
     counters: &mut StreamCounters,
 ) {
-    for (agent, agent_ports) in ports.agents.iter().enumerate() {
-        while let Ok(Some(sample)) = agent_ports.command.receive() {
+    for &agent in agents {
+        while let Ok(Some(sample)) = ports.agents[agent].command.receive() {
             let cmd = sample.payload();
             if cmd.header.has(FLAG_HELLO) {
                 if cmd.header.protocol_version == PROTOCOL_VERSION && presence.greeted(agent, cmd.session) {

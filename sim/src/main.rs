@@ -5,6 +5,7 @@ use std::process::ExitCode;
 use anyhow::Result;
 use clap::Parser;
 use formation_protocol::cli::{Mode, RunArgs, prepare_run_dir};
+use formation_protocol::placement::Role;
 use formation_sim::lockstep::{SimOptions, run};
 use formation_sim::view::{self, ViewerMode};
 use iceoryx2::prelude::*;
@@ -106,6 +107,8 @@ fn try_main(cli: Cli) -> Result<()> {
         config,
     };
     let viewer = ViewerMode::parse(&cli.viewer)?;
+    // The view's threads (started next) work beside the critic, the tick thread on its own CPU.
+    cli.run.place(Role::Background)?;
     let view = view::start(
         &viewer,
         &identity.run_id,
@@ -115,6 +118,9 @@ fn try_main(cli: Cli) -> Result<()> {
         options.config.view.trail_ticks,
     )?;
     let (tap, view_thread) = view.unzip();
+    if let Some(cpus) = cli.run.place(Role::Sim)? {
+        eprintln!("sim: tick thread on CPU {cpus:?} (--placement off leaves placement to the OS)");
+    }
     let summary = run::<ipc::Service>(&identity, &options, tap);
     if let Some(thread) = view_thread {
         // The tap was dropped with the loop: the thread flushes the recording and ends.

@@ -11,6 +11,7 @@ use formation_agent::run::{AgentOptions, AgentPolicy, run as run_agent};
 use formation_agent::scripted::{BaselineGains, ScriptedBaseline};
 use formation_protocol::cli::Mode;
 use formation_protocol::config::{RunConfig, validate_agent_count};
+use formation_protocol::placement::{self, Placement, Role};
 use formation_protocol::services::RunIdentity;
 use formation_sim::lockstep::{SimOptions, run as run_sim};
 use iceoryx2::prelude::*;
@@ -43,6 +44,10 @@ struct Cli {
     /// Where episodes.csv and summary.json go.
     #[arg(long, default_value = "runs/inproc")]
     run_dir: PathBuf,
+    /// auto: every thread on the lockstep CPU, as the sim and robots of a swarm; off: the OS
+    /// places the threads.
+    #[arg(long, value_enum, default_value_t = Placement::Auto)]
+    placement: Placement,
 }
 
 fn run<S: Service>(cli: &Cli, identity: &RunIdentity, config: &RunConfig) -> Result<()> {
@@ -88,6 +93,8 @@ fn main() -> Result<()> {
     let cli = Cli::parse();
     validate_agent_count(cli.agents)?;
     std::fs::create_dir_all(&cli.run_dir)?;
+    // Before any thread starts, so the robots' threads share the sim's CPU.
+    placement::apply(cli.placement, Role::Sim)?;
     let identity = RunIdentity::new(&format!("inproc{}", std::process::id()))?;
     let config = RunConfig::default();
     let result = match cli.transport {

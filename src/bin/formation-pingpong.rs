@@ -9,6 +9,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow};
 use clap::{Parser, ValueEnum};
+use formation_protocol::placement::{self, Placement, Role};
 use formation_protocol::services::RunIdentity;
 use iceoryx2::prelude::*;
 
@@ -29,6 +30,9 @@ struct Cli {
     /// Round trips to time (after 1000 warm-up ones).
     #[arg(long, default_value_t = 20_000)]
     round_trips: usize,
+    /// auto: both processes on one CPU (the lockstep CPU of a swarm); off: the OS places them.
+    #[arg(long, value_enum, default_value_t = Placement::Auto)]
+    placement: Placement,
     /// Internal: run as the echoing child with this rendezvous name.
     #[arg(long, hide = true)]
     child: Option<String>,
@@ -92,6 +96,8 @@ fn main() -> Result<()> {
     if let Some(name) = &cli.child {
         return child(&cli, name);
     }
+    // The echoing child inherits this placement.
+    placement::apply(cli.placement, Role::Sim)?;
     let name = format!("pp{}", std::process::id());
     let exe = std::env::current_exe()?;
     let spawn_child = |rendezvous: &str| {
@@ -150,8 +156,9 @@ fn main() -> Result<()> {
     let total: Duration = samples.iter().sum();
     samples.sort_unstable();
     println!(
-        "{{\"transport\": \"{:?}\", \"round_trips\": {}, \"p50_us\": {:.2}, \"p99_us\": {:.2}, \"round_trips_per_s\": {:.0}}}",
+        "{{\"transport\": \"{:?}\", \"placement\": \"{:?}\", \"round_trips\": {}, \"p50_us\": {:.2}, \"p99_us\": {:.2}, \"round_trips_per_s\": {:.0}}}",
         cli.transport,
+        cli.placement,
         samples.len(),
         quantile(&samples, 0.5),
         quantile(&samples, 0.99),

@@ -1,0 +1,121 @@
+//! Which CPU each process of a run works on.
+//!
+//! A lockstep tick is a chain of wake-ups (sim -> robots -> sim). A wake-up that lands on an
+//! idle CPU pays for that CPU to come out of its idle state (tens of microseconds on a virtual
+//! machine); a wake-up on the waker's own CPU costs a few. So by default the sim's tick thread
+//! and the robots share one CPU (the *lockstep CPU*) and the critic, whose training would
+//! compete with them, gets the others. Big swarms, whose robots have more work per tick than a
+//! wake-up costs, spread their robots over every CPU. Measured in `docs/BENCHMARKS.md`.
+//!
+//! Every process computes its own place from the CPUs it may use, so processes started by
+//! hand from the same shell agree with those the launcher starts.
+
+use std::sync::OnceLock;
+
+use anyhow::{Result, anyhow};
+use clap::ValueEnum;
+use iceoryx2_bb_posix::thread::{ThreadHandle, ThreadProperties};
+
+/// How processes are placed on CPUs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Placement {
+    /// Sim and robots share one CPU, background work gets the rest.
+    Auto,
+    /// Leave placement to the operating system.
+    Off,
+}
+
+/// The process (or thread) being placed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Role {
+    /// The sim's tick thread.
+    Sim,
+    /// Robot `index` of the swarm.
+    Agent(usize),
+    /// Work that must not delay ticks: the critic and the sim's view threads.
+    Background,
+}
+
+/// The CPUs `role` works on, given the CPUs the process may use (ascending): the last one is
+/// the lockstep CPU. `None` leaves it to the operating system (one CPU only: there is nothing
+/// to separate).
+pub fn plan(allowed: &[usize], role: Role) -> Option<Vec<usize>> {
+    let (&lockstep, others) = allowed.split_last()?;
+    if others.is_empty() {
+        return None;
+    }
+    Some(match role {
+        Role::Sim | Role::Agent(_) => vec![lockstep],
+        Role::Background => others.to_vec(),
+    })
+}
+
+/// Places the calling thread (and the threads it starts afterwards) as `placement` says for
+/// `role`; returns the CPUs chosen, if any.
+pub fn apply(placement: Placement, role: Role) -> Result<Option<Vec<usize>>> {
+    if placement == Placement::Off {
+        return Ok(None);
+    }
+    let Some(cpus) = plan(process_cpus()?, role) else {
+        return Ok(None);
+    };
+    ThreadHandle::from_self()
+        .set_affinity(&cpus)
+        .map_err(|e| anyhow!("cannot move {role:?} to CPUs {cpus:?}: {e:?} (try --placement off)"))?;
+    Ok(Some(cpus))
+}
+
+/// The CPUs the process was started with, read before any thread of it was placed.
+fn process_cpus() -> Result<&'static [usize]> {
+    static CPUS: OnceLock<Vec<usize>> = OnceLock::new();
+    if let Some(cpus) = CPUS.get() {
+        return Ok(cpus);
+    }
+    let cpus = ThreadHandle::from_self()
+        .get_affinity()
+        .map_err(|e| anyhow!("cannot read this process's CPU affinity: {e:?}"))?;
+    Ok(CPUS.get_or_init(|| cpus))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn one_cpu_is_left_to_the_scheduler() {
+        for role in [Role::Sim, Role::Agent(0), Role::Background] {
+            assert_eq!(plan(&[3], role), None);
+            assert_eq!(plan(&[], role), None);
+        }
+    }
+
+    #[test]
+    fn sim_and_robots_share_the_last_cpu_and_background_work_gets_the_rest() {
+        let allowed = [0, 2, 5];
+        assert_eq!(plan(&allowed, Role::Sim), Some(vec![5]));
+        for agent in 0..64 {
+            assert_eq!(plan(&allowed, Role::Agent(agent)), Some(vec![5]));
+        }
+        assert_eq!(plan(&allowed, Role::Background), Some(vec![0, 2]));
+    }
+
+    #[test]
+    fn applying_off_changes_nothing_and_auto_stays_within_the_allowed_cpus() {
+        let allowed = ThreadHandle::from_self().get_affinity().expect("affinity");
+        assert_eq!(apply(Placement::Off, Role::Sim).expect("off"), None);
+        // On a thread of its own, so the test harness's other threads keep their CPUs.
+        let (chosen, now) = std::thread::spawn(|| {
+            let chosen = apply(Placement::Auto, Role::Background).expect("auto");
+            (chosen, ThreadHandle::from_self().get_affinity().expect("affinity"))
+        })
+        .join()
+        .expect("thread");
+        match chosen {
+            Some(cpus) => {
+                assert!(cpus.iter().all(|cpu| allowed.contains(cpu)) && cpus.len() < allowed.len());
+                assert_eq!(now, cpus);
+            }
+            None => assert_eq!((allowed.len(), now), (1, allowed)),
+        }
+    }
+}
