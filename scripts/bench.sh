@@ -2,7 +2,7 @@
 # Benchmarks: lockstep tick rate and latency against N (scripted and learned robots, separate
 # processes and all in one process), the process-to-process floor (iceoryx2 events vs a Unix
 # socket), real-time deadline misses, training throughput and memory. Prints a table and
-# writes bench.json. Takes about 10 minutes; run it on a quiet machine.
+# writes bench.json. Takes about 15 minutes (--quick: 4); run it on a quiet machine.
 #
 #   scripts/bench.sh [--quick] [--skip-realtime] [--skip-training] [--out DIR]
 set -euo pipefail
@@ -24,6 +24,8 @@ cargo build --release --quiet --workspace --bins
 export FORMATION_BIN_DIR=$ROOT/target/release
 MODEL=$ROOT/models/formation-3robots.safetensors
 SIZES=(3 6 12 24 48); (( QUICK )) && SIZES=(3 6)
+# Each lockstep measurement ticks for this long (whole episodes, so a little longer).
+MINUTES=0.25; (( QUICK )) && MINUTES=0.05
 RESULTS=$OUT/results.jsonl
 : >"$RESULTS"
 
@@ -38,10 +40,9 @@ summary_field() { # file key
 # 1. Lockstep across processes: sim + N agents + critic (eval), scripted and learned robots,
 #    placed as the launcher does by default; then a few sizes with placement left to the OS.
 lockstep() { # policy n placement
-  local policy=$1 n=$2 placement=$3 episodes dir
-  episodes=$(( 24000 / (n * 60) + 5 ))
+  local policy=$1 n=$2 placement=$3 dir
   dir=$OUT/lockstep-$policy-$n-$placement
-  local args=("$n" --mode eval --episodes "$episodes" --seed 7 --viewer off --placement "$placement" --run-dir "$dir")
+  local args=("$n" --mode eval --episodes 1000000 --minutes "$MINUTES" --seed 7 --viewer off --placement "$placement" --run-dir "$dir")
   [[ $policy == scripted ]] && args+=(--scripted all)
   scripts/run_swarm.sh "${args[@]}" >"$dir.log" 2>&1 || { echo "run failed: $dir.log" >&2; exit 1; }
   record "$(python3 - "$dir/summary.json" "$policy" "$n" "$placement" <<'PY'
@@ -63,9 +64,8 @@ for n in "${OFF_SIZES[@]}"; do lockstep scripted "$n" off; done
 # 2. The same loop in one process (threads on the lockstep CPU), local and ipc service types.
 for transport in local ipc; do
   for n in "${SIZES[@]}"; do
-    episodes=$(( 24000 / (n * 60) + 5 ))
     dir=$OUT/inproc-$transport-$n
-    "$FORMATION_BIN_DIR/formation-inproc" --agents "$n" --episodes "$episodes" --seed 7 --transport "$transport" --run-dir "$dir" >"$dir.log" 2>&1
+    "$FORMATION_BIN_DIR/formation-inproc" --agents "$n" --episodes 1000000 --minutes "$MINUTES" --seed 7 --transport "$transport" --run-dir "$dir" >"$dir.log" 2>&1
     record "$(python3 - "$dir/summary.json" "$transport" "$n" <<'PY'
 import json, sys
 s = json.load(open(sys.argv[1]))
@@ -87,9 +87,10 @@ done
 
 # 4. Real time at 10 Hz: deadline misses over about 1000 ticks, up to 64 robot processes.
 RT_SIZES=(16 64); (( QUICK )) && RT_SIZES=(16); (( SKIP_REALTIME )) && RT_SIZES=()
+RT_MINUTES=1.75; (( QUICK )) && RT_MINUTES=0.5
 for n in "${RT_SIZES[@]+"${RT_SIZES[@]}"}"; do
   dir=$OUT/realtime-$n
-  scripts/run_swarm.sh "$n" --scripted all --mode eval --realtime --episodes 9 --seed 7 --viewer off --run-dir "$dir" >"$dir.log" 2>&1 &
+  scripts/run_swarm.sh "$n" --scripted all --mode eval --realtime --episodes 1000000 --minutes "$RT_MINUTES" --seed 7 --viewer off --run-dir "$dir" >"$dir.log" 2>&1 &
   launcher=$!
   sleep 20
   # Memory while it runs: resident set of each agent process, and the run's shared memory.

@@ -29,6 +29,7 @@ Flags:
   --placement auto|off    auto (default): the sim's tick thread and the robots share the
                           last CPU this shell may use, the critic and the view get the
                           others (ticks are 2-4x faster than letting the OS place them);
+                          24 robots or more split into groups of at least 12 per CPU.
                           off: the OS places every process
   --restart on|off        restart an agent or the critic that dies mid-run (default on; a
                           restarted agent rejoins at once with the latest weights, a restarted

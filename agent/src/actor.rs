@@ -5,15 +5,14 @@
 //! batch 1; a recurrent actor would add state to carry across ticks and restarts for no
 //! measured gain here.
 //!
-//! The same type serves the critic (trainable, backed by a `VarMap`) and the agents (frozen,
-//! rebuilt from the flat `[f32]` weights the critic streams). Parameters are flattened in the
-//! order of [`ActorShape::parameters`].
+//! [`Actor`] is the trainable candle network of the critic; [`FrozenActor`] is the same network
+//! as the agents run it, rebuilt from the flat `[f32]` weights the critic streams. Parameters
+//! are flattened in the order of [`ActorShape::parameters`].
 
-use std::collections::HashMap;
-
-use candle_core::{DType, Device, Module, Tensor};
+use candle_core::{Module, Tensor};
 use candle_nn::{Linear, VarBuilder};
 use formation_protocol::{ACTION_DIM, OBS_DIM};
+use nalgebra::{DMatrix, DMatrixView, DVector, DVectorView};
 
 /// Sizes of an actor.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -82,30 +81,6 @@ impl Actor {
         Ok(Self { layers })
     }
 
-    /// A frozen actor from flat weights (as streamed by the critic).
-    pub fn from_flat(flat: &[f32], shape: &ActorShape) -> anyhow::Result<Self> {
-        anyhow::ensure!(
-            flat.len() == shape.parameter_count(),
-            "weights have {} values, an actor of shape {shape:?} needs {}",
-            flat.len(),
-            shape.parameter_count()
-        );
-        let mut tensors = HashMap::new();
-        let mut offset = 0;
-        for (name, dims) in shape.parameters() {
-            let len: usize = dims.iter().product();
-            tensors.insert(
-                name,
-                Tensor::from_slice(&flat[offset..offset + len], dims, &Device::Cpu)?,
-            );
-            offset += len;
-        }
-        Ok(Self::new(
-            VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu),
-            shape,
-        )?)
-    }
-
     /// Actions in [-1, 1]^2 for a batch of flattened windows (rows of H * OBS_DIM).
     pub fn forward(&self, windows: &Tensor) -> candle_core::Result<Tensor> {
         let mut x = windows.clone();
@@ -119,12 +94,87 @@ impl Actor {
         }
         Ok(x)
     }
+}
 
-    /// The action for one window.
-    pub fn act(&self, window: &[f32]) -> anyhow::Result<[f32; ACTION_DIM]> {
-        let input = Tensor::from_slice(window, (1, window.len()), &Device::Cpu)?;
-        let out = self.forward(&input)?.flatten_all()?.to_vec1::<f32>()?;
-        Ok([out[0], out[1]])
+/// The actor at batch 1, as the agents run it: the same network as [`Actor`], evaluated with
+/// nalgebra's matrix-vector product into buffers allocated once, so a tick allocates nothing
+/// (candle allocates a tensor per operation).
+#[derive(Debug, Clone)]
+pub struct FrozenActor {
+    shape: ActorShape,
+    /// (weight [out x in], bias [out]) of every layer.
+    layers: Vec<(DMatrix<f32>, DVector<f32>)>,
+    /// Every layer's output.
+    outputs: Vec<DVector<f32>>,
+}
+
+impl FrozenActor {
+    /// An actor from flat weights (as the critic streams them).
+    pub fn from_flat(flat: &[f32], shape: &ActorShape) -> anyhow::Result<Self> {
+        let dims = shape.layer_dims();
+        let mut actor = Self {
+            shape: shape.clone(),
+            layers: dims
+                .iter()
+                .map(|&(input, output)| (DMatrix::zeros(output, input), DVector::zeros(output)))
+                .collect(),
+            outputs: dims.iter().map(|&(_, output)| DVector::zeros(output)).collect(),
+        };
+        actor.load(flat)?;
+        Ok(actor)
+    }
+
+    /// Replaces the weights in place (flattened in the order of [`ActorShape::parameters`]).
+    pub fn load(&mut self, flat: &[f32]) -> anyhow::Result<()> {
+        anyhow::ensure!(
+            flat.len() == self.shape.parameter_count(),
+            "weights have {} values, an actor of shape {:?} needs {}",
+            flat.len(),
+            self.shape,
+            self.shape.parameter_count()
+        );
+        let mut offset = 0;
+        for (weight, bias) in &mut self.layers {
+            let (rows, cols) = weight.shape();
+            // Row-major [out, in] read as column-major [in, out] is the transpose.
+            weight.tr_copy_from(&DMatrixView::from_slice(
+                &flat[offset..offset + rows * cols],
+                cols,
+                rows,
+            ));
+            offset += rows * cols;
+            bias.copy_from_slice(&flat[offset..offset + rows]);
+            offset += rows;
+        }
+        Ok(())
+    }
+
+    /// The action in [-1, 1]^2 for one flattened window (H * OBS_DIM values).
+    pub fn act(&mut self, window: &[f32]) -> anyhow::Result<[f32; ACTION_DIM]> {
+        anyhow::ensure!(
+            window.len() == self.shape.input_dim(),
+            "a window of {} values, the actor takes {}",
+            window.len(),
+            self.shape.input_dim()
+        );
+        let input = DVectorView::from_slice(window, window.len());
+        let last = self.layers.len() - 1;
+        for (i, (weight, bias)) in self.layers.iter().enumerate() {
+            let (before, from_here) = self.outputs.split_at_mut(i);
+            let output = &mut from_here[0];
+            output.copy_from(bias);
+            match before.last() {
+                Some(previous) => output.gemv(1.0, weight, previous, 1.0),
+                None => output.gemv(1.0, weight, &input, 1.0),
+            }
+            if i < last {
+                output.apply(|x| *x = x.max(0.0));
+            } else {
+                output.apply(|x| *x = x.tanh());
+            }
+        }
+        let action = &self.outputs[last];
+        Ok([action[0], action[1]])
     }
 }
 
@@ -151,10 +201,11 @@ pub fn flatten_parameters(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use candle_core::{DType, Device};
     use candle_nn::VarMap;
 
     #[test]
-    fn flat_round_trip_gives_the_same_actions() {
+    fn frozen_actor_acts_as_the_trained_network() {
         let shape = ActorShape {
             history: 4,
             hidden: vec![16, 8],
@@ -164,12 +215,24 @@ mod tests {
         let data = varmap.data().lock().expect("lock").clone();
         let flat = flatten_parameters(|name| data.get(name).map(|v| v.as_tensor().clone()), "", &shape).expect("flat");
         assert_eq!(flat.len(), shape.parameter_count());
-        let frozen = Actor::from_flat(&flat, &shape).expect("from flat");
-        let window: Vec<f32> = (0..shape.input_dim()).map(|i| (i as f32 * 0.37).sin()).collect();
-        let a = actor.act(&window).expect("act");
-        let b = frozen.act(&window).expect("act");
-        assert_eq!(a, b);
-        assert!(a.iter().all(|v| (-1.0..=1.0).contains(v)));
-        assert!(Actor::from_flat(&flat[1..], &shape).is_err());
+        let mut frozen = FrozenActor::from_flat(&flat, &shape).expect("from flat");
+        for seed in 0..5 {
+            let window: Vec<f32> = (0..shape.input_dim())
+                .map(|i| ((i + 7 * seed) as f32 * 0.37).sin() * 3.0)
+                .collect();
+            let input = Tensor::from_slice(&window, (1, window.len()), &Device::Cpu).expect("tensor");
+            let expected = actor.forward(&input).expect("forward").flatten_all().expect("flat");
+            let expected = expected.to_vec1::<f32>().expect("vec");
+            let got = frozen.act(&window).expect("act");
+            for (a, b) in got.iter().zip(&expected) {
+                assert!((a - b).abs() < 1e-5, "frozen {got:?} vs candle {expected:?}");
+            }
+            assert!(got.iter().all(|v| (-1.0..=1.0).contains(v)));
+        }
+        assert!(frozen.act(&[0.0; 3]).is_err());
+        assert!(FrozenActor::from_flat(&flat[1..], &shape).is_err());
+        // New weights land in place: all zero gives tanh(0) = 0.
+        frozen.load(&vec![0.0; flat.len()]).expect("load");
+        assert_eq!(frozen.act(&vec![1.0; shape.input_dim()]).expect("act"), [0.0, 0.0]);
     }
 }

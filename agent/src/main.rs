@@ -119,7 +119,10 @@ fn try_main(cli: Cli) -> Result<()> {
     if let (Some(count), AgentPolicy::Learned(learned)) = (cli.bench_inference, &policy) {
         return bench_inference(learned, count);
     }
-    cli.run.place(Role::Agent(cli.agent))?;
+    cli.run.place(Role::Agent {
+        index: cli.agent,
+        of: n_agents,
+    })?;
     let options = AgentOptions {
         agent: cli.agent,
         n_agents,

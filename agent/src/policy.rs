@@ -6,7 +6,7 @@ use rand::Rng;
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, Normal};
 
-use crate::actor::{Actor, ActorShape};
+use crate::actor::{ActorShape, FrozenActor};
 use crate::history::ObservationHistory;
 use crate::scripted::ScriptedBaseline;
 
@@ -54,7 +54,7 @@ impl Exploration {
 pub struct LearnedPolicy {
     env: EnvConfig,
     shape: ActorShape,
-    actor: Option<Actor>,
+    actor: Option<FrozenActor>,
     version: u32,
     exploration: Option<Exploration>,
     noise_std: f64,
@@ -76,9 +76,12 @@ impl LearnedPolicy {
         }
     }
 
-    /// Installs new flat weights with their version.
+    /// Installs new flat weights with their version (in place once an actor exists).
     pub fn load(&mut self, flat: &[f32], version: u32) -> Result<()> {
-        self.actor = Some(Actor::from_flat(flat, &self.shape)?);
+        match &mut self.actor {
+            Some(actor) => actor.load(flat)?,
+            None => self.actor = Some(FrozenActor::from_flat(flat, &self.shape)?),
+        }
         self.version = version;
         Ok(())
     }
@@ -91,7 +94,7 @@ impl LearnedPolicy {
 
 impl Policy for LearnedPolicy {
     fn command(&mut self, history: &ObservationHistory) -> Result<(f64, f64)> {
-        let mut action = match &self.actor {
+        let mut action = match &mut self.actor {
             Some(actor) => actor.act(history.as_flat())?,
             None => [self.rng.random_range(-1.0..=1.0), self.rng.random_range(-1.0..=1.0)],
         };

@@ -52,8 +52,9 @@ pub struct RunArgs {
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// CPU placement: auto keeps the sim's tick thread and the robots on one CPU and the
-    /// critic on the others (a tick is a chain of wake-ups, cheapest on one CPU); off leaves
-    /// placement to the operating system.
+    /// critic on the others (a tick is a chain of wake-ups, cheapest on one CPU; swarms of 24
+    /// or more split their robots into groups of at least 12 per CPU); off leaves placement to
+    /// the operating system.
     #[arg(long, value_enum, default_value_t = Placement::Auto)]
     pub placement: Placement,
 }

@@ -19,7 +19,7 @@ use iceoryx2_bb_posix::thread::{ThreadHandle, ThreadProperties};
 /// How processes are placed on CPUs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum Placement {
-    /// Sim and robots share one CPU, background work gets the rest.
+    /// Sim and robots share one CPU (big swarms: a few CPUs), background work gets the rest.
     Auto,
     /// Leave placement to the operating system.
     Off,
@@ -30,22 +30,35 @@ pub enum Placement {
 pub enum Role {
     /// The sim's tick thread.
     Sim,
-    /// Robot `index` of the swarm.
-    Agent(usize),
+    /// Robot `index` of a swarm of `of`.
+    Agent { index: usize, of: usize },
     /// Work that must not delay ticks: the critic and the sim's view threads.
     Background,
 }
 
+/// Fewest robots worth a CPU of their own: a CPU with fewer keeps falling idle between its
+/// robots' wake-ups and pays to come back each time (measured in `docs/BENCHMARKS.md`).
+pub const ROBOTS_PER_CPU: usize = 12;
+
 /// The CPUs `role` works on, given the CPUs the process may use (ascending): the last one is
 /// the lockstep CPU. `None` leaves it to the operating system (one CPU only: there is nothing
 /// to separate).
+///
+/// Robots fill contiguous groups of at least [`ROBOTS_PER_CPU`], one group per CPU counted from
+/// the last, so the sim wakes a whole group on another CPU before it is interrupted by the
+/// robots that share its own.
 pub fn plan(allowed: &[usize], role: Role) -> Option<Vec<usize>> {
     let (&lockstep, others) = allowed.split_last()?;
     if others.is_empty() {
         return None;
     }
     Some(match role {
-        Role::Sim | Role::Agent(_) => vec![lockstep],
+        Role::Sim => vec![lockstep],
+        Role::Agent { index, of } => {
+            let groups = (of / ROBOTS_PER_CPU).clamp(1, allowed.len());
+            let group = index / of.div_ceil(groups);
+            vec![allowed[allowed.len() - groups + group]]
+        }
         Role::Background => others.to_vec(),
     })
 }
@@ -83,20 +96,48 @@ mod tests {
 
     #[test]
     fn one_cpu_is_left_to_the_scheduler() {
-        for role in [Role::Sim, Role::Agent(0), Role::Background] {
+        for role in [Role::Sim, Role::Agent { index: 0, of: 3 }, Role::Background] {
             assert_eq!(plan(&[3], role), None);
             assert_eq!(plan(&[], role), None);
         }
     }
 
     #[test]
-    fn sim_and_robots_share_the_last_cpu_and_background_work_gets_the_rest() {
+    fn small_swarms_share_the_last_cpu_and_background_work_gets_the_rest() {
         let allowed = [0, 2, 5];
+        let n = 2 * ROBOTS_PER_CPU - 1;
         assert_eq!(plan(&allowed, Role::Sim), Some(vec![5]));
-        for agent in 0..64 {
-            assert_eq!(plan(&allowed, Role::Agent(agent)), Some(vec![5]));
+        for index in 0..n {
+            assert_eq!(plan(&allowed, Role::Agent { index, of: n }), Some(vec![5]));
         }
         assert_eq!(plan(&allowed, Role::Background), Some(vec![0, 2]));
+    }
+
+    #[test]
+    fn big_swarms_fill_contiguous_groups_ending_on_the_lockstep_cpu() {
+        let cpu_of = |allowed: &[usize], n: usize| -> Vec<usize> {
+            (0..n)
+                .map(|index| plan(allowed, Role::Agent { index, of: n }).expect("placed")[0])
+                .collect()
+        };
+        // Two CPUs, 48 robots: the first half on CPU 0, the second beside the sim.
+        let two = cpu_of(&[0, 1], 48);
+        assert!(
+            two[..24].iter().all(|&c| c == 0) && two[24..].iter().all(|&c| c == 1),
+            "{two:?}"
+        );
+        // Eight CPUs, 40 robots: three groups on the last three CPUs, never fewer than the minimum.
+        let eight = cpu_of(&[0, 1, 2, 3, 4, 5, 6, 7], 40);
+        for cpu in 0..8 {
+            let count = eight.iter().filter(|&&c| c == cpu).count();
+            assert!(
+                count == 0 || count >= ROBOTS_PER_CPU,
+                "CPU {cpu} has {count}: {eight:?}"
+            );
+        }
+        assert_eq!(eight[0], 5);
+        assert_eq!(eight[39], 7);
+        assert!(eight.windows(2).all(|w| w[0] <= w[1]), "{eight:?}");
     }
 
     #[test]

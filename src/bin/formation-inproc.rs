@@ -35,6 +35,9 @@ struct Cli {
     /// Episodes to run.
     #[arg(long, default_value_t = 100)]
     episodes: u64,
+    /// Stop after this many minutes of wall clock, even with episodes left.
+    #[arg(long)]
+    minutes: Option<f64>,
     /// Seed of the episodes.
     #[arg(long, default_value_t = 1)]
     seed: u64,
@@ -70,7 +73,7 @@ fn run<S: Service>(cli: &Cli, identity: &RunIdentity, config: &RunConfig) -> Res
             n_agents: cli.agents,
             mode: Mode::Eval,
             episodes: Some(cli.episodes),
-            minutes: None,
+            minutes: cli.minutes,
             seed: cli.seed,
             realtime: false,
             expect_critic: false,

@@ -1,0 +1,128 @@
+//! The tick path allocates nothing: the sim's observations, step and score, and an agent's
+//! window update and action (scripted baseline, learned actor with and without exploration
+//! noise), counted by a global allocator. This file is its own test binary with one test, so
+//! the counter sees nothing else.
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use formation_agent::actor::ActorShape;
+use formation_agent::history::ObservationHistory;
+use formation_agent::policy::{Exploration, LearnedPolicy, Policy};
+use formation_agent::scripted::{BaselineGains, ScriptedBaseline};
+use formation_protocol::OBS_DIM;
+use formation_protocol::config::RunConfig;
+use formation_sim::formation::random_episode;
+use formation_sim::world::World;
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+
+struct Counting;
+
+static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+
+// SAFETY: forwards to the system allocator, only counting.
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        // SAFETY: same contract as ours.
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: same contract as ours.
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        // SAFETY: same contract as ours.
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+/// Allocations made by 500 ticks of `policy` (after one warm-up tick).
+fn allocations_per_500_ticks(policy: &mut dyn Policy, history_length: usize) -> usize {
+    let mut history = ObservationHistory::new(history_length);
+    let obs = |t: usize| -> [f32; OBS_DIM] { std::array::from_fn(|i| ((t * OBS_DIM + i) as f32 * 0.1).sin()) };
+    history.reset(&obs(0));
+    policy.begin_episode(1, true);
+    policy.command(&history).expect("warm-up");
+    let before = ALLOCATIONS.load(Ordering::Relaxed);
+    for t in 1..=500 {
+        history.push(&obs(t));
+        std::hint::black_box(policy.command(&history).expect("command"));
+    }
+    ALLOCATIONS.load(Ordering::Relaxed) - before
+}
+
+#[test]
+fn ticks_allocate_nothing() {
+    sim_observing_and_stepping_allocate_nothing();
+    agent_ticks_allocate_nothing();
+}
+
+fn agent_ticks_allocate_nothing() {
+    let config = RunConfig::default();
+    let mut scripted = ScriptedBaseline::new(&config.env, BaselineGains::default());
+    assert_eq!(
+        allocations_per_500_ticks(&mut scripted, config.env.history),
+        0,
+        "scripted"
+    );
+
+    for history in [1, 15] {
+        let shape = ActorShape {
+            history,
+            hidden: config.learn.actor_hidden.clone(),
+        };
+        let weights: Vec<f32> = (0..shape.parameter_count())
+            .map(|i| (i as f32 * 0.013).sin() * 0.1)
+            .collect();
+        for exploration in [
+            None,
+            Some(Exploration {
+                std_start: 0.3,
+                std_end: 0.1,
+                decay_episodes: 10,
+            }),
+        ] {
+            let mut learned = LearnedPolicy::new(&config.env, shape.clone(), exploration, StdRng::seed_from_u64(3));
+            learned.load(&weights, 1).expect("weights");
+            assert_eq!(
+                allocations_per_500_ticks(&mut learned, history),
+                0,
+                "learned, H = {history}, exploration {exploration:?}"
+            );
+            // The counter does count: installing new weights for the first time allocates.
+            let before = ALLOCATIONS.load(Ordering::Relaxed);
+            let mut fresh = LearnedPolicy::new(&config.env, shape.clone(), None, StdRng::seed_from_u64(4));
+            fresh.load(&weights, 1).expect("weights");
+            assert!(ALLOCATIONS.load(Ordering::Relaxed) > before);
+        }
+    }
+}
+
+fn sim_observing_and_stepping_allocate_nothing() {
+    let env = RunConfig::default().env;
+    let mut rng = StdRng::seed_from_u64(11);
+    for n in [3, 12, 48] {
+        let mut world = World::new(&env, random_episode(n, &env, &mut rng));
+        let commands: Vec<(f64, f64)> = (0..n).map(|i| (0.3, 0.2 * (i as f64).sin())).collect();
+        let before = ALLOCATIONS.load(Ordering::Relaxed);
+        let mut checksum = 0.0f32;
+        for _ in 0..200 {
+            for agent in 0..n {
+                checksum += world.observation(agent)[0];
+            }
+            std::hint::black_box(world.step(&commands));
+        }
+        assert_eq!(ALLOCATIONS.load(Ordering::Relaxed) - before, 0, "N = {n}");
+        assert!(checksum.is_finite() && world.steps == 200);
+    }
+    // The counter does count: a new episode allocates its poses.
+    let before = ALLOCATIONS.load(Ordering::Relaxed);
+    std::hint::black_box(random_episode(3, &env, &mut rng));
+    assert!(ALLOCATIONS.load(Ordering::Relaxed) > before);
+}
