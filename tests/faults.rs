@@ -276,3 +276,58 @@ fn killed_training_critic_resumes_from_its_checkpoint() {
     assert_clean(&run);
     std::fs::remove_dir_all(&dir).expect("cleanup");
 }
+
+#[test]
+fn a_robot_of_another_protocol_version_is_refused_at_start_up() {
+    use std::process::Stdio;
+
+    let dir = scratch_dir("protocol-mismatch");
+    let run_id = format!("pm{}", std::process::id());
+    let bins = bin_dir().expect("bins");
+    let mut sim = Command::new(bins.join("formation-sim"))
+        .args([
+            "--agents",
+            "3",
+            "--run-id",
+            &run_id,
+            "--no-critic",
+            "--viewer",
+            "off",
+            "--run-dir",
+        ])
+        .arg(dir.join("run"))
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("sim starts");
+    let version = (formation_protocol::wire::PROTOCOL_VERSION + 1).to_string();
+    let injector = Command::new(bins.join("fault-injector"))
+        .args(["--run-id", &run_id, "--agents", "3", "--agent", "0", "--seconds", "3"])
+        .args(["--greet-with-protocol", &version])
+        .status()
+        .expect("injector runs");
+    assert!(injector.success());
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let status = loop {
+        if let Some(status) = sim.try_wait().expect("wait") {
+            break Some(status);
+        }
+        if Instant::now() > deadline {
+            let _ = sim.kill();
+            let _ = sim.wait();
+            break None;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let mut stderr = String::new();
+    std::io::Read::read_to_string(&mut sim.stderr.take().expect("stderr"), &mut stderr).expect("read");
+    let identity = formation_protocol::services::RunIdentity::new(&run_id).expect("id");
+    identity.remove_leftovers();
+    let status = status.expect("the sim should refuse the greeting at once, not wait for its start-up timeout");
+    assert_eq!(status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains(&format!("agent 0 speaks protocol version {version}")) && stderr.contains("rebuild"),
+        "{stderr}"
+    );
+    assert!(formation_swarm::shm_leftovers(&run_id).is_empty());
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}

@@ -1,14 +1,15 @@
 //! Test tool: publishes malformed commands on one robot's command stream of a running swarm
 //! (non-finite values, a tick in the future, another robot's index, another protocol
 //! version), beside the real agent, for the given number of seconds. The sim must reject and
-//! count every one and never integrate them.
+//! count every one and never integrate them. With `--greet-with-protocol V` it instead greets
+//! as that robot speaking protocol V, which a starting sim must refuse.
 
 use std::time::{Duration, Instant};
 
 use anyhow::Result;
 use clap::Parser;
 use formation_protocol::services::{self, RunIdentity, Sizing};
-use formation_protocol::wire::{CommandMsg, Header, PROTOCOL_VERSION};
+use formation_protocol::wire::{CommandMsg, FLAG_HELLO, Header, PROTOCOL_VERSION};
 use iceoryx2::prelude::*;
 
 /// Publishes malformed commands into a running swarm.
@@ -26,6 +27,9 @@ struct Cli {
     /// How long to keep sending.
     #[arg(long, default_value_t = 2.0)]
     seconds: f64,
+    /// Only greet, as a robot speaking this protocol version.
+    #[arg(long)]
+    greet_with_protocol: Option<u32>,
 }
 
 fn main() -> Result<()> {
@@ -56,6 +60,19 @@ fn main() -> Result<()> {
             w: 0.0,
             session: 0,
         };
+        if let Some(version) = cli.greet_with_protocol {
+            let mut hello = CommandMsg {
+                header: Header::new(0, 0, FLAG_HELLO),
+                session: 1,
+                ..good
+            };
+            hello.header.protocol_version = version;
+            publisher.send_copy(hello).map_err(|e| anyhow::anyhow!("send: {e:?}"))?;
+            notifier.notify().map_err(|e| anyhow::anyhow!("notify: {e:?}"))?;
+            sent += 1;
+            std::thread::sleep(Duration::from_millis(20));
+            continue;
+        }
         let bad = [
             CommandMsg { v: f32::NAN, ..good },
             CommandMsg {
@@ -85,6 +102,6 @@ fn main() -> Result<()> {
         notifier.notify().map_err(|e| anyhow::anyhow!("notify: {e:?}"))?;
         std::thread::sleep(Duration::from_millis(20));
     }
-    println!("sent {sent} malformed commands");
+    println!("sent {sent} messages");
     Ok(())
 }
