@@ -101,6 +101,24 @@ fn killed_critic_does_not_stop_the_swarm() {
 }
 
 #[test]
+fn a_stalled_sim_is_waited_for_not_given_up() {
+    let (run, dir) = long_eval_hurt_by("stall-sim", |run_id, _| {
+        let pid = pid_of(run_id, "formation-sim").expect("sim runs");
+        kill(pid, libc::SIGSTOP);
+        std::thread::sleep(Duration::from_secs(4));
+        kill(pid, libc::SIGCONT);
+    });
+    assert_eq!(run.status, Some(0), "{}", run.output);
+    assert!(!run.output.contains("the critic died"), "{}", run.output);
+    let critic_log = std::fs::read_to_string(run.run_dir.join("logs/critic.log")).expect("critic log");
+    assert!(critic_log.contains("but its process is alive"), "{critic_log}");
+    let summary = run.summary().expect("summary");
+    assert_eq!(summary["episodes"], serde_json::json!(1500), "{summary}");
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
 fn killed_sim_is_noticed_by_everyone() {
     let started = Instant::now();
     let (run, dir) = long_eval_hurt_by("kill-sim", |run_id, _| kill_process(run_id, "formation-sim"));

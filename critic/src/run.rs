@@ -61,7 +61,7 @@ pub struct CriticOptions {
 }
 
 /// One row of `training.csv`.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Default, Serialize)]
 struct TrainingRow {
     wall_s: f64,
     episodes: u64,
@@ -170,6 +170,19 @@ impl<S: Service> WeightsPublisher<S> {
 }
 
 /// Runs until the sim ends the run (or falls silent); extends `summary.json`.
+/// `training.csv`: a resumed critic (one restarted mid-run) appends to its predecessor's rows.
+fn open_training_log(path: &std::path::Path, resumed: bool) -> Result<csv::Writer<std::fs::File>> {
+    let continues = resumed && std::fs::metadata(path).is_ok_and(|m| m.len() > 0);
+    let file = std::fs::OpenOptions::new()
+        .create(true)
+        .write(true)
+        .append(continues)
+        .truncate(!continues)
+        .open(path)
+        .with_context(|| format!("cannot create {}", path.display()))?;
+    Ok(csv::WriterBuilder::new().has_headers(!continues).from_writer(file))
+}
+
 pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Result<Summary> {
     let config = &options.config;
     let learn = &config.learn;
@@ -222,8 +235,7 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
     };
     let mut losses = Losses::default();
     let mut best_eval = -1.0;
-    let mut training_log = csv::Writer::from_path(options.run_dir.join("training.csv"))
-        .with_context(|| format!("cannot create training.csv in {}", options.run_dir.display()))?;
+    let mut training_log = open_training_log(&options.run_dir.join("training.csv"), options.resume.is_some())?;
     let bar = progress_bar(options.progress);
     let curves = CurveView::open(&options.viewer, &options.run_id, &options.run_dir)?;
 
@@ -238,6 +250,7 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
     let session = rand::random_range(1..u64::MAX);
     let mut paid_ticks = u64::MAX;
     let mut last_acknowledged = 0;
+    let mut warned_stall = false;
     publish_progress(&progress_publisher, &progress_ready, session, 0, &learner, &weights)?;
 
     loop {
@@ -287,8 +300,29 @@ pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Resul
         if collector.stats.run_ended {
             break;
         }
+        // A sim silent for `silence` is given up on once its process is gone (at once when it
+        // was killed); a live one that stalls (a loaded machine) is waited for up to the
+        // start-up limit, since a critic restart loses the replay.
         let quiet = last_tick_seen.elapsed();
-        if (collector.stats.ticks_received > 0 && quiet > silence) || quiet > startup {
+        let gone = if collector.stats.ticks_received == 0 || quiet <= silence {
+            quiet > startup
+        } else if quiet > startup || !services::node_alive::<S>(identity, "sim")? {
+            true
+        } else {
+            if !warned_stall {
+                warned_stall = true;
+                eprintln!(
+                    "critic: the sim has been silent for {:.1} s but its process is alive; waiting up to {} s",
+                    quiet.as_secs_f64(),
+                    startup.as_secs()
+                );
+            }
+            false
+        };
+        if !gone && quiet <= silence {
+            warned_stall = false;
+        }
+        if gone {
             if let Some(learner) = &learner {
                 learner.save(
                     &options.run_dir.join(FILE_NAME),
@@ -522,4 +556,36 @@ fn progress_line<S: Service>(
         );
     }
     line
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_resumed_critic_appends_to_training_csv_and_a_new_run_starts_it_afresh() {
+        let dir = std::env::temp_dir().join(format!("critic-training-log-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let path = dir.join("training.csv");
+        let write = |resumed: bool, wall_s: f64| {
+            let mut log = open_training_log(&path, resumed).expect("open");
+            log.serialize(TrainingRow {
+                wall_s,
+                ..TrainingRow::default()
+            })
+            .expect("row");
+            log.flush().expect("flush");
+        };
+        write(false, 1.0);
+        write(true, 2.0);
+        let text = std::fs::read_to_string(&path).expect("read");
+        assert_eq!(text.lines().filter(|l| l.starts_with("wall_s")).count(), 1, "{text}");
+        assert_eq!(text.lines().count(), 3, "{text}");
+        // A fresh critic (no resume) starts the file again.
+        write(false, 3.0);
+        let text = std::fs::read_to_string(&path).expect("read");
+        assert_eq!(text.lines().count(), 2, "{text}");
+        assert!(text.lines().nth(1).expect("row").starts_with('3'), "{text}");
+        std::fs::remove_dir_all(&dir).expect("cleanup");
+    }
 }

@@ -145,7 +145,8 @@ pub struct TickConfig {
     pub startup_timeout_s: u64,
     /// Train mode: how many ticks the sim may run ahead of the critic's consumption.
     pub critic_window: u32,
-    /// How many ticks of silence from the sim make agents and critic give up, milliseconds.
+    /// Silence from the sim after which agents give up, and the critic checks whether the sim
+    /// still lives (a live one is waited for up to `startup_timeout_s`), milliseconds.
     pub sim_silence_ms: u64,
 }
 

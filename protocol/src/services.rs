@@ -7,6 +7,7 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
+use iceoryx2::node::NodeView;
 use iceoryx2::port::listener::{Listener, ListenerWaitError};
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::{event, publish_subscribe};
@@ -282,6 +283,24 @@ pub fn wait_for_events<S: Service>(
         Ok(_) | Err(ListenerWaitError::InterruptSignal) => Ok(()),
         Err(err) => Err(anyhow::anyhow!("waiting on an iceoryx2 event failed: {err:?}")),
     }
+}
+
+/// True while a live process of the run holds a node named `name` (tells a silent peer from a
+/// dead one: iceoryx2 marks the node of a process that died as dead, and a clean exit removes it).
+pub fn node_alive<S: Service>(identity: &RunIdentity, name: &str) -> Result<bool> {
+    let config = identity.iceoryx_config()?;
+    let mut alive = false;
+    Node::<S>::list(&config, |state| {
+        if let NodeState::Alive(view) = &state
+            && view.details().as_ref().is_some_and(|d| d.name().as_str() == name)
+        {
+            alive = true;
+            return CallbackProgression::Stop;
+        }
+        CallbackProgression::Continue
+    })
+    .map_err(|err| anyhow::anyhow!("cannot list the run's iceoryx2 nodes: {err:?}"))?;
+    Ok(alive)
 }
 
 /// Converts an agent index into its event id.
