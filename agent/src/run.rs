@@ -5,9 +5,10 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Result, bail};
 use formation_protocol::config::RunConfig;
-use formation_protocol::services::{self, RunIdentity, Sizing};
+use formation_protocol::services::{self, FileDescriptorBased, RunIdentity, Sizing};
 use formation_protocol::termination_requested;
 use formation_protocol::wire::*;
+use iceoryx2::port::listener::Listener;
 use iceoryx2::prelude::*;
 
 use crate::history::ObservationHistory;
@@ -55,7 +56,10 @@ impl AgentPolicy {
 }
 
 /// Runs until the sim announces the end of the run; errors when the sim falls silent.
-pub fn run<S: Service>(identity: &RunIdentity, options: &AgentOptions, mut policy: AgentPolicy) -> Result<AgentStats> {
+pub fn run<S: Service>(identity: &RunIdentity, options: &AgentOptions, mut policy: AgentPolicy) -> Result<AgentStats>
+where
+    Listener<S>: FileDescriptorBased,
+{
     let agent = options.agent;
     let node = services::create_node::<S>(identity, &format!("agent{agent}"))?;
     let sizing = Sizing::new(options.n_agents, options.config.ticks.critic_window);

@@ -7,7 +7,7 @@
 use anyhow::Result;
 use formation_protocol::OBS_DIM;
 use formation_protocol::config::EnvConfig;
-use formation_protocol::services::{self, Sizing};
+use formation_protocol::services::{self, FileDescriptorBased, Sizing};
 use formation_protocol::wire::*;
 use formation_replay::buffer::{Episode, Tick};
 use formation_replay::features::observation;
@@ -65,7 +65,10 @@ pub struct Collector<S: Service> {
     pub stats: CollectorStats,
 }
 
-impl<S: Service> Collector<S> {
+impl<S: Service> Collector<S>
+where
+    Listener<S>: FileDescriptorBased,
+{
     /// Subscribes to the state, every observation and every command stream.
     pub fn new(node: &Node<S>, sizing: &Sizing, env: &EnvConfig) -> Result<Self> {
         let buffer = sizing.stream_buffer;

@@ -10,11 +10,12 @@ use anyhow::{Context, Result, bail};
 use formation_agent::checkpoint::{BEST_FILE_NAME, FILE_NAME};
 use formation_protocol::cli::{Mode, write_atomically};
 use formation_protocol::config::RunConfig;
-use formation_protocol::services::{self, RunIdentity, Sizing};
+use formation_protocol::services::{self, FileDescriptorBased, RunIdentity, Sizing};
 use formation_protocol::summary::Summary;
 use formation_protocol::wire::*;
 use formation_replay::buffer::ReplayBuffer;
 use formation_replay::sample::Sampler;
+use iceoryx2::port::listener::Listener;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
@@ -183,7 +184,10 @@ fn open_training_log(path: &std::path::Path, resumed: bool) -> Result<csv::Write
     Ok(csv::WriterBuilder::new().has_headers(!continues).from_writer(file))
 }
 
-pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Result<Summary> {
+pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Result<Summary>
+where
+    Listener<S>: FileDescriptorBased,
+{
     let config = &options.config;
     let learn = &config.learn;
     let node = services::create_node::<S>(identity, "critic")?;

@@ -64,7 +64,8 @@ pub fn plan(allowed: &[usize], role: Role) -> Option<Vec<usize>> {
 }
 
 /// Places the calling thread (and the threads it starts afterwards) as `placement` says for
-/// `role`; returns the CPUs chosen, if any.
+/// `role`; returns the CPUs chosen, if any. A placement the system refuses is only slower, so
+/// it is reported and the operating system places the thread instead.
 pub fn apply(placement: Placement, role: Role) -> Result<Option<Vec<usize>>> {
     if placement == Placement::Off {
         return Ok(None);
@@ -72,10 +73,13 @@ pub fn apply(placement: Placement, role: Role) -> Result<Option<Vec<usize>>> {
     let Some(cpus) = plan(process_cpus()?, role) else {
         return Ok(None);
     };
-    ThreadHandle::from_self()
-        .set_affinity(&cpus)
-        .map_err(|e| anyhow!("cannot move {role:?} to CPUs {cpus:?}: {e:?} (try --placement off)"))?;
-    Ok(Some(cpus))
+    match ThreadHandle::from_self().set_affinity(&cpus) {
+        Ok(()) => Ok(Some(cpus)),
+        Err(err) => {
+            eprintln!("cannot move {role:?} to CPUs {cpus:?} ({err:?}); leaving it to the operating system");
+            Ok(None)
+        }
+    }
 }
 
 /// The CPUs the process was started with, read before any thread of it was placed.

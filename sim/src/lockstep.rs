@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use formation_protocol::cli::{Mode, write_atomically};
 use formation_protocol::config::RunConfig;
-use formation_protocol::services::{self, RunIdentity, Sizing};
+use formation_protocol::services::{self, FileDescriptorBased, RunIdentity, Sizing};
 use formation_protocol::summary::Summary;
 use formation_protocol::termination_requested;
 use formation_protocol::wire::*;
@@ -178,7 +178,10 @@ enum Stop {
 
 /// Runs the sim until the episode or time budget is spent or a termination signal arrives;
 /// writes `episodes.csv` and `summary.json`; returns the summary.
-pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option<StateTap>) -> Result<Summary> {
+pub fn run<S: Service>(identity: &RunIdentity, options: &SimOptions, tap: Option<StateTap>) -> Result<Summary>
+where
+    Listener<S>: FileDescriptorBased,
+{
     let node = services::create_node::<S>(identity, "sim")?;
     let sizing = Sizing::new(options.n_agents, options.config.ticks.critic_window);
     let ports = open_ports(&node, &sizing)?;
@@ -463,7 +466,10 @@ fn wait_for_peers<S: Service>(
     options: &SimOptions,
     presence: &mut Presence,
     counters: &mut StreamCounters,
-) -> Result<()> {
+) -> Result<()>
+where
+    Listener<S>: FileDescriptorBased,
+{
     let deadline = Instant::now() + Duration::from_secs(options.config.ticks.startup_timeout_s);
     let mut greeted = vec![false; ports.agents.len()];
     let mut critic_ready = !options.expect_critic;
@@ -539,7 +545,10 @@ fn drain_progress<S: Service>(ports: &Ports<S>, counters: &mut StreamCounters) -
 /// Blocks (event-driven) while the sim is more than `critic_window` ticks ahead of the critic.
 /// A critic silent for a quarter of the agents' silence limit is treated as gone: the swarm runs on
 /// unthrottled (the agents keep their last weights) until a critic speaks again.
-fn wait_for_critic<S: Service>(ports: &Ports<S>, options: &SimOptions, counters: &mut StreamCounters) -> Result<()> {
+fn wait_for_critic<S: Service>(ports: &Ports<S>, options: &SimOptions, counters: &mut StreamCounters) -> Result<()>
+where
+    Listener<S>: FileDescriptorBased,
+{
     let window = u64::from(options.config.ticks.critic_window);
     let give_up = Duration::from_millis(options.config.ticks.sim_silence_ms / 4);
     let mut last_progress = Instant::now();

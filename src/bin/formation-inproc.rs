@@ -12,8 +12,9 @@ use formation_agent::scripted::{BaselineGains, ScriptedBaseline};
 use formation_protocol::cli::Mode;
 use formation_protocol::config::{RunConfig, validate_agent_count};
 use formation_protocol::placement::{self, Placement, Role};
-use formation_protocol::services::RunIdentity;
+use formation_protocol::services::{FileDescriptorBased, RunIdentity};
 use formation_sim::lockstep::{SimOptions, run as run_sim};
+use iceoryx2::port::listener::Listener;
 use iceoryx2::prelude::*;
 
 /// Which iceoryx2 service type carries the messages.
@@ -53,7 +54,10 @@ struct Cli {
     placement: Placement,
 }
 
-fn run<S: Service>(cli: &Cli, identity: &RunIdentity, config: &RunConfig) -> Result<()> {
+fn run<S: Service>(cli: &Cli, identity: &RunIdentity, config: &RunConfig) -> Result<()>
+where
+    Listener<S>: FileDescriptorBased,
+{
     let agents = std::thread::scope(|scope| -> Result<formation_protocol::summary::Summary> {
         let handles: Vec<_> = (0..cli.agents)
             .map(|agent| {
