@@ -170,7 +170,6 @@ impl<S: Service> WeightsPublisher<S> {
     }
 }
 
-/// Runs until the sim ends the run (or falls silent); extends `summary.json`.
 /// `training.csv`: a resumed critic (one restarted mid-run) appends to its predecessor's rows.
 fn open_training_log(path: &std::path::Path, resumed: bool) -> Result<csv::Writer<std::fs::File>> {
     let continues = resumed && std::fs::metadata(path).is_ok_and(|m| m.len() > 0);
@@ -184,6 +183,7 @@ fn open_training_log(path: &std::path::Path, resumed: bool) -> Result<csv::Write
     Ok(csv::WriterBuilder::new().has_headers(!continues).from_writer(file))
 }
 
+/// Runs until the sim ends the run (or falls silent); extends `summary.json`.
 pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Result<Summary>
 where
     Listener<S>: FileDescriptorBased,
@@ -323,7 +323,7 @@ where
             }
             false
         };
-        if !gone && quiet <= silence {
+        if quiet <= silence {
             warned_stall = false;
         }
         if gone {

@@ -3,9 +3,10 @@
 //! A lockstep tick is a chain of wake-ups (sim -> robots -> sim). A wake-up that lands on an
 //! idle CPU pays for that CPU to come out of its idle state (tens of microseconds on a virtual
 //! machine); a wake-up on the waker's own CPU costs a few. So by default the sim's tick thread
-//! and the robots share one CPU (the *lockstep CPU*) and the critic, whose training would
-//! compete with them, gets the others. Big swarms, whose robots have more work per tick than a
-//! wake-up costs, spread their robots over every CPU. Measured in `docs/BENCHMARKS.md`.
+//! and the robots share one CPU (the *lockstep CPU*) and the background work (the critic's
+//! training, the sim's logging), which would compete with them, gets the others. Big swarms
+//! split their robots into groups of at least [`ROBOTS_PER_CPU`], one group per CPU. Measured
+//! in `docs/BENCHMARKS.md`.
 //!
 //! Every process computes its own place from the CPUs it may use, so processes started by
 //! hand from the same shell agree with those the launcher starts.
@@ -30,8 +31,13 @@ pub enum Placement {
 pub enum Role {
     /// The sim's tick thread.
     Sim,
-    /// Robot `index` of a swarm of `of`.
-    Agent { index: usize, of: usize },
+    /// A robot.
+    Agent {
+        /// Its index.
+        index: usize,
+        /// Robots in the swarm.
+        of: usize,
+    },
     /// Work that must not delay ticks: the critic and the sim's view threads.
     Background,
 }
