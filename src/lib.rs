@@ -137,7 +137,8 @@ pub fn shm_leftovers(run_id: &str) -> Vec<String> {
         .unwrap_or_default()
 }
 
-/// Processes whose command line mentions `run_id` (children that outlived their run).
+/// Processes whose command line mentions `run_id` (or any other text of it, such as the run
+/// directory): children that outlived their run, or the processes of a run in progress.
 pub fn processes_of_run(run_id: &str) -> Vec<u32> {
     let Ok(entries) = std::fs::read_dir("/proc") else {
         return Vec::new();

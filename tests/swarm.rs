@@ -154,27 +154,21 @@ fn robots_share_the_sim_cpu_and_the_critic_gets_the_others() {
         std::thread::spawn(move || {
             let mut seen: BTreeMap<String, Vec<usize>> = BTreeMap::new();
             while !done.load(Ordering::Relaxed) {
-                for entry in std::fs::read_dir("/proc").expect("/proc").flatten() {
-                    let Some(pid) = entry.file_name().to_str().and_then(|s| s.parse::<u32>().ok()) else {
-                        continue;
-                    };
-                    let Ok(cmdline) = std::fs::read(entry.path().join("cmdline")) else {
+                for pid in formation_swarm::processes_of_run(&needle) {
+                    let Ok(cmdline) = std::fs::read(format!("/proc/{pid}/cmdline")) else {
                         continue;
                     };
                     let args: Vec<String> = cmdline
                         .split(|&b| b == 0)
                         .map(|a| String::from_utf8_lossy(a).into_owned())
                         .collect();
-                    if !args.contains(&needle) || !args[0].contains("formation-") {
+                    if !args[0].contains("formation-") || args.iter().any(|a| a == "--check" || a == "--check-config") {
                         continue;
                     }
                     let role = match args.iter().position(|a| a == "--agent") {
                         Some(i) => format!("agent {}", args[i + 1]),
                         None => args[0].rsplit('/').next().expect("name").to_string(),
                     };
-                    if args.iter().any(|a| a == "--check" || a == "--check-config") {
-                        continue;
-                    }
                     if let Some(cpus) = thread_cpus(pid, pid) {
                         seen.insert(role, cpus);
                     }

@@ -282,8 +282,8 @@ where
 /// As [`wait_for_event`], handing every event id that arrived to `seen` (once per id, however
 /// often it was notified).
 ///
-/// Waits in `ppoll(2)` on the listener's socket, then takes the events without blocking: three
-/// system calls a wait, where iceoryx2's own `timed_wait` makes seven (it switches the socket
+/// Waits in `ppoll(2)` on the listener's socket, then takes the events without blocking: two or
+/// three system calls a wait, where iceoryx2's own `timed_wait` makes seven (it switches the socket
 /// between blocking and non-blocking each time). No wake-up is lost: a notifier marks its id
 /// before it sends, and sends unless a datagram is already waiting.
 pub fn wait_for_events<S: Service>(
@@ -302,7 +302,7 @@ where
     };
     let timeout = libc::timespec {
         tv_sec: timeout.as_secs().min(i64::MAX as u64) as libc::time_t,
-        tv_nsec: libc::c_long::from(timeout.subsec_nanos() as i32),
+        tv_nsec: timeout.subsec_nanos() as libc::c_long,
     };
     // SAFETY: one valid pollfd, a valid timespec, no signal mask.
     let ready = unsafe { libc::ppoll(&mut socket, 1, &timeout, std::ptr::null()) };

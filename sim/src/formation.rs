@@ -180,7 +180,7 @@ mod tests {
     fn episodes_start_in_formation_with_valid_edges_for_many_sizes() {
         let env = EnvConfig::default();
         let mut rng = StdRng::seed_from_u64(7);
-        for n in (3..=64).step_by(1) {
+        for n in 3..=64 {
             for _ in 0..if n <= 8 || n % 8 == 0 { 6 } else { 1 } {
                 let init = random_episode(n, &env, &mut rng);
                 let c = conditions(&init.poses, &init.desired, init.goal, &env);

@@ -61,12 +61,14 @@ fn main() -> Result<()> {
             session: 0,
         };
         if let Some(version) = cli.greet_with_protocol {
-            let mut hello = CommandMsg {
-                header: Header::new(0, 0, FLAG_HELLO),
+            let hello = CommandMsg {
+                header: Header {
+                    protocol_version: version,
+                    ..Header::new(0, 0, FLAG_HELLO)
+                },
                 session: 1,
                 ..good
             };
-            hello.header.protocol_version = version;
             publisher.send_copy(hello).map_err(|e| anyhow::anyhow!("send: {e:?}"))?;
             notifier.notify().map_err(|e| anyhow::anyhow!("notify: {e:?}"))?;
             sent += 1;
