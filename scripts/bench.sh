@@ -22,7 +22,7 @@ done
 mkdir -p "$OUT"
 cargo build --release --quiet --workspace --bins
 export FORMATION_BIN_DIR=$ROOT/target/release
-MODEL=$ROOT/models/formation-3robots.safetensors
+MODEL=$ROOT/models/formation.safetensors
 SIZES=(3 6 12 24 48); (( QUICK )) && SIZES=(3 6)
 # Each lockstep measurement ticks for this long (whole episodes, so a little longer).
 MINUTES=0.25; (( QUICK )) && MINUTES=0.05

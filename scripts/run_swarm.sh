@@ -19,13 +19,16 @@ Flags:
   --scripted all|i,j,...  robots that run the scripted baseline instead of the learned actor
   --checkpoint PATH       checkpoint file or run directory: eval loads it into the agents,
                           train resumes the critic from it (eval default: the shipped model
-                          models/formation-3robots.safetensors)
+                          models/formation.safetensors, one model for any N)
   --seed S                seed of episodes, noise and networks (default 1)
   --run-dir DIR           where results go (default runs/<timestamp>)
   --viewer MODE           spawn | save | off | connect=URL (default: spawn when a `rerun`
                           viewer and a display are present, else save)
   --realtime              pace ticks at dt of wall-clock time instead of as fast as possible
   --config FILE           TOML overrides of the defaults (see config.toml in any run dir)
+  --shape KIND            formation of every episode: random (default), ring, line, wedge,
+                          grid, or mixed (a kind drawn per episode); every observed edge
+                          0.8-2.0 m, any N
   --placement auto|off    auto (default): the sim's tick thread and the robots share the
                           last CPU this shell may use, the critic and the view get the
                           others (ticks are 2-4x faster than letting the OS place them);
@@ -53,7 +56,7 @@ N=$1; shift
 [[ "$N" =~ ^[0-9]+$ ]] || die "N must be a whole number, got '$N'"
 (( N >= 3 && N <= 64 )) || die "N must be between 3 and 64 (each robot observes two distinct neighbours), got $N"
 
-MODE=train EPISODES="" MINUTES="" SCRIPTED="" CHECKPOINT="" SEED=1 RUN_DIR="" VIEWER="" REALTIME="" CONFIG="" RESTART=on PLACEMENT=auto
+MODE=train EPISODES="" MINUTES="" SCRIPTED="" CHECKPOINT="" SEED=1 RUN_DIR="" VIEWER="" REALTIME="" CONFIG="" RESTART=on PLACEMENT=auto SHAPE=""
 need() { [[ $# -ge 2 && -n "$2" ]] || die "$1 needs a value"; }
 while [[ $# -gt 0 ]]; do
   case "$1" in
@@ -69,6 +72,7 @@ while [[ $# -gt 0 ]]; do
     --config) need "$@"; CONFIG=$2; shift 2 ;;
     --restart) need "$@"; RESTART=$2; shift 2 ;;
     --placement) need "$@"; PLACEMENT=$2; shift 2 ;;
+    --shape) need "$@"; SHAPE=$2; shift 2 ;;
     -h|--help) usage; exit 0 ;;
     *) die "unknown flag '$1'" ;;
   esac
@@ -101,7 +105,7 @@ LEARNED=0
 for ((i = 0; i < N; i++)); do (( IS_SCRIPTED[i] )) || LEARNED=$((LEARNED + 1)); done
 
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
-SHIPPED_MODEL="$ROOT/models/formation-3robots.safetensors"
+SHIPPED_MODEL="$ROOT/models/formation.safetensors"
 if [[ "$MODE" == eval && $LEARNED -gt 0 && -z "$CHECKPOINT" ]]; then
   [[ -f "$SHIPPED_MODEL" ]] || die "eval with learned robots needs --checkpoint (no shipped model at $SHIPPED_MODEL)"
   CHECKPOINT=$SHIPPED_MODEL
@@ -129,6 +133,7 @@ RUN_DIR=${RUN_DIR:-runs/$(date +%Y%m%d-%H%M%S)}
 RUN_ID="r$(date +%s | tail -c 7)p$$"
 COMMON=(--agents "$N" --mode "$MODE" --run-id "$RUN_ID" --run-dir "$RUN_DIR" --seed "$SEED" --placement "$PLACEMENT")
 [[ -n "$CONFIG" ]] && COMMON+=(--config "$CONFIG")
+[[ -n "$SHAPE" ]] && COMMON+=(--shape "$SHAPE")
 
 # Validate the configuration (and a checkpoint) once, before anything starts.
 "$BIN/formation-sim" "${COMMON[@]}" --viewer "$VIEWER" --check-config || exit 2

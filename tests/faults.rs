@@ -5,7 +5,7 @@ use std::path::Path;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use formation_swarm::{assert_clean, bin_dir, processes_of_run, run_swarm, run_swarm_with, scratch_dir};
+use formation_swarm::{assert_clean, bin_dir, processes_of_run, repo_root, run_swarm, run_swarm_with, scratch_dir};
 
 /// Waits until the launcher `pid` has announced its run id in `log`, then returns it.
 fn run_id_of(log: &Path) -> String {
@@ -243,6 +243,45 @@ fn bad_checkpoints_are_refused_before_anything_starts() {
         );
         assert!(run.run_id.is_none(), "{mode}: nothing may start:\n{}", run.output);
     }
+    // A checkpoint trained on another observation model (the paper's 12 floats) is refused
+    // by a run on the default observation, with both named; the same file runs with its own.
+    let paper = repo_root().join("models/formation-3robots-paper.safetensors");
+    let paper = paper.to_str().expect("utf8");
+    let refused = run_swarm(
+        &["3", "--mode", "eval", "--checkpoint", paper, "--viewer", "off"],
+        &dir.join("run"),
+        Duration::from_secs(60),
+    )
+    .expect("launch");
+    assert_eq!(refused.status, Some(2), "{}", refused.output);
+    assert!(
+        refused.output.contains("\"paper\" observation (12 floats)")
+            && refused.output.contains("\"slot_proximity\" (16 floats)"),
+        "the refusal names both observation models:\n{}",
+        refused.output
+    );
+    assert!(refused.run_id.is_none(), "nothing may start:\n{}", refused.output);
+    let config = repo_root().join("configs/paper-observation.toml");
+    let accepted = run_swarm(
+        &[
+            "3",
+            "--mode",
+            "eval",
+            "--checkpoint",
+            paper,
+            "--config",
+            config.to_str().expect("utf8"),
+            "--episodes",
+            "2",
+            "--viewer",
+            "off",
+        ],
+        &dir.join("run-paper"),
+        Duration::from_secs(60),
+    )
+    .expect("launch");
+    assert_eq!(accepted.status, Some(0), "{}", accepted.output);
+    assert_clean(&accepted);
     std::fs::remove_dir_all(&dir).expect("cleanup");
 }
 

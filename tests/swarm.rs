@@ -71,6 +71,48 @@ fn six_scripted_robots_finish_clean() {
 }
 
 #[test]
+fn twelve_scripted_robots_with_slots_reach_the_goal_in_a_grid() {
+    let dir = scratch_dir("scripted-12-slots");
+    std::fs::create_dir_all(&dir).expect("dir");
+    let config = dir.join("slots.toml");
+    std::fs::write(&config, "[env]\nobservation = \"slot_proximity\"\n").expect("write");
+    let run = run_swarm(
+        &[
+            "12",
+            "--scripted",
+            "all",
+            "--mode",
+            "eval",
+            "--episodes",
+            "6",
+            "--seed",
+            "4",
+            "--shape",
+            "grid",
+            "--viewer",
+            "off",
+            "--config",
+            config.to_str().expect("utf8"),
+        ],
+        &dir.join("run"),
+        Duration::from_secs(180),
+    )
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "launcher failed:\n{}", run.output);
+    let summary = run.summary().expect("summary.json");
+    assert_eq!(summary["episodes"], serde_json::json!(6), "{summary}");
+    assert!(summary["success_rate"].as_f64().expect("success") >= 0.8, "{summary}");
+    assert_eq!(summary["collision_rate"].as_f64(), Some(0.0), "{summary}");
+    let written = std::fs::read_to_string(run.run_dir.join("config.toml")).expect("config.toml");
+    assert!(
+        written.contains("shape = \"grid\"") && written.contains("observation = \"slot_proximity\""),
+        "{written}"
+    );
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
 fn bad_input_is_refused_before_anything_starts() {
     let dir = scratch_dir("bad-input");
     for (args, needle) in [
@@ -79,6 +121,7 @@ fn bad_input_is_refused_before_anything_starts() {
         (vec!["3", "--bogus"], "unknown flag"),
         (vec!["3", "--mode", "fly"], "--mode"),
         (vec!["3", "--scripted", "0,7"], "robot 7 does not exist"),
+        (vec!["3", "--shape", "blob"], "--shape"),
     ] {
         let run = run_swarm(&args, &dir.join("run"), Duration::from_secs(60)).expect("launch");
         assert_eq!(

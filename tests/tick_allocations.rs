@@ -6,14 +6,14 @@
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use formation_agent::actor::ActorShape;
-use formation_agent::history::ObservationHistory;
 use formation_agent::policy::{Exploration, LearnedPolicy, Policy};
 use formation_agent::scripted::{BaselineGains, ScriptedBaseline};
-use formation_protocol::OBS_DIM;
-use formation_protocol::config::RunConfig;
-use formation_sim::formation::random_episode;
-use formation_sim::world::World;
+use formation_core::formation::random_episode;
+use formation_core::world::World;
+use formation_model::actor::ActorShape;
+use formation_model::history::ObservationHistory;
+use formation_protocol::MAX_OBS_DIM;
+use formation_protocol::config::{EnvConfig, ObservationModel, RunConfig};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
@@ -42,10 +42,11 @@ unsafe impl GlobalAlloc for Counting {
 #[global_allocator]
 static GLOBAL: Counting = Counting;
 
-/// Allocations made by 500 ticks of `policy` (after one warm-up tick).
-fn allocations_per_500_ticks(policy: &mut dyn Policy, history_length: usize) -> usize {
-    let mut history = ObservationHistory::new(history_length);
-    let obs = |t: usize| -> [f32; OBS_DIM] { std::array::from_fn(|i| ((t * OBS_DIM + i) as f32 * 0.1).sin()) };
+/// Allocations made by 500 ticks of `policy` (after one warm-up tick) on observations of
+/// `dim` floats.
+fn allocations_per_500_ticks(policy: &mut dyn Policy, history_length: usize, dim: usize) -> usize {
+    let mut history = ObservationHistory::new(history_length, dim);
+    let obs = |t: usize| -> [f32; MAX_OBS_DIM] { std::array::from_fn(|i| ((t * MAX_OBS_DIM + i) as f32 * 0.1).sin()) };
     history.reset(&obs(0));
     policy.begin_episode(1, true);
     policy.command(&history).expect("warm-up");
@@ -63,17 +64,36 @@ fn ticks_allocate_nothing() {
     agent_ticks_allocate_nothing();
 }
 
+/// The environment of every observation model.
+fn environments() -> impl Iterator<Item = EnvConfig> {
+    [
+        ObservationModel::Paper,
+        ObservationModel::Slot,
+        ObservationModel::SlotProximity,
+    ]
+    .into_iter()
+    .map(|observation| EnvConfig {
+        observation,
+        ..EnvConfig::default()
+    })
+}
+
 fn agent_ticks_allocate_nothing() {
     let config = RunConfig::default();
-    let mut scripted = ScriptedBaseline::new(&config.env, BaselineGains::default());
-    assert_eq!(
-        allocations_per_500_ticks(&mut scripted, config.env.history),
-        0,
-        "scripted"
-    );
+    for env in environments() {
+        let mut scripted = ScriptedBaseline::new(&env, BaselineGains::default());
+        let dim = formation_core::observation::Layout::of(env.observation).dim();
+        assert_eq!(
+            allocations_per_500_ticks(&mut scripted, env.history, dim),
+            0,
+            "scripted, {:?}",
+            env.observation
+        );
+    }
 
     for history in [1, 15] {
         let shape = ActorShape {
+            obs_dim: 16,
             history,
             hidden: config.learn.actor_hidden.clone(),
         };
@@ -91,7 +111,7 @@ fn agent_ticks_allocate_nothing() {
             let mut learned = LearnedPolicy::new(&config.env, shape.clone(), exploration, StdRng::seed_from_u64(3));
             learned.load(&weights, 1).expect("weights");
             assert_eq!(
-                allocations_per_500_ticks(&mut learned, history),
+                allocations_per_500_ticks(&mut learned, history, shape.obs_dim),
                 0,
                 "learned, H = {history}, exploration {exploration:?}"
             );
@@ -105,9 +125,8 @@ fn agent_ticks_allocate_nothing() {
 }
 
 fn sim_observing_and_stepping_allocate_nothing() {
-    let env = RunConfig::default().env;
     let mut rng = StdRng::seed_from_u64(11);
-    for n in [3, 12, 48] {
+    for (env, n) in environments().flat_map(|env| [3, 12, 48].map(|n| (env.clone(), n))) {
         let mut world = World::new(&env, random_episode(n, &env, &mut rng));
         let commands: Vec<(f64, f64)> = (0..n).map(|i| (0.3, 0.2 * (i as f64).sin())).collect();
         let before = ALLOCATIONS.load(Ordering::Relaxed);
@@ -118,11 +137,16 @@ fn sim_observing_and_stepping_allocate_nothing() {
             }
             std::hint::black_box(world.step(&commands));
         }
-        assert_eq!(ALLOCATIONS.load(Ordering::Relaxed) - before, 0, "N = {n}");
+        assert_eq!(
+            ALLOCATIONS.load(Ordering::Relaxed) - before,
+            0,
+            "N = {n}, {:?}",
+            env.observation
+        );
         assert!(checksum.is_finite() && world.steps == 200);
     }
     // The counter does count: a new episode allocates its poses.
     let before = ALLOCATIONS.load(Ordering::Relaxed);
-    std::hint::black_box(random_episode(3, &env, &mut rng));
+    std::hint::black_box(random_episode(3, &EnvConfig::default(), &mut rng));
     assert!(ALLOCATIONS.load(Ordering::Relaxed) > before);
 }

@@ -1,9 +1,7 @@
 //! One robot's process: it reads only its own observations, keeps the last H of them and
-//! answers each tick with (v, w) from the scripted baseline or the learned actor.
+//! answers each tick with (v, w) from the scripted baseline or the learned actor (whose network
+//! is `formation_model`).
 
-pub mod actor;
-pub mod checkpoint;
-pub mod history;
 pub mod policy;
 pub mod run;
 pub mod scripted;

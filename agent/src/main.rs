@@ -5,11 +5,12 @@ use std::process::ExitCode;
 
 use anyhow::{Result, bail};
 use clap::{Parser, ValueEnum};
-use formation_agent::actor::ActorShape;
-use formation_agent::checkpoint;
 use formation_agent::policy::{Exploration, LearnedPolicy};
 use formation_agent::run::{AgentOptions, AgentPolicy, run};
 use formation_agent::scripted::{BaselineGains, ScriptedBaseline};
+use formation_core::observation::Layout;
+use formation_model::actor::ActorShape;
+use formation_model::checkpoint;
 use formation_protocol::cli::{Mode, RunArgs};
 use formation_protocol::placement::Role;
 use iceoryx2::prelude::*;
@@ -52,9 +53,6 @@ struct Cli {
 }
 
 fn main() -> ExitCode {
-    // SAFETY: nothing else runs yet. One thread per agent: N agents share 2 cores, and candle
-    // re-reads /proc/cpuinfo on every matmul when this is unset.
-    unsafe { std::env::set_var("RAYON_NUM_THREADS", "1") };
     let cli = Cli::parse();
     match try_main(cli) {
         Ok(()) => ExitCode::SUCCESS,
@@ -82,7 +80,9 @@ fn try_main(cli: Cli) -> Result<()> {
             None,
         ),
         PolicyKind::Learned => {
+            let obs_dim = Layout::of(config.env.observation).dim();
             let shape = ActorShape {
+                obs_dim,
                 history: config.env.history,
                 hidden: config.learn.actor_hidden.clone(),
             };
@@ -96,6 +96,9 @@ fn try_main(cli: Cli) -> Result<()> {
             match (&cli.checkpoint, cli.run.mode) {
                 (Some(path), _) => {
                     let loaded = checkpoint::load(&checkpoint::resolve(path)?)?;
+                    loaded
+                        .meta
+                        .check_observation(&loaded.path, config.env.observation, obs_dim)?;
                     if loaded.meta.actor != shape {
                         bail!(
                             "checkpoint {} holds actors of shape {:?}, the config asks for {:?} (env.history, learn.actor_hidden)",
@@ -135,11 +138,11 @@ fn try_main(cli: Cli) -> Result<()> {
 
 /// Times `count` single-window actions of the learned actor (the per-tick inference cost).
 fn bench_inference(policy: &LearnedPolicy, count: usize) -> Result<()> {
-    use formation_agent::history::ObservationHistory;
     use formation_agent::policy::Policy;
+    use formation_model::history::ObservationHistory;
     let mut policy_copy = policy.clone();
-    let mut history = ObservationHistory::new(policy.shape().history);
-    history.reset(&[0.3; formation_protocol::OBS_DIM]);
+    let mut history = ObservationHistory::new(policy.shape().history, policy.shape().obs_dim);
+    history.reset(&[0.3; formation_protocol::MAX_OBS_DIM]);
     let mut samples = Vec::with_capacity(count);
     for i in 0..count + 1000 {
         let started = std::time::Instant::now();

@@ -6,8 +6,9 @@ use rand::Rng;
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, Normal};
 
-use crate::actor::{ActorShape, FrozenActor};
-use crate::history::ObservationHistory;
+use formation_model::actor::{ActorShape, FrozenActor};
+use formation_model::history::ObservationHistory;
+
 use crate::scripted::ScriptedBaseline;
 
 /// A robot's controller: a command from its observation window.

@@ -1,9 +1,9 @@
 //! The agent's loop over iceoryx2: wait (event-driven) for its own observation, keep the
 //! window, pick up new weights between ticks, publish (v, w) with the policy version.
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 use formation_protocol::config::RunConfig;
 use formation_protocol::services::{self, FileDescriptorBased, RunIdentity, Sizing};
 use formation_protocol::termination_requested;
@@ -11,8 +11,9 @@ use formation_protocol::wire::*;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::prelude::*;
 
-use crate::history::ObservationHistory;
 use crate::policy::{LearnedPolicy, Policy};
+use formation_core::observation::Layout;
+use formation_model::history::ObservationHistory;
 
 /// Who this agent is.
 #[derive(Debug, Clone)]
@@ -67,26 +68,26 @@ where
         .subscriber_builder()
         .buffer_size(16)
         .create()
-        .map_err(|e| anyhow::anyhow!("agent {agent}: observation subscriber: {e:?}"))?;
+        .with_context(|| format!("agent {agent}: observation subscriber"))?;
     let wake = services::observation_event(&node, &sizing, agent)?
         .listener_builder()
         .create()
-        .map_err(|e| anyhow::anyhow!("agent {agent}: listener: {e:?}"))?;
+        .with_context(|| format!("agent {agent}: listener"))?;
     let commands = services::command_stream(&node, &sizing, agent)?
         .publisher_builder()
         .create()
-        .map_err(|e| anyhow::anyhow!("agent {agent}: command publisher: {e:?}"))?;
+        .with_context(|| format!("agent {agent}: command publisher"))?;
     let command_ready = services::command_event(&node, &sizing)?
         .notifier_builder()
         .default_event_id(services::agent_event_id(agent))
         .create()
-        .map_err(|e| anyhow::anyhow!("agent {agent}: notifier: {e:?}"))?;
+        .with_context(|| format!("agent {agent}: notifier"))?;
     let weights = match options.weights_from {
         Some(index) => Some(
             services::weights_stream(&node, &sizing, index)?
                 .subscriber_builder()
                 .create()
-                .map_err(|e| anyhow::anyhow!("agent {agent}: weights subscriber: {e:?}"))?,
+                .with_context(|| format!("agent {agent}: weights subscriber"))?,
         ),
         None => None,
     };
@@ -102,28 +103,31 @@ where
     let greet = || -> Result<()> {
         commands
             .send_copy(hello)
-            .map_err(|e| anyhow::anyhow!("agent {agent}: hello: {e:?}"))?;
+            .with_context(|| format!("agent {agent}: hello"))?;
         command_ready
             .notify()
-            .map_err(|e| anyhow::anyhow!("agent {agent}: notify: {e:?}"))?;
+            .with_context(|| format!("agent {agent}: notify"))?;
         Ok(())
     };
     greet()?;
 
-    let mut history = ObservationHistory::new(options.config.env.history);
+    let obs_dim = Layout::of(options.config.env.observation).dim();
+    let mut history = ObservationHistory::new(options.config.env.history, obs_dim);
     let mut stats = AgentStats::default();
     let mut episode = None;
-    let silence = Duration::from_millis(options.config.ticks.sim_silence_ms);
-    let startup = Duration::from_secs(options.config.ticks.startup_timeout_s);
-    let mut last_heard = Instant::now();
-    let mut heard_any = false;
+    // A sim that waits for a slow critic, or is stalled by a loaded machine, is waited for
+    // while its process lives; one that died is given up after `sim_silence_ms`.
+    let mut sim_watch = services::SimWatch::new(
+        Duration::from_millis(options.config.ticks.sim_silence_ms),
+        Duration::from_secs(options.config.ticks.startup_timeout_s),
+    );
 
     loop {
         services::wait_for_event(&wake, Duration::from_millis(100))?;
         let mut reply_to = None;
         while let Some(sample) = observations
             .receive()
-            .map_err(|e| anyhow::anyhow!("agent {agent}: receive: {e:?}"))?
+            .with_context(|| format!("agent {agent}: receive"))?
         {
             let msg = sample.payload();
             if msg.header.protocol_version != PROTOCOL_VERSION {
@@ -132,14 +136,20 @@ where
                     msg.header.protocol_version
                 );
             }
-            heard_any = true;
-            last_heard = Instant::now();
+            sim_watch.heard();
             if msg.header.has(FLAG_RUN_END) {
                 return Ok(stats);
             }
             if msg.header.has(FLAG_EPISODE_END) {
                 reply_to = None;
                 continue;
+            }
+            if msg.dim as usize != obs_dim {
+                bail!(
+                    "agent {agent}: the sim sends observations of {} floats, this agent's config ({:?}) expects {obs_dim}: start every process with the same --config",
+                    msg.dim,
+                    options.config.env.observation.as_str()
+                );
             }
             if msg.header.has(FLAG_EPISODE_START) || episode != Some(msg.header.episode) {
                 episode = Some(msg.header.episode);
@@ -153,7 +163,7 @@ where
             reply_to = Some(msg.header);
         }
         let Some(header) = reply_to else {
-            if !heard_any {
+            if !sim_watch.heard_any() {
                 // A publisher hands its history to subscribers it has seen; greet again until
                 // the sim has connected and answered.
                 greet()?;
@@ -161,8 +171,7 @@ where
             if termination_requested() {
                 return Ok(stats);
             }
-            let quiet = last_heard.elapsed();
-            if (heard_any && quiet > silence) || (!heard_any && quiet > startup) {
+            if let Some(quiet) = sim_watch.gone::<S>(identity, &format!("agent {agent}"))? {
                 bail!(
                     "agent {agent}: no observation from the sim for {:.1} s; is it alive?",
                     quiet.as_secs_f64()
@@ -172,10 +181,7 @@ where
         };
         // New weights only between ticks, never mid-inference.
         if let (Some(weights), AgentPolicy::Learned(learned)) = (&weights, &mut policy) {
-            while let Some(sample) = weights
-                .receive()
-                .map_err(|e| anyhow::anyhow!("agent {agent}: weights: {e:?}"))?
-            {
+            while let Some(sample) = weights.receive().with_context(|| format!("agent {agent}: weights"))? {
                 let head = *sample.user_header();
                 if head.protocol_version == PROTOCOL_VERSION && head.version > learned.version() {
                     learned.load(sample.payload(), head.version)?;
@@ -185,9 +191,7 @@ where
         }
         let (v, w) = policy.policy().command(&history)?;
         let version = policy.policy().version();
-        let mut sample = commands
-            .loan()
-            .map_err(|e| anyhow::anyhow!("agent {agent}: loan: {e:?}"))?;
+        let mut sample = commands.loan().with_context(|| format!("agent {agent}: loan"))?;
         *sample.payload_mut() = CommandMsg {
             header: Header::new(header.episode, header.tick, 0),
             agent: agent as u32,
@@ -196,12 +200,10 @@ where
             w: w as f32,
             session,
         };
-        sample
-            .send()
-            .map_err(|e| anyhow::anyhow!("agent {agent}: send: {e:?}"))?;
+        sample.send().with_context(|| format!("agent {agent}: send"))?;
         command_ready
             .notify()
-            .map_err(|e| anyhow::anyhow!("agent {agent}: notify: {e:?}"))?;
+            .with_context(|| format!("agent {agent}: notify"))?;
         stats.commands += 1;
         stats.policy_version = version;
     }

@@ -4,15 +4,18 @@
 //! In the robot's frame (own position at the origin), with neighbours at q_j and desired
 //! distances dbar_j:
 //! * formation term: sum_j k_form (|q_j| - dbar_j) q_j / |q_j| (gradient of the edge errors);
-//! * goal term: k_goal (g - c), with c = (q_1 + q_2) / 3 the centroid of the robot's triangle
-//!   (exact for N = 3), saturated at the top speed;
-//! * repulsion from any neighbour closer than `repulsion_range`.
+//! * goal term, saturated at the top speed: k_goal (s - 0) towards the robot's own slot s when
+//!   the observation model has one (exact at any N), else k_goal (g - c) with c = (q_1 + q_2) / 3
+//!   the centroid of the robot's triangle (exact for N = 3 only);
+//! * repulsion from any neighbour closer than `repulsion_range`, and from the nearest robot it
+//!   does not track when the observation model reports one.
 //!
 //! The desired velocity u is then tracked by a unicycle: turn towards u, drive forward with
 //! the component of u along the heading (never backwards).
 
+use formation_core::observation::{Layout, ObservationView};
+use formation_protocol::NEIGHBOURS;
 use formation_protocol::config::EnvConfig;
-use formation_protocol::{NEIGHBOUR_FEATURES, NEIGHBOURS, OBS_DIM};
 
 /// Gains of the baseline. The defaults were tuned on random 3-robot episodes (see the tests).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -45,15 +48,19 @@ impl Default for BaselineGains {
 #[derive(Debug, Clone)]
 pub struct ScriptedBaseline {
     gains: BaselineGains,
+    layout: Layout,
+    proximity_range: f64,
     v_max: f64,
     w_max: f64,
 }
 
 impl ScriptedBaseline {
-    /// A controller for the robot limits in `env`.
+    /// A controller for the robot limits and the observation model in `env`.
     pub fn new(env: &EnvConfig, gains: BaselineGains) -> Self {
         Self {
             gains,
+            layout: Layout::of(env.observation),
+            proximity_range: env.proximity_range_m,
             v_max: env.v_max,
             w_max: env.w_max,
         }
@@ -61,17 +68,16 @@ impl ScriptedBaseline {
 
     /// The desired planar velocity in the robot's frame.
     pub fn desired_velocity(&self, obs: &[f32]) -> [f64; 2] {
-        debug_assert_eq!(obs.len(), OBS_DIM);
         let g = self.gains;
+        let view = ObservationView::new(self.layout, obs);
         let mut u = [0.0f64; 2];
         let mut centroid = [0.0f64; 2];
         for k in 0..NEIGHBOURS {
-            let base = k * NEIGHBOUR_FEATURES;
-            let q = [f64::from(obs[base]), f64::from(obs[base + 1])];
-            let desired = f64::from(obs[base + 4]);
+            let neighbour = view.neighbour(k);
+            let q = neighbour.position;
             let dist = q[0].hypot(q[1]).max(1e-6);
             let unit = [q[0] / dist, q[1] / dist];
-            let pull = g.k_form * (dist - desired);
+            let pull = g.k_form * (dist - neighbour.desired);
             let push = if dist < g.repulsion_range {
                 g.k_repulsion * (g.repulsion_range - dist)
             } else {
@@ -82,8 +88,23 @@ impl ScriptedBaseline {
             centroid[0] += q[0] / (NEIGHBOURS + 1) as f64;
             centroid[1] += q[1] / (NEIGHBOURS + 1) as f64;
         }
-        let goal = [f64::from(obs[OBS_DIM - 2]), f64::from(obs[OBS_DIM - 1])];
-        let mut to_goal = [g.k_goal * (goal[0] - centroid[0]), g.k_goal * (goal[1] - centroid[1])];
+        if let Some(near) = view.proximity() {
+            // `near` is (1 - d/R) along the unit vector to the robot: push away inside R's
+            // share that is also inside the repulsion range.
+            let closeness = near[0].hypot(near[1]);
+            if closeness > 0.0 {
+                let dist = (1.0 - closeness) * self.proximity_range;
+                let push = g.k_repulsion * (g.repulsion_range - dist).max(0.0);
+                u[0] -= push * near[0] / closeness;
+                u[1] -= push * near[1] / closeness;
+            }
+        }
+        let goal = view.goal();
+        let target = match view.slot() {
+            Some(slot) => slot,
+            None => [goal[0] - centroid[0], goal[1] - centroid[1]],
+        };
+        let mut to_goal = [g.k_goal * target[0], g.k_goal * target[1]];
         let speed = to_goal[0].hypot(to_goal[1]);
         if speed > self.v_max {
             to_goal = [to_goal[0] * self.v_max / speed, to_goal[1] * self.v_max / speed];
@@ -105,14 +126,16 @@ impl ScriptedBaseline {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use formation_sim::formation::random_episode;
-    use formation_sim::task::Outcome;
-    use formation_sim::world::World;
+    use formation_core::formation::random_episode;
+    use formation_core::task::Outcome;
+    use formation_core::world::World;
+    use formation_protocol::MAX_OBS_DIM;
+    use formation_protocol::config::{FormationShape, ObservationModel};
     use rand::SeedableRng;
     use rand::rngs::StdRng;
 
-    fn obs_with(neighbours: [[f32; 2]; 2], desired: [f32; 2], goal: [f32; 2]) -> [f32; OBS_DIM] {
-        let mut obs = [0.0; OBS_DIM];
+    fn obs_with(neighbours: [[f32; 2]; 2], desired: [f32; 2], goal: [f32; 2]) -> [f32; MAX_OBS_DIM] {
+        let mut obs = [0.0; MAX_OBS_DIM];
         for k in 0..2 {
             obs[k * 5] = neighbours[k][0];
             obs[k * 5 + 1] = neighbours[k][1];
@@ -126,7 +149,7 @@ mod tests {
 
     #[test]
     fn drives_straight_to_a_goal_ahead_when_in_formation() {
-        let env = EnvConfig::default();
+        let env = paper_env();
         let baseline = ScriptedBaseline::new(&env, BaselineGains::default());
         // Neighbours behind-left and behind-right at their desired distance; goal straight ahead
         // of the triangle's centroid.
@@ -142,7 +165,7 @@ mod tests {
 
     #[test]
     fn turns_in_place_towards_a_goal_behind() {
-        let env = EnvConfig::default();
+        let env = paper_env();
         let baseline = ScriptedBaseline::new(&env, BaselineGains::default());
         let obs = obs_with([[0.0, 1.0], [0.0, -1.0]], [1.0, 1.0], [-2.0, 0.5]);
         let (v, w) = baseline.command(&obs);
@@ -155,31 +178,30 @@ mod tests {
 
     #[test]
     fn pulls_towards_a_neighbour_that_is_too_far() {
-        let env = EnvConfig::default();
+        let env = paper_env();
         let baseline = ScriptedBaseline::new(&env, BaselineGains::default());
         let obs = obs_with([[2.0, 0.0], [0.0, 1.0]], [1.0, 1.0], [2.0 / 3.0, 1.0 / 3.0]);
         let u = baseline.desired_velocity(&obs);
         assert!(u[0] > 1.0, "the stretched edge pulls forward: {u:?}");
     }
 
-    /// Runs the baseline on every robot of random episodes in-process (no IPC).
-    pub(crate) fn success_rate(n: usize, episodes: usize, seed: u64) -> (f64, f64) {
-        let env = EnvConfig::default();
-        let baseline = ScriptedBaseline::new(&env, BaselineGains::default());
+    /// Runs the baseline on every robot of random episodes in-process (no IPC): success and
+    /// collision rates.
+    pub(crate) fn success_rate(env: &EnvConfig, n: usize, episodes: usize, seed: u64) -> (f64, f64) {
+        let baseline = ScriptedBaseline::new(env, BaselineGains::default());
         let mut rng = StdRng::seed_from_u64(seed);
         let (mut successes, mut collisions) = (0, 0);
         for _ in 0..episodes {
-            let mut world = World::new(&env, random_episode(n, &env, &mut rng));
+            let mut world = World::new(env, random_episode(n, env, &mut rng));
             loop {
                 let commands: Vec<(f64, f64)> = (0..n)
                     .map(|agent| baseline.command(&world.observation(agent)))
                     .collect();
-                let result = world.step(&commands);
-                match result.outcome {
+                match world.step(&commands).outcome {
                     Outcome::Running => continue,
                     Outcome::Success => successes += 1,
                     Outcome::Collision => collisions += 1,
-                    Outcome::Timeout => {}
+                    Outcome::Timeout | Outcome::Aborted => {}
                 }
                 break;
             }
@@ -187,23 +209,72 @@ mod tests {
         (successes as f64 / episodes as f64, collisions as f64 / episodes as f64)
     }
 
+    /// The paper's 12-float observation (the layout `obs_with` writes), random shapes.
+    fn paper_env() -> EnvConfig {
+        env_with(ObservationModel::Paper, FormationShape::Random)
+    }
+
+    pub(crate) const SHAPES: [FormationShape; 5] = [
+        FormationShape::Random,
+        FormationShape::Ring,
+        FormationShape::Line,
+        FormationShape::Wedge,
+        FormationShape::Grid,
+    ];
+
+    pub(crate) fn env_with(observation: ObservationModel, shape: FormationShape) -> EnvConfig {
+        EnvConfig {
+            observation,
+            shape,
+            ..EnvConfig::default()
+        }
+    }
+
     #[test]
-    fn baseline_solves_three_robot_episodes() {
-        let (success, collision) = success_rate(3, 200, 11);
+    fn baseline_solves_three_robot_episodes_on_the_papers_observation() {
+        let (success, collision) = success_rate(&paper_env(), 3, 200, 11);
         assert!(success >= 0.9, "baseline success {success}");
         assert_eq!(collision, 0.0);
+    }
+
+    #[test]
+    fn baseline_with_slots_solves_every_shape_at_6_and_16_robots() {
+        for shape in SHAPES {
+            for n in [6, 16] {
+                let env = env_with(ObservationModel::SlotProximity, shape);
+                let (success, collision) = success_rate(&env, n, 40, 5);
+                assert!(success >= 0.9, "{shape:?} N = {n}: success {success}");
+                assert_eq!(collision, 0.0, "{shape:?} N = {n}");
+            }
+        }
     }
 }
 
 #[cfg(test)]
 mod report {
-    /// Prints the baseline's in-process success rates: `cargo test -p formation-agent -- --ignored --nocapture`.
+    use super::tests::{SHAPES, env_with, success_rate};
+    use formation_protocol::config::ObservationModel;
+
+    /// Prints the baseline's in-process success rates for every observation model, shape and
+    /// size: `cargo test --release -p formation-agent baseline_report -- --ignored --nocapture`.
     #[test]
     #[ignore = "a report, not a check"]
     fn baseline_report() {
-        for n in [3, 4, 5, 6, 8, 12] {
-            let (success, collision) = super::tests::success_rate(n, 200, 11);
-            println!("N = {n}: success {success:.3}, collision {collision:.3}");
+        for model in [
+            ObservationModel::Paper,
+            ObservationModel::Slot,
+            ObservationModel::SlotProximity,
+        ] {
+            for shape in SHAPES {
+                let cells: Vec<String> = [3, 4, 6, 8, 12, 16, 32, 64]
+                    .iter()
+                    .map(|&n| {
+                        let (success, collision) = success_rate(&env_with(model, shape), n, 100, 1000);
+                        format!("N={n} {success:.2}/{collision:.2}")
+                    })
+                    .collect();
+                println!("{:>14} {:>6}: {}", model.as_str(), shape.as_str(), cells.join("  "));
+            }
         }
     }
 }

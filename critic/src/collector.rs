@@ -1,16 +1,21 @@
-//! Assembles the sim's state stream, every agent's observations and commands into whole
-//! episodes of joint ticks, and counts what went missing.
+//! Assembles the sim's state stream and every agent's observations into whole episodes of
+//! joint ticks, and counts what went missing.
 //!
 //! The sim publishes observations(t) before state(t), and waits for commands(t) before it
-//! publishes state(t+1); so when state(t) is read, its observations are already waiting.
+//! publishes state(t+1); so when state(t) is read, its observations are already waiting. The
+//! commands of tick t arrive with state(t+1) as the sim applied them (clamped, or held for a
+//! robot that missed the tick), which is what the replay must learn from; so the critic does
+//! not subscribe to the command streams themselves.
 
-use anyhow::Result;
-use formation_protocol::OBS_DIM;
+use anyhow::{Context, Result};
+use formation_core::features::{TickState, observation};
+use formation_core::observation::Observer;
+use formation_core::task::Outcome;
+use formation_protocol::MAX_OBS_DIM;
 use formation_protocol::config::EnvConfig;
 use formation_protocol::services::{self, FileDescriptorBased, Sizing};
 use formation_protocol::wire::*;
 use formation_replay::buffer::{Episode, Tick};
-use formation_replay::features::observation;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
@@ -22,10 +27,6 @@ pub struct CollectorStats {
     pub ticks_received: u64,
     /// Ticks that could not be used whole (a gap in the stream or a missing observation).
     pub lost_transitions: u64,
-    /// Commands seen on the agents' command streams.
-    pub commands_seen: u64,
-    /// Latest policy version seen from each agent.
-    pub policy_versions: Vec<u32>,
     /// The sim announced the end of the run.
     pub run_ended: bool,
     /// `StateMsg::sequence` of the first and the latest state taken in.
@@ -37,8 +38,8 @@ pub struct CollectorStats {
 pub struct FinishedEpisode {
     /// Its ticks.
     pub episode: Episode,
-    /// `OUTCOME_*` of its last transition.
-    pub outcome: u32,
+    /// How its last transition ended.
+    pub outcome: Outcome,
     /// Undiscounted return.
     pub episode_return: f64,
     /// Played without exploration noise.
@@ -58,7 +59,6 @@ pub struct Collector<S: Service> {
     state: Subscriber<S, StateMsg, ()>,
     observations: Vec<Subscriber<S, ObservationMsg, ()>>,
     pending_observations: Vec<Option<ObservationMsg>>,
-    commands: Vec<Subscriber<S, CommandMsg, ()>>,
     wake: Listener<S>,
     current: Option<EpisodeBuilder>,
     /// Counters so far.
@@ -69,26 +69,18 @@ impl<S: Service> Collector<S>
 where
     Listener<S>: FileDescriptorBased,
 {
-    /// Subscribes to the state, every observation and every command stream.
+    /// Subscribes to the state and every observation stream.
     pub fn new(node: &Node<S>, sizing: &Sizing, env: &EnvConfig) -> Result<Self> {
         let buffer = sizing.stream_buffer;
         let n = sizing.n_agents;
         let mut observations = Vec::with_capacity(n);
-        let mut commands = Vec::with_capacity(n);
         for agent in 0..n {
             observations.push(
                 services::observation_stream(node, sizing, agent)?
                     .subscriber_builder()
                     .buffer_size(buffer)
                     .create()
-                    .map_err(|e| anyhow::anyhow!("critic: observation subscriber {agent}: {e:?}"))?,
-            );
-            commands.push(
-                services::command_stream(node, sizing, agent)?
-                    .subscriber_builder()
-                    .buffer_size(buffer)
-                    .create()
-                    .map_err(|e| anyhow::anyhow!("critic: command subscriber {agent}: {e:?}"))?,
+                    .with_context(|| format!("critic: observation subscriber {agent}"))?,
             );
         }
         Ok(Self {
@@ -97,19 +89,15 @@ where
                 .subscriber_builder()
                 .buffer_size(buffer)
                 .create()
-                .map_err(|e| anyhow::anyhow!("critic: state subscriber: {e:?}"))?,
+                .context("critic: state subscriber")?,
             observations,
             pending_observations: vec![None; n],
-            commands,
             wake: services::critic_wake_event(node, sizing)?
                 .listener_builder()
                 .create()
-                .map_err(|e| anyhow::anyhow!("critic: wake listener: {e:?}"))?,
+                .context("critic: wake listener")?,
             current: None,
-            stats: CollectorStats {
-                policy_versions: vec![0; n],
-                ..CollectorStats::default()
-            },
+            stats: CollectorStats::default(),
         })
     }
 
@@ -121,11 +109,7 @@ where
     /// Takes in everything waiting; returns the episodes that ended.
     pub fn drain(&mut self) -> Result<Vec<FinishedEpisode>> {
         let mut finished = Vec::new();
-        while let Some(sample) = self
-            .state
-            .receive()
-            .map_err(|e| anyhow::anyhow!("critic: state: {e:?}"))?
-        {
+        while let Some(sample) = self.state.receive().context("critic: state")? {
             let state = *sample.payload();
             drop(sample);
             if state.header.protocol_version != PROTOCOL_VERSION {
@@ -147,17 +131,6 @@ where
                 finished.push(done);
             }
         }
-        for (agent, commands) in self.commands.iter().enumerate() {
-            while let Some(sample) = commands
-                .receive()
-                .map_err(|e| anyhow::anyhow!("critic: command: {e:?}"))?
-            {
-                if !sample.payload().header.has(FLAG_HELLO) {
-                    self.stats.commands_seen += 1;
-                    self.stats.policy_versions[agent] = sample.payload().policy_version;
-                }
-            }
-        }
         Ok(finished)
     }
 
@@ -171,7 +144,7 @@ where
     }
 
     /// The observation of `agent` for (episode, tick), or `None` when it never arrived.
-    fn observation_for(&mut self, agent: usize, key: (u32, u32)) -> Option<[f32; OBS_DIM]> {
+    fn observation_for(&mut self, agent: usize, key: (u32, u32)) -> Option<[f32; MAX_OBS_DIM]> {
         loop {
             let msg = match self.pending_observations[agent].take() {
                 Some(msg) => msg,
@@ -193,12 +166,20 @@ where
         let key = (state.header.episode, state.header.tick);
         let poses = state.poses[..n].to_vec();
         let desired = state.desired[..n].to_vec();
+        let slots = state.slots[..n].to_vec();
+        let observer = Observer::new(&self.env);
+        let true_state = TickState {
+            poses: &poses,
+            desired: &desired,
+            slots: &slots,
+            goal: state.goal,
+        };
         let mut missing = false;
-        let observations: Vec<[f32; OBS_DIM]> = (0..n)
+        let observations: Vec<[f32; MAX_OBS_DIM]> = (0..n)
             .map(|agent| {
                 self.observation_for(agent, key).unwrap_or_else(|| {
                     missing = true;
-                    observation(agent, &poses, &desired, state.goal)
+                    observation(&observer, agent, &true_state)
                 })
             })
             .collect();
@@ -220,6 +201,7 @@ where
                     number: state.header.episode,
                     desired,
                     goal: state.goal,
+                    slots,
                     ticks: vec![tick],
                     terminal: false,
                 },
@@ -249,14 +231,25 @@ where
             builder.episode.ticks.push(tick);
             builder.last_tick = state.header.tick;
         }
-        if state.outcome == OUTCOME_RUNNING {
-            return None;
-        }
+        let outcome = match Outcome::try_from(state.outcome) {
+            Ok(Outcome::Running) => return None,
+            Ok(outcome) => outcome,
+            Err(code) => {
+                // Not a state this build can read: the episode cannot be trusted.
+                eprintln!(
+                    "critic: unknown outcome code {code} in episode {}; dropped",
+                    state.header.episode
+                );
+                self.stats.lost_transitions += 1;
+                self.current = None;
+                return None;
+            }
+        };
         let mut builder = self.current.take()?;
-        builder.episode.terminal = matches!(state.outcome, OUTCOME_SUCCESS | OUTCOME_COLLISION);
+        builder.episode.terminal = outcome.is_terminal();
         Some(FinishedEpisode {
             episode: builder.episode,
-            outcome: state.outcome,
+            outcome,
             episode_return: builder.episode_return,
             eval: builder.eval,
         })

@@ -12,11 +12,12 @@ use std::path::Path;
 use anyhow::{Context, Result, bail};
 use candle_core::{DType, Device, Module, Tensor, Var};
 use candle_nn::{AdamW, Linear, Optimizer, ParamsAdamW, VarBuilder, VarMap};
-use formation_agent::actor::{Actor, ActorShape, flatten_parameters};
-use formation_agent::checkpoint::{self, CheckpointMeta, actor_prefix};
-use formation_protocol::config::{Algorithm, EnvConfig, LearnConfig};
-use formation_protocol::{ACTION_DIM, OBS_DIM};
-use formation_replay::features::state_dim;
+use formation_core::features::CriticFeatures;
+use formation_core::observation::Layout;
+use formation_model::actor::{Actor, ActorShape, flatten_parameters};
+use formation_model::checkpoint::{self, CheckpointMeta, actor_prefix};
+use formation_protocol::ACTION_DIM;
+use formation_protocol::config::{Algorithm, EnvConfig, LearnConfig, ObservationModel};
 use formation_replay::sample::Batch;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -67,6 +68,7 @@ impl CriticNet {
 pub struct Learner {
     config: LearnConfig,
     n_agents: usize,
+    observation: ObservationModel,
     history: usize,
     actor_shape: ActorShape,
     actor_vars: VarMap,
@@ -163,6 +165,7 @@ impl Learner {
         let mut rng = StdRng::seed_from_u64(seed);
         let history = env.history;
         let actor_shape = ActorShape {
+            obs_dim: Layout::of(env.observation).dim(),
             history,
             hidden: config.actor_hidden.clone(),
         };
@@ -171,7 +174,7 @@ impl Learner {
             Algorithm::Ddpg => 1,
             Algorithm::Td3 => 2,
         };
-        let critic_input = history * (state_dim(n_agents) + n_agents * ACTION_DIM);
+        let critic_input = history * (CriticFeatures::new(n_agents, env.observation).dim() + n_agents * ACTION_DIM);
         let build_actors = |vars: &VarMap| -> Result<Vec<Actor>> {
             let vb = VarBuilder::from_varmap(vars, DType::F32, &device);
             (0..n_actors)
@@ -207,6 +210,7 @@ impl Learner {
             critic_optimizer: adam(critic_vars.all_vars(), config.critic_lr)?,
             config: config.clone(),
             n_agents,
+            observation: env.observation,
             history,
             actor_shape,
             actor_vars,
@@ -237,7 +241,7 @@ impl Learner {
         &self.actor_shape
     }
 
-    /// Joint actions [B, N * 2] of `actors` for observation windows [B, N, H * OBS_DIM].
+    /// Joint actions [B, N * 2] of `actors` for observation windows [B, N, H * obs_dim].
     fn joint_actions(actors: &[Actor], observations: &Tensor) -> Result<Tensor> {
         let (batch, n, width) = observations.dims3()?;
         if actors.len() == 1 {
@@ -256,7 +260,7 @@ impl Learner {
         let b = batch.batch_size;
         let n = self.n_agents;
         let h = self.history;
-        let next_obs = Tensor::from_slice(&batch.next_observations, (b, n, h * OBS_DIM), &device)?;
+        let next_obs = Tensor::from_slice(&batch.next_observations, (b, n, batch.window_dim()), &device)?;
         let next_states = Tensor::from_slice(&batch.next_states, (b, batch.state_window_dim()), &device)?;
         let actions = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?;
         let rewards = (Tensor::from_slice(&batch.rewards, (b, 1), &device)? * self.config.reward_scale)?;
@@ -329,7 +333,7 @@ impl Learner {
             Algorithm::Td3 => u64::from(self.config.policy_delay),
         };
         if self.updates.is_multiple_of(delay) {
-            let obs = Tensor::from_slice(&batch.observations, (b, n, h * OBS_DIM), &device)?;
+            let obs = Tensor::from_slice(&batch.observations, (b, n, batch.window_dim()), &device)?;
             let states = Tensor::from_slice(&batch.states, (b, batch.state_window_dim()), &device)?;
             let actions = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?;
             let current = Self::joint_actions(&self.actors, &obs)?;
@@ -388,6 +392,7 @@ impl Learner {
     pub fn save(&self, path: &Path, extra: HashMap<String, String>) -> Result<()> {
         let meta = CheckpointMeta {
             n_agents: self.n_agents,
+            observation: self.observation,
             n_actors: self.n_actors(),
             actor: self.actor_shape.clone(),
             extra,
@@ -395,10 +400,17 @@ impl Learner {
         checkpoint::save(path, &self.all_tensors()?, &meta)
     }
 
-    /// Resumes from a checkpoint written by [`Learner::save`] for the same shapes.
+    /// Resumes from a checkpoint written by [`Learner::save`] for the same shapes. A shared
+    /// actor trained on another number of robots is carried over alone (the critic, sized by
+    /// N, starts fresh): that is how training moves on to larger swarms.
     pub fn load(&mut self, path: &Path) -> Result<()> {
         let loaded = checkpoint::load(path)?;
-        if loaded.meta.n_agents != self.n_agents
+        loaded
+            .meta
+            .check_observation(path, self.observation, self.actor_shape.obs_dim)?;
+        let other_swarm = loaded.meta.n_agents != self.n_agents;
+        let actor_only = other_swarm && loaded.meta.n_actors == 1 && self.n_actors() == 1;
+        if (other_swarm && !actor_only)
             || loaded.meta.n_actors != self.n_actors()
             || loaded.meta.actor != self.actor_shape
         {
@@ -413,12 +425,11 @@ impl Learner {
                 self.actor_shape
             );
         }
-        for (prefix, vars) in [
-            ("", &self.actor_vars),
-            ("target.", &self.actor_target_vars),
-            ("", &self.critic_vars),
-            ("target.", &self.critic_target_vars),
-        ] {
+        let mut parts = vec![("", &self.actor_vars), ("target.", &self.actor_target_vars)];
+        if !actor_only {
+            parts.extend([("", &self.critic_vars), ("target.", &self.critic_target_vars)]);
+        }
+        for (prefix, vars) in parts {
             let data = vars
                 .data()
                 .lock()
@@ -440,7 +451,14 @@ impl Learner {
                 var.set(tensor)?;
             }
         }
-        if let Some(updates) = loaded.meta.extra.get("updates").and_then(|u| u.parse().ok()) {
+        if actor_only {
+            eprintln!(
+                "critic: {} was trained on {} robots; its shared actor carries over, the critic for {} starts fresh",
+                path.display(),
+                loaded.meta.n_agents,
+                self.n_agents
+            );
+        } else if let Some(updates) = loaded.meta.extra.get("updates").and_then(|u| u.parse().ok()) {
             self.updates = updates;
         }
         Ok(())

@@ -6,11 +6,11 @@ use std::process::ExitCode;
 
 use anyhow::Result;
 use clap::Parser;
-use formation_agent::checkpoint;
 use formation_critic::run::{CriticOptions, run};
+use formation_model::checkpoint;
 use formation_protocol::cli::{Mode, RunArgs, prepare_run_dir};
 use formation_protocol::placement::Role;
-use formation_sim::view::ViewerMode;
+use formation_view::ViewerMode;
 use iceoryx2::prelude::*;
 
 /// Subscribes to the sim's state and every agent's observations and commands, assembles them

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
-use formation_agent::checkpoint::{BEST_FILE_NAME, FILE_NAME};
+use formation_model::checkpoint::{BEST_FILE_NAME, FILE_NAME};
 use formation_protocol::cli::{Mode, write_atomically};
 use formation_protocol::config::RunConfig;
 use formation_protocol::services::{self, FileDescriptorBased, RunIdentity, Sizing};
@@ -27,7 +27,8 @@ use serde::Serialize;
 use crate::collector::{Collector, FinishedEpisode};
 use crate::learner::{Learner, Losses};
 use crate::view::CurveView;
-use formation_sim::view::ViewerMode;
+use formation_core::task::Outcome;
+use formation_view::ViewerMode;
 
 /// Updates done between two drains of the streams (keeps flow control responsive).
 const UPDATES_PER_DRAIN: u64 = 8;
@@ -86,7 +87,7 @@ struct Rolling {
 
 impl Rolling {
     fn push(&mut self, finished: &FinishedEpisode) {
-        let success = finished.outcome == OUTCOME_SUCCESS;
+        let success = finished.outcome == Outcome::Success;
         self.episodes += 1;
         self.outcomes.push_back((success, finished.episode_return));
         if self.outcomes.len() > ROLLING_EPISODES {
@@ -130,7 +131,7 @@ impl<S: Service> WeightsPublisher<S> {
                     .publisher_builder()
                     .initial_max_slice_len(len)
                     .create()
-                    .map_err(|e| anyhow::anyhow!("critic: weights publisher {index}: {e:?}"))
+                    .with_context(|| format!("critic: weights publisher {index}"))
             })
             .collect::<Result<Vec<_>>>()?;
         Ok(Self { publishers, version: 0 })
@@ -139,9 +140,7 @@ impl<S: Service> WeightsPublisher<S> {
     /// Connects subscribers that appeared since the last publication (they get the history).
     fn update_connections(&self) -> Result<()> {
         for publisher in &self.publishers {
-            publisher
-                .update_connections()
-                .map_err(|e| anyhow::anyhow!("critic: weights connections: {e:?}"))?;
+            publisher.update_connections().context("critic: weights connections")?;
         }
         Ok(())
     }
@@ -154,7 +153,7 @@ impl<S: Service> WeightsPublisher<S> {
             let flat = learner.actor_weights(index)?;
             let mut sample = publisher
                 .loan_slice_uninit(flat.len())
-                .map_err(|e| anyhow::anyhow!("critic: loan weights: {e:?}"))?;
+                .context("critic: loan weights")?;
             *sample.user_header_mut() = WeightsHeader {
                 protocol_version: PROTOCOL_VERSION,
                 actor_index: index as u32,
@@ -162,9 +161,7 @@ impl<S: Service> WeightsPublisher<S> {
                 len: flat.len() as u32,
             };
             let sample = sample.write_from_slice(&flat);
-            sample
-                .send()
-                .map_err(|e| anyhow::anyhow!("critic: send weights: {e:?}"))?;
+            sample.send().context("critic: send weights")?;
         }
         Ok(())
     }
@@ -196,11 +193,11 @@ where
     let progress_publisher = services::critic_progress_stream(&node, &sizing)?
         .publisher_builder()
         .create()
-        .map_err(|e| anyhow::anyhow!("critic: progress publisher: {e:?}"))?;
+        .context("critic: progress publisher")?;
     let progress_ready = services::critic_progress_event(&node, &sizing)?
         .notifier_builder()
         .create()
-        .map_err(|e| anyhow::anyhow!("critic: progress notifier: {e:?}"))?;
+        .context("critic: progress notifier")?;
 
     let training = options.mode == Mode::Train;
     let mut learner = if training {
@@ -244,17 +241,17 @@ where
     let curves = CurveView::open(&options.viewer, &options.run_id, &options.run_dir)?;
 
     let started = Instant::now();
-    let mut last_tick_seen = Instant::now();
     let mut last_checkpoint = Instant::now();
     let mut last_report = Instant::now();
     let mut last_bar = Instant::now();
-    let silence = Duration::from_millis(config.ticks.sim_silence_ms);
-    let startup = Duration::from_secs(config.ticks.startup_timeout_s);
+    let mut sim_watch = services::SimWatch::new(
+        Duration::from_millis(config.ticks.sim_silence_ms),
+        Duration::from_secs(config.ticks.startup_timeout_s),
+    );
     // Not from the seeded generator: a restarted critic must differ from the one it replaces.
     let session = rand::random_range(1..u64::MAX);
     let mut paid_ticks = u64::MAX;
     let mut last_acknowledged = 0;
-    let mut warned_stall = false;
     publish_progress(&progress_publisher, &progress_ready, session, 0, &learner, &weights)?;
 
     loop {
@@ -295,7 +292,7 @@ where
             }
         }
         if collector.stats.ticks_received > before {
-            last_tick_seen = Instant::now();
+            sim_watch.heard();
         }
         if let Some(weights) = &weights {
             // Hands the latest weights (history 1) to agents that connected since.
@@ -307,26 +304,7 @@ where
         // A sim silent for `silence` is given up on once its process is gone (at once when it
         // was killed); a live one that stalls (a loaded machine) is waited for up to the
         // start-up limit, since a critic restart loses the replay.
-        let quiet = last_tick_seen.elapsed();
-        let gone = if collector.stats.ticks_received == 0 || quiet <= silence {
-            quiet > startup
-        } else if quiet > startup || !services::node_alive::<S>(identity, "sim")? {
-            true
-        } else {
-            if !warned_stall {
-                warned_stall = true;
-                eprintln!(
-                    "critic: the sim has been silent for {:.1} s but its process is alive; waiting up to {} s",
-                    quiet.as_secs_f64(),
-                    startup.as_secs()
-                );
-            }
-            false
-        };
-        if quiet <= silence {
-            warned_stall = false;
-        }
-        if gone {
+        if let Some(quiet) = sim_watch.gone::<S>(identity, "critic")? {
             if let Some(learner) = &learner {
                 learner.save(
                     &options.run_dir.join(FILE_NAME),
@@ -517,10 +495,8 @@ fn publish_progress<S: Service>(
             updates: learner.as_ref().map_or(0, Learner::updates),
             session,
         })
-        .map_err(|e| anyhow::anyhow!("critic: progress: {e:?}"))?;
-    ready
-        .notify()
-        .map_err(|e| anyhow::anyhow!("critic: progress notify: {e:?}"))?;
+        .context("critic: progress")?;
+    ready.notify().context("critic: progress notify")?;
     Ok(())
 }
 

@@ -4,7 +4,7 @@
 use std::path::Path;
 
 use anyhow::Result;
-use formation_sim::view::ViewerMode;
+use formation_view::ViewerMode;
 use rerun::RecordingStream;
 
 /// Training curves of one run.

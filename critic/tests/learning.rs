@@ -2,10 +2,11 @@
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
+use formation_core::features::CriticFeatures;
+use formation_core::observation::Layout;
 use formation_critic::learner::{Learner, soft_update};
+use formation_protocol::ACTION_DIM;
 use formation_protocol::config::{Algorithm, EnvConfig, LearnConfig};
-use formation_protocol::{ACTION_DIM, OBS_DIM};
-use formation_replay::features::state_dim;
 use formation_replay::sample::Batch;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -26,17 +27,22 @@ fn small_config(algorithm: Algorithm) -> (EnvConfig, LearnConfig) {
     (env, learn)
 }
 
-fn random_batch(n: usize, h: usize, b: usize, seed: u64) -> Batch {
+fn random_batch(env: &EnvConfig, n: usize, b: usize, seed: u64) -> Batch {
     let mut rng = StdRng::seed_from_u64(seed);
     let mut fill = |len: usize| (0..len).map(|_| rng.random_range(-1.0f32..1.0)).collect::<Vec<_>>();
+    let h = env.history;
+    let od = Layout::of(env.observation).dim();
+    let sd = CriticFeatures::new(n, env.observation).dim();
     Batch {
         batch_size: b,
         n_agents: n,
         history: h,
-        observations: fill(b * n * h * OBS_DIM),
-        next_observations: fill(b * n * h * OBS_DIM),
-        states: fill(b * h * state_dim(n)),
-        next_states: fill(b * h * state_dim(n)),
+        obs_dim: od,
+        state_dim: sd,
+        observations: fill(b * n * h * od),
+        next_observations: fill(b * n * h * od),
+        states: fill(b * h * sd),
+        next_states: fill(b * h * sd),
         actions: fill(b * h * n * ACTION_DIM),
         rewards: fill(b),
         terminals: vec![0.0; b],
@@ -61,7 +67,7 @@ fn td_targets(learner: &mut Learner, batch: &Batch) -> Vec<f32> {
 fn terminal_masks_the_target_and_truncation_does_not() {
     let (env, learn) = small_config(Algorithm::Ddpg);
     let mut learner = Learner::new(3, &env, &learn, 1).expect("learner");
-    let mut batch = random_batch(3, env.history, 8, 2);
+    let mut batch = random_batch(&env, 3, 8, 2);
     for b in 0..8 {
         batch.terminals[b] = if b % 2 == 0 { 1.0 } else { 0.0 };
     }
@@ -119,7 +125,7 @@ fn critic_loss_falls_on_a_fixed_batch() {
     for algorithm in [Algorithm::Ddpg, Algorithm::Td3] {
         let (env, learn) = small_config(algorithm);
         let mut learner = Learner::new(3, &env, &learn, 3).expect("learner");
-        let mut batch = random_batch(3, env.history, 32, 4);
+        let mut batch = random_batch(&env, 3, 32, 4);
         batch.terminals = vec![1.0; 32]; // y = r: a fixed regression target
         let target = Tensor::from_slice(&batch.rewards, (32, 1), &Device::Cpu).expect("target");
         let before = learner
@@ -174,7 +180,7 @@ fn independent_actors_have_one_network_per_robot() {
     };
     let mut learner = Learner::new(3, &env, &learn, 8).expect("learner");
     assert_eq!(learner.n_actors(), 3);
-    let batch = random_batch(3, env.history, 16, 9);
+    let batch = random_batch(&env, 3, 16, 9);
     let losses = learner.update(&batch).expect("update");
     assert!(losses.critic.is_finite() && losses.actor.is_some());
 }

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
 
-use crate::config::{RunConfig, validate_agent_count};
+use crate::config::{FormationShape, RunConfig, validate_agent_count};
 use crate::placement::{self, Placement, Role};
 use crate::services::RunIdentity;
 
@@ -57,6 +57,10 @@ pub struct RunArgs {
     /// the operating system.
     #[arg(long, value_enum, default_value_t = Placement::Auto)]
     pub placement: Placement,
+    /// Formation shape of every episode (overrides `env.shape` of the config): random rigid
+    /// shapes, or a named one drawn at a random size and orientation.
+    #[arg(long, value_enum)]
+    pub shape: Option<FormationShape>,
 }
 
 impl RunArgs {
@@ -64,10 +68,13 @@ impl RunArgs {
     pub fn load(&self) -> Result<(RunIdentity, RunConfig)> {
         validate_agent_count(self.agents)?;
         let identity = RunIdentity::new(&self.run_id)?;
-        let config = match &self.config {
+        let mut config = match &self.config {
             Some(path) => RunConfig::from_toml_file(path)?,
             None => RunConfig::default(),
         };
+        if let Some(shape) = self.shape {
+            config.env.shape = shape;
+        }
         Ok((identity, config))
     }
 

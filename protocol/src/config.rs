@@ -1,4 +1,5 @@
-//! The run configuration: one serde struct with defaults from the paper and DESIGN.md.
+//! The run configuration: one serde struct with the paper's defaults (docs/RESULTS.md says
+//! where and why this project departs from them).
 //!
 //! Every process reads the same file (`config.toml` in the run directory), so the sim, the
 //! agents and the critic can never disagree on dt, tolerances or network shapes.
@@ -61,6 +62,15 @@ pub struct EnvConfig {
     pub r_goal: f64,
     /// Reward otherwise.
     pub r_penalty: f64,
+    /// What each robot is told every tick (see `formation_core::observation`): `paper` (the
+    /// paper's 12 floats: two neighbours and the goal), `slot` (also the robot's own place in
+    /// the goal formation) or `slot_proximity` (also the nearest robot it does not track).
+    pub observation: ObservationModel,
+    /// Formation shapes of the episodes: `random` (rigid random shapes), `ring`, `line`,
+    /// `wedge`, `grid`, or `mixed` (each episode one of those, drawn uniformly).
+    pub shape: FormationShape,
+    /// Range of the `slot_proximity` model's nearest-robot term, metres.
+    pub proximity_range_m: f64,
     /// Ticks of history the actor and the critic see (H). The paper uses 15; the default, 1, is
     /// what learned fastest here (see docs/RESULTS.md); `configs/paper.toml` sets 15.
     pub history: usize,
@@ -86,7 +96,82 @@ impl Default for EnvConfig {
             r_collision: -100.0,
             r_goal: 50.0,
             r_penalty: -0.5,
+            observation: ObservationModel::default(),
+            shape: FormationShape::Random,
+            proximity_range_m: 1.0,
             history: 1,
+        }
+    }
+}
+
+/// What each robot observes (layouts in `formation_core::observation`).
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+#[value(rename_all = "snake_case")]
+pub enum ObservationModel {
+    /// The paper's 12 floats: each neighbour's position, relative heading and desired distance,
+    /// then the goal.
+    Paper,
+    /// The paper's floats and the robot's own slot: the goal plus its offset in the goal
+    /// formation (14 floats).
+    Slot,
+    /// The slot model and the nearest robot that is not a neighbour (16 floats): the default,
+    /// since it is what lets one policy drive any number of robots.
+    #[default]
+    SlotProximity,
+}
+
+impl ObservationModel {
+    /// The name used in configs and checkpoints.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Paper => "paper",
+            Self::Slot => "slot",
+            Self::SlotProximity => "slot_proximity",
+        }
+    }
+
+    /// Reads a name written by [`ObservationModel::as_str`].
+    pub fn from_name(name: &str) -> Option<Self> {
+        [Self::Paper, Self::Slot, Self::SlotProximity]
+            .into_iter()
+            .find(|model| model.as_str() == name)
+    }
+}
+
+/// Formation shapes an episode may start in (every shape is drawn at a random size and
+/// orientation, with every observed edge in [edge_min_m, edge_max_m]).
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+#[value(rename_all = "snake_case")]
+pub enum FormationShape {
+    /// A random rigid shape (a perturbed, relaxed ring).
+    Random,
+    /// Robots evenly on a circle (two interleaved circles for large swarms).
+    Ring,
+    /// Two files side by side, as a column marches.
+    Line,
+    /// A V of two files, pointing in the direction of travel at the start.
+    Wedge,
+    /// A rectangular block, robots on a lattice.
+    Grid,
+    /// Every episode one of the above, drawn uniformly (for training that sees every shape).
+    Mixed,
+}
+
+impl FormationShape {
+    /// Every kind a `mixed` run draws from.
+    pub const KINDS: [FormationShape; 5] = [Self::Random, Self::Ring, Self::Line, Self::Wedge, Self::Grid];
+
+    /// The name used in configs and reports.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Random => "random",
+            Self::Ring => "ring",
+            Self::Line => "line",
+            Self::Wedge => "wedge",
+            Self::Grid => "grid",
+            Self::Mixed => "mixed",
         }
     }
 }
@@ -118,15 +203,23 @@ impl EnvConfig {
         self.arena_m.max(needed)
     }
 
-    /// The farthest a robot of a random formation of `n_agents` can start from its centroid.
+    /// The farthest a robot of a formation of `n_agents` (of the configured shape) can start
+    /// from its centroid.
     pub fn formation_reach_m(&self, n_agents: usize) -> f64 {
-        if n_agents < LARGE_SWARM {
-            self.edge_max_m
-        } else {
+        let n = n_agents as f64;
+        // The named shapes' largest lattice spacing, and room for what the relaxation moves.
+        let spacing = (0.95 * 0.5 * self.edge_max_m).max(1.05 * self.edge_min_m);
+        let relax = self.edge_min_m;
+        let reach_of = |shape: FormationShape| EnvConfig { shape, ..self.clone() }.formation_reach_m(n_agents);
+        match self.shape {
+            FormationShape::Mixed => FormationShape::KINDS.map(reach_of).into_iter().fold(0.0, f64::max),
+            FormationShape::Random if n_agents < LARGE_SWARM => self.edge_max_m,
             // A ring whose second-neighbour chord is at most 1.3 edge_min, plus room for the
             // zig-zag and what the relaxation moves.
-            let ring = 1.3 * self.edge_min_m / (2.0 * (std::f64::consts::TAU / n_agents as f64).sin());
-            ring + self.edge_min_m
+            FormationShape::Random => 1.3 * self.edge_min_m / (2.0 * (std::f64::consts::TAU / n).sin()) + relax,
+            FormationShape::Ring => spacing / (2.0 * (std::f64::consts::PI / n).sin()) + relax,
+            FormationShape::Line | FormationShape::Wedge => (0.25 * n * spacing).hypot(spacing) + relax,
+            FormationShape::Grid => 0.75 * spacing * (n + 4.0).sqrt() + spacing + relax,
         }
     }
 }
@@ -407,6 +500,12 @@ impl RunConfig {
             "env.heading_jitter_rad",
             e.heading_jitter_rad,
             "must be >= 0",
+        )?;
+        check(
+            positive(e.proximity_range_m),
+            "env.proximity_range_m",
+            e.proximity_range_m,
+            "must be > 0",
         )?;
         for (field, value) in [
             ("env.r_edge", e.r_edge),

@@ -19,10 +19,8 @@ pub const MAX_AGENTS: usize = 64;
 pub const MIN_AGENTS: usize = 3;
 /// Neighbours each robot observes: (i+1) mod N and (i+2) mod N.
 pub const NEIGHBOURS: usize = 2;
-/// Per neighbour: relative x, y, cos and sin of relative heading, desired distance.
-pub const NEIGHBOUR_FEATURES: usize = 5;
-/// One observation: both neighbours then the goal's position, in the robot's own frame.
-pub const OBS_DIM: usize = NEIGHBOURS * NEIGHBOUR_FEATURES + 2;
+/// Room for the largest observation model's floats (layouts in `formation_core::observation`).
+pub const MAX_OBS_DIM: usize = 16;
 /// Actions are (v, w).
 pub const ACTION_DIM: usize = 2;
 

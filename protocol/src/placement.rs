@@ -13,7 +13,7 @@
 
 use std::sync::OnceLock;
 
-use anyhow::{Result, anyhow};
+use anyhow::{Context, Result};
 use clap::ValueEnum;
 use iceoryx2_bb_posix::thread::{ThreadHandle, ThreadProperties};
 
@@ -96,7 +96,7 @@ fn process_cpus() -> Result<&'static [usize]> {
     }
     let cpus = ThreadHandle::from_self()
         .get_affinity()
-        .map_err(|e| anyhow!("cannot read this process's CPU affinity: {e:?}"))?;
+        .context("cannot read this process's CPU affinity")?;
     Ok(CPUS.get_or_init(|| cpus))
 }
 

@@ -62,9 +62,9 @@ impl RunIdentity {
         config.global.prefix = FileName::new(self.shm_prefix().as_bytes())
             .map_err(|err| anyhow::anyhow!("bad shm prefix {}: {err:?}", self.shm_prefix()))?;
         let root = format!("{}/", self.root_path().display());
-        config.global.set_root_path(
-            &Path::new(root.as_bytes()).map_err(|err| anyhow::anyhow!("bad root path {root}: {err:?}"))?,
-        );
+        config
+            .global
+            .set_root_path(&Path::new(root.as_bytes()).with_context(|| format!("bad root path {root}"))?);
         Ok(config)
     }
 
@@ -90,16 +90,16 @@ impl RunIdentity {
 /// Creates a node of the run with a descriptive name (shown by `iox2 node list`).
 pub fn create_node<S: Service>(identity: &RunIdentity, name: &str) -> Result<Node<S>> {
     let config = identity.iceoryx_config()?;
-    let node_name = NodeName::new(name).map_err(|err| anyhow::anyhow!("bad node name {name}: {err:?}"))?;
+    let node_name = NodeName::new(name).with_context(|| format!("bad node name {name}"))?;
     NodeBuilder::new()
         .name(&node_name)
         .config(&config)
         .create::<S>()
-        .map_err(|err| anyhow::anyhow!("cannot create iceoryx2 node {name}: {err:?}"))
+        .with_context(|| format!("cannot create iceoryx2 node {name}"))
 }
 
 fn service_name(name: &str) -> Result<ServiceName> {
-    ServiceName::new(name).map_err(|err| anyhow::anyhow!("bad service name {name}: {err:?}"))
+    ServiceName::new(name).with_context(|| format!("bad service name {name}"))
 }
 
 /// Name of agent `agent`'s observation service.
@@ -195,7 +195,7 @@ where
         .history_size(history)
         .subscriber_max_buffer_size(sizing.stream_buffer.max(history))
         .open_or_create()
-        .map_err(|err| anyhow::anyhow!("cannot open service {name}: {err:?}"))
+        .with_context(|| format!("cannot open service {name}"))
 }
 
 fn event_service<S: Service>(node: &Node<S>, name: &str, sizing: &Sizing, notifiers: usize) -> Result<Event<S>> {
@@ -206,7 +206,7 @@ fn event_service<S: Service>(node: &Node<S>, name: &str, sizing: &Sizing, notifi
         .max_nodes(sizing.shared_nodes())
         .event_id_max_value(MAX_AGENTS)
         .open_or_create()
-        .map_err(|err| anyhow::anyhow!("cannot open event {name}: {err:?}"))
+        .with_context(|| format!("cannot open event {name}"))
 }
 
 /// Observation stream of one agent.
@@ -267,7 +267,6 @@ pub fn weights_stream<S: Service>(node: &Node<S>, sizing: &Sizing, actor_index: 
         .subscriber_max_buffer_size(2)
         .open_or_create()
         .with_context(|| format!("cannot open weights service {name}"))
-        .map_err(|err| anyhow::anyhow!("{err:?}"))
 }
 
 /// Blocks until `listener` is notified or `timeout` passes. A signal arriving meanwhile counts
@@ -332,8 +331,68 @@ pub fn node_alive<S: Service>(identity: &RunIdentity, name: &str) -> Result<bool
         }
         CallbackProgression::Continue
     })
-    .map_err(|err| anyhow::anyhow!("cannot list the run's iceoryx2 nodes: {err:?}"))?;
+    .context("cannot list the run's iceoryx2 nodes")?;
     Ok(alive)
+}
+
+/// Tells a sim that has gone from one that is silent but alive: a sim waiting for a slow critic,
+/// or stalled by a loaded machine, still holds a live iceoryx2 node; a killed one does not.
+#[derive(Debug)]
+pub struct SimWatch {
+    silence: std::time::Duration,
+    startup: std::time::Duration,
+    last_heard: std::time::Instant,
+    heard_any: bool,
+    warned: bool,
+}
+
+impl SimWatch {
+    /// A watch that starts worrying after `silence` and gives a live sim up to `startup` (the
+    /// same limit it has to start).
+    pub fn new(silence: std::time::Duration, startup: std::time::Duration) -> Self {
+        Self {
+            silence,
+            startup,
+            last_heard: std::time::Instant::now(),
+            heard_any: false,
+            warned: false,
+        }
+    }
+
+    /// The sim was just heard from.
+    pub fn heard(&mut self) {
+        self.last_heard = std::time::Instant::now();
+        self.heard_any = true;
+        self.warned = false;
+    }
+
+    /// True once anything was heard.
+    pub fn heard_any(&self) -> bool {
+        self.heard_any
+    }
+
+    /// `Some(silence)` when the sim is to be given up: silent past `silence` and its process
+    /// gone, or silent past `startup` whatever its state. `who` names the caller in the one
+    /// warning printed while a live sim is waited for.
+    pub fn gone<S: Service>(&mut self, identity: &RunIdentity, who: &str) -> Result<Option<std::time::Duration>> {
+        let quiet = self.last_heard.elapsed();
+        let gone = if !self.heard_any || quiet <= self.silence {
+            quiet > self.startup
+        } else if quiet > self.startup || !node_alive::<S>(identity, "sim")? {
+            true
+        } else {
+            if !self.warned {
+                self.warned = true;
+                eprintln!(
+                    "{who}: the sim has been silent for {:.1} s but its process is alive; waiting up to {} s",
+                    quiet.as_secs_f64(),
+                    self.startup.as_secs()
+                );
+            }
+            false
+        };
+        Ok(gone.then_some(quiet))
+    }
 }
 
 /// Converts an agent index into its event id.

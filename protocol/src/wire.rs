@@ -3,10 +3,10 @@
 
 use iceoryx2::prelude::ZeroCopySend;
 
-use crate::{ACTION_DIM, MAX_AGENTS, NEIGHBOURS, OBS_DIM};
+use crate::{ACTION_DIM, MAX_AGENTS, MAX_OBS_DIM, NEIGHBOURS};
 
 /// Bumped whenever a payload's layout or meaning changes.
-pub const PROTOCOL_VERSION: u32 = 1;
+pub const PROTOCOL_VERSION: u32 = 2;
 
 /// `Header::flags`: first tick of an episode (agents reset their history).
 pub const FLAG_EPISODE_START: u32 = 1;
@@ -63,9 +63,12 @@ pub struct ObservationMsg {
     pub agent: u32,
     /// Number of robots in the swarm.
     pub n_agents: u32,
-    /// For each of the 2 neighbours: x, y, cos(dtheta), sin(dtheta), desired distance; then the
-    /// goal's x, y. See `sim::observe`.
-    pub obs: [f32; OBS_DIM],
+    /// Floats of `obs` in use: the run's observation model (`env.observation`).
+    pub dim: u32,
+    /// The observation, laid out as `formation_core::observation` names it: for each of the 2
+    /// neighbours x, y, cos(dtheta), sin(dtheta), desired distance; the goal's x, y; then what
+    /// the model adds. Entries past `dim` are zero.
+    pub obs: [f32; MAX_OBS_DIM],
 }
 
 /// agent i -> sim: the command for one tick.
@@ -111,7 +114,7 @@ pub struct StateMsg {
     pub outcome: u32,
     /// Shared reward of the transition into this tick (0 at tick 0).
     pub reward: f32,
-    /// Robots whose command for the previous tick was missing (their last one was held).
+    /// How many robots' commands for the previous tick were missing (their last ones were held).
     pub missed: u32,
     /// Counts every state the sim publishes in this run, from 1 (flow control).
     pub sequence: u64,
@@ -121,6 +124,8 @@ pub struct StateMsg {
     pub applied: [[f32; ACTION_DIM]; MAX_AGENTS],
     /// Desired distance of each robot's two observed edges.
     pub desired: [[f32; NEIGHBOURS]; MAX_AGENTS],
+    /// Each robot's offset from the goal in the goal formation, world frame.
+    pub slots: [[f32; 2]; MAX_AGENTS],
     /// Goal of the formation's centroid, world frame.
     pub goal: [f32; 2],
 }
@@ -137,6 +142,7 @@ impl Default for StateMsg {
             poses: [[0.0; 3]; MAX_AGENTS],
             applied: [[0.0; ACTION_DIM]; MAX_AGENTS],
             desired: [[0.0; NEIGHBOURS]; MAX_AGENTS],
+            slots: [[0.0; 2]; MAX_AGENTS],
             goal: [0.0; 2],
         }
     }

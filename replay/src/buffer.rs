@@ -2,15 +2,16 @@
 
 use std::collections::VecDeque;
 
-use formation_protocol::{ACTION_DIM, NEIGHBOURS, OBS_DIM};
+use formation_core::features::TickState;
+use formation_protocol::{ACTION_DIM, MAX_OBS_DIM, NEIGHBOURS};
 
 /// One tick of one episode, for every robot.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Tick {
     /// World poses (x, y, theta).
     pub poses: Vec<[f32; 3]>,
-    /// What each robot observed.
-    pub observations: Vec<[f32; OBS_DIM]>,
+    /// What each robot observed (entries past the observation model's dimension are zero).
+    pub observations: Vec<[f32; MAX_OBS_DIM]>,
     /// Normalised action each robot executed from this tick (zero on the last tick).
     pub actions: Vec<[f32; ACTION_DIM]>,
     /// Reward of the transition from this tick to the next (0 on the last tick).
@@ -26,6 +27,8 @@ pub struct Episode {
     pub desired: Vec<[f32; NEIGHBOURS]>,
     /// Goal of the centroid, world frame.
     pub goal: [f32; 2],
+    /// Each robot's offset from the goal in the goal formation, world frame.
+    pub slots: Vec<[f32; 2]>,
     /// Ticks 0..=T; the transitions are t -> t+1 for t < T.
     pub ticks: Vec<Tick>,
     /// The last tick is terminal (success or collision): no bootstrapping from it.
@@ -36,6 +39,16 @@ impl Episode {
     /// Robots in the episode.
     pub fn n_agents(&self) -> usize {
         self.desired.len()
+    }
+
+    /// Tick `t`'s true state with `goal` (the episode's own, or a relabelled one).
+    pub fn state(&self, t: usize, goal: [f32; 2]) -> TickState<'_> {
+        TickState {
+            poses: &self.ticks[t].poses,
+            desired: &self.desired,
+            slots: &self.slots,
+            goal,
+        }
     }
 
     /// Transitions (ticks with an action).

@@ -1,12 +1,12 @@
-//! The central replay of the critic process.
+//! The central replay of the critic process. What it recomputes for HER (observations,
+//! rewards, the critic's features) is `formation_core`'s code, the sim's own.
 //!
 //! * [`buffer`]: whole episodes of joint ticks (true poses, every robot's observation, every
 //!   executed action, shared reward, terminal and truncation flags), evicted oldest first;
-//! * [`features`]: the critic's view of a tick (poses relative to the centroid) and the
-//!   observation recomputation HER needs;
+//! * [`record`]: an episode played in-process and recorded as the collector would;
 //! * [`sample`]: B concurrent sequences of H ticks from one episode each (the same ticks for
 //!   every robot), their next sequences, and the HER relabelling, as a named [`sample::Batch`].
 
 pub mod buffer;
-pub mod features;
+pub mod record;
 pub mod sample;

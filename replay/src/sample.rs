@@ -4,12 +4,13 @@
 //! window ending at t and the one ending at t+1, for every robot at the same ticks. Ticks before
 //! the episode's start repeat tick 0 (the padding the agents use too).
 
+use formation_core::features::{CriticFeatures, centroid, observation, transition_reward};
+use formation_core::observation::Observer;
+use formation_protocol::ACTION_DIM;
 use formation_protocol::config::EnvConfig;
-use formation_protocol::{ACTION_DIM, OBS_DIM};
 use rand::Rng;
 
 use crate::buffer::{Episode, ReplayBuffer};
-use crate::features::{centroid, observation, state_dim, transition_reward, write_state};
 
 /// A batch of B samples, every array row-major with the batch index first.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -20,9 +21,13 @@ pub struct Batch {
     pub n_agents: usize,
     /// H.
     pub history: usize,
-    /// [B, N, H * OBS_DIM]: each robot's observation window ending at t.
+    /// Floats per observation (the observation model's dimension).
+    pub obs_dim: usize,
+    /// Floats per tick of critic state.
+    pub state_dim: usize,
+    /// [B, N, H * obs_dim]: each robot's observation window ending at t.
     pub observations: Vec<f32>,
-    /// [B, N, H * OBS_DIM]: windows ending at t+1.
+    /// [B, N, H * obs_dim]: windows ending at t+1.
     pub next_observations: Vec<f32>,
     /// [B, H * state_dim]: critic state window ending at t.
     pub states: Vec<f32>,
@@ -45,12 +50,12 @@ pub struct Batch {
 impl Batch {
     /// Width of one robot's observation window.
     pub fn window_dim(&self) -> usize {
-        self.history * OBS_DIM
+        self.history * self.obs_dim
     }
 
     /// Width of the critic state window.
     pub fn state_window_dim(&self) -> usize {
-        self.history * state_dim(self.n_agents)
+        self.history * self.state_dim
     }
 
     /// Width of the joint action window.
@@ -71,6 +76,16 @@ pub struct Sampler {
 }
 
 impl Sampler {
+    /// The observation model of the environment (for relabelled observations).
+    pub fn observer(&self) -> Observer {
+        Observer::new(&self.env)
+    }
+
+    /// The critic state of `n_agents` robots.
+    pub fn features(&self, n_agents: usize) -> CriticFeatures {
+        CriticFeatures::new(n_agents, self.env.observation)
+    }
+
     /// B samples, transitions drawn uniformly over the buffer; `None` when it is empty.
     pub fn sample<R: Rng>(&self, buffer: &ReplayBuffer, batch_size: usize, rng: &mut R) -> Option<Batch> {
         let episodes = buffer.episodes();
@@ -78,13 +93,16 @@ impl Sampler {
         let first = episodes.front()?;
         let n = first.n_agents();
         let h = self.history;
-        let sd = state_dim(n);
+        let sd = self.features(n).dim();
+        let od = self.observer().dim();
         let mut batch = Batch {
             batch_size,
             n_agents: n,
             history: h,
-            observations: vec![0.0; batch_size * n * h * OBS_DIM],
-            next_observations: vec![0.0; batch_size * n * h * OBS_DIM],
+            obs_dim: od,
+            state_dim: sd,
+            observations: vec![0.0; batch_size * n * h * od],
+            next_observations: vec![0.0; batch_size * n * h * od],
             states: vec![0.0; batch_size * h * sd],
             next_states: vec![0.0; batch_size * h * sd],
             actions: vec![0.0; batch_size * h * n * ACTION_DIM],
@@ -116,7 +134,9 @@ impl Sampler {
     pub fn fill<R: Rng>(&self, batch: &mut Batch, b: usize, episode: &Episode, t: usize, rng: &mut R) {
         let n = batch.n_agents;
         let h = self.history;
-        let sd = state_dim(n);
+        let (sd, od) = (batch.state_dim, batch.obs_dim);
+        let features = self.features(n);
+        let observer = self.observer();
         let last = episode.ticks.len() - 1;
         debug_assert!(t < last);
         let relabel = rng.random_bool(self.her_probability);
@@ -134,23 +154,18 @@ impl Sampler {
             let frame = episode.ticks[end].poses[0][2];
             for k in 0..h {
                 let tick = &episode.ticks[window_tick(end, k)];
+                let state = episode.state(window_tick(end, k), goal);
                 for agent in 0..n {
-                    let offset = ((b * n + agent) * h + k) * OBS_DIM;
+                    let offset = ((b * n + agent) * h + k) * od;
                     let obs = if relabel {
-                        observation(agent, &tick.poses, &episode.desired, goal)
+                        observation(&observer, agent, &state)
                     } else {
                         tick.observations[agent]
                     };
-                    observations[offset..offset + OBS_DIM].copy_from_slice(&obs);
+                    observations[offset..offset + od].copy_from_slice(&obs[..od]);
                 }
                 let offset = (b * h + k) * sd;
-                write_state(
-                    &mut states[offset..offset + sd],
-                    &tick.poses,
-                    goal,
-                    &episode.desired,
-                    frame,
-                );
+                features.write(&mut states[offset..offset + sd], &state, frame);
             }
         }
         for k in 0..h {
@@ -161,14 +176,7 @@ impl Sampler {
             }
         }
         let (reward, terminal) = if relabel {
-            let (r, terminal) = transition_reward(
-                &episode.ticks[t + 1].poses,
-                &episode.desired,
-                goal,
-                (t + 1) as u32,
-                &self.env,
-            );
-            (r, terminal)
+            transition_reward(&episode.state(t + 1, goal), (t + 1) as u32, &self.env)
         } else {
             (episode.ticks[t].reward, episode.is_terminal_transition(t))
         };

@@ -1,11 +1,19 @@
-//! The physics process: unicycle robots, the paper's reward, random episodes and the lockstep
-//! tick loop that drives the agents over iceoryx2.
+//! The physics process: it owns the clock and the true state, runs the lockstep tick loop that
+//! drives the robots over iceoryx2, and reports (episodes.csv, summary.json, the Rerun world
+//! view, the paper's figures). The task itself (physics, reward, observations) is
+//! `formation_core`.
+//!
+//! * [`lockstep`]: the process's loop: connect, play episodes tick by tick, report;
+//! * [`ports`]: the sim's ends of the services, and publishing observations and states;
+//! * [`commands`]: one tick's command wait and its bookkeeping (missed, late, malformed);
+//! * [`critic_link`]: flow control towards the critic;
+//! * [`report`], [`plots`], [`view`]: `episodes.csv` and `summary.json`, the PNG figures,
+//!   the live Rerun view.
 
-pub mod formation;
+pub mod commands;
+pub mod critic_link;
 pub mod lockstep;
-pub mod physics;
 pub mod plots;
+pub mod ports;
 pub mod report;
-pub mod task;
 pub mod view;
-pub mod world;

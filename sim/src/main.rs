@@ -7,7 +7,8 @@ use clap::Parser;
 use formation_protocol::cli::{Mode, RunArgs, prepare_run_dir};
 use formation_protocol::placement::Role;
 use formation_sim::lockstep::{SimOptions, run};
-use formation_sim::view::{self, ViewerMode};
+use formation_sim::view;
+use formation_view::ViewerMode;
 use iceoryx2::prelude::*;
 
 /// Steps the unicycle physics, scores the paper's reward and drives N agent processes in

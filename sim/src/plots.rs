@@ -8,6 +8,8 @@ use std::path::Path;
 use anyhow::{Result, anyhow};
 use plotters::prelude::*;
 
+use formation_core::task::Outcome;
+
 use crate::report::EpisodeRecord;
 
 /// Size of every figure, pixels.
@@ -74,7 +76,7 @@ pub fn learning_curve(path: &Path, records: &[EpisodeRecord]) -> Result<()> {
     let returns: Vec<f64> = records.iter().map(|r| r.episode_return).collect();
     let successes: Vec<f64> = records
         .iter()
-        .map(|r| if r.outcome == "success" { 1.0 } else { 0.0 })
+        .map(|r| if r.outcome == Outcome::Success { 1.0 } else { 0.0 })
         .collect();
     let episodes = records.len().max(2) as f64;
     let (lo, hi) = range(returns.iter().copied());
@@ -216,7 +218,7 @@ mod tests {
         let records: Vec<EpisodeRecord> = (0..150)
             .map(|i| EpisodeRecord {
                 episode: i,
-                outcome: if i % 3 == 0 { "success" } else { "timeout" },
+                outcome: if i % 3 == 0 { Outcome::Success } else { Outcome::Timeout },
                 steps: 100,
                 episode_return: f64::from(i) * 0.1 - 5.0,
                 final_edge_error_m: 0.01,

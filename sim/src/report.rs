@@ -6,15 +6,16 @@ use anyhow::{Context, Result};
 use formation_protocol::summary::Summary;
 use serde::Serialize;
 
-use crate::task::Outcome;
+use formation_core::task::Outcome;
 
 /// One row of `episodes.csv`.
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct EpisodeRecord {
     /// Episode counter.
     pub episode: u32,
-    /// `success`, `collision`, `timeout` or `aborted`.
-    pub outcome: &'static str,
+    /// How it ended: `success`, `collision`, `timeout` or `aborted` in the file.
+    #[serde(serialize_with = "outcome_name")]
+    pub outcome: Outcome,
     /// Steps taken.
     pub steps: u32,
     /// Undiscounted sum of rewards.
@@ -31,14 +32,9 @@ pub struct EpisodeRecord {
     pub wall_s: f64,
 }
 
-/// Name of an outcome in files.
-pub fn outcome_name(outcome: Option<Outcome>) -> &'static str {
-    match outcome {
-        Some(Outcome::Success) => "success",
-        Some(Outcome::Collision) => "collision",
-        Some(Outcome::Timeout) => "timeout",
-        Some(Outcome::Running) | None => "aborted",
-    }
+/// Writes an outcome by its name.
+fn outcome_name<S: serde::Serializer>(outcome: &Outcome, serializer: S) -> Result<S::Ok, S::Error> {
+    serializer.serialize_str(outcome.as_str())
 }
 
 /// Appends records to `episodes.csv` as episodes end, so a killed run keeps what it did.
@@ -75,17 +71,17 @@ impl EpisodeLog {
 /// Fills the episode figures of `summary` from the records (aborted episodes are left out of
 /// the rates, since they did not run to an outcome).
 pub fn fill_episode_figures(summary: &mut Summary, records: &[EpisodeRecord]) {
-    let finished: Vec<&EpisodeRecord> = records.iter().filter(|r| r.outcome != "aborted").collect();
+    let finished: Vec<&EpisodeRecord> = records.iter().filter(|r| r.outcome != Outcome::Aborted).collect();
     let count = finished.len() as f64;
     summary.episodes = finished.len() as u64;
     if finished.is_empty() {
         return;
     }
-    let rate = |name: &str| finished.iter().filter(|r| r.outcome == name).count() as f64 / count;
+    let rate = |outcome: Outcome| finished.iter().filter(|r| r.outcome == outcome).count() as f64 / count;
     let mean = |f: &dyn Fn(&EpisodeRecord) -> f64| finished.iter().map(|r| f(r)).sum::<f64>() / count;
-    summary.success_rate = rate("success");
-    summary.collision_rate = rate("collision");
-    summary.timeout_rate = rate("timeout");
+    summary.success_rate = rate(Outcome::Success);
+    summary.collision_rate = rate(Outcome::Collision);
+    summary.timeout_rate = rate(Outcome::Timeout);
     summary.mean_final_edge_error_m = mean(&|r| r.final_edge_error_m);
     summary.mean_final_goal_distance_m = mean(&|r| r.final_goal_distance_m);
     summary.mean_return = mean(&|r| r.episode_return);
@@ -97,7 +93,7 @@ pub fn fill_episode_figures(summary: &mut Summary, records: &[EpisodeRecord]) {
         / total_steps.max(1.0);
     let successes: Vec<f64> = finished
         .iter()
-        .filter(|r| r.outcome == "success")
+        .filter(|r| r.outcome == Outcome::Success)
         .map(|r| f64::from(r.steps))
         .collect();
     summary.mean_steps_to_goal =

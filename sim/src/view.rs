@@ -1,9 +1,10 @@
 //! The live view of the world in Rerun, fed from the tick loop through a bounded channel so
 //! logging never waits on the physics (a full channel drops the state instead of blocking).
 //!
-//! Entities: `world/robots` (poses, labelled, one colour each), `world/headings`,
-//! `world/edges` (coloured by error), `world/goal`, `world/centroid`, `world/trails`; series
-//! `plots/formation/edge_error/*`, `plots/formation/goal_distance`, `plots/reward`.
+//! Entities: `world/robots` (poses, one colour each, labelled up to 24 robots),
+//! `world/headings`, `world/edges` (coloured by error), `world/goal`, `world/slots` (the goal
+//! formation), `world/centroid`, `world/trails`; series `plots/formation/edge_error/*` (one per
+//! edge up to 8 robots, else mean and max), `plots/formation/goal_distance`, `plots/reward`.
 //! Rerun's 2-D views are y-down, so y is flipped when logging.
 
 use std::collections::VecDeque;
@@ -11,69 +12,18 @@ use std::path::Path;
 use std::sync::mpsc::{Receiver, sync_channel};
 use std::thread::JoinHandle;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
 use formation_protocol::config::EnvConfig;
 use formation_protocol::neighbours;
 use formation_protocol::wire::{FLAG_EPISODE_START, StateMsg};
+use formation_view::ViewerMode;
+use rerun::RecordingStream;
 use rerun::blueprint::{Blueprint, Horizontal, Spatial2DView, TimeSeriesView, Vertical};
-use rerun::{RecordingStream, RecordingStreamBuilder};
 
 use crate::lockstep::StateTap;
 
-/// Application id shared by every process of a run, so sim and critic land in one recording.
-pub const APPLICATION_ID: &str = "formation-control";
 /// States the view may fall behind by before the sim starts dropping them.
 const TAP_CAPACITY: usize = 4096;
-
-/// Where the recording goes.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum ViewerMode {
-    /// Start the `rerun` viewer from PATH and stream to it.
-    Spawn,
-    /// Write `<stem>.rrd` into the run directory.
-    Save,
-    /// No recording.
-    Off,
-    /// Stream to a running viewer at this URL.
-    Connect(String),
-}
-
-impl ViewerMode {
-    /// Parses `spawn`, `save`, `off` or `connect=URL`.
-    pub fn parse(text: &str) -> Result<Self> {
-        Ok(match text {
-            "spawn" => Self::Spawn,
-            "save" => Self::Save,
-            "off" => Self::Off,
-            other => match other.strip_prefix("connect=") {
-                Some(url) if !url.is_empty() => Self::Connect(url.to_string()),
-                _ => bail!("--viewer must be spawn, save, off or connect=URL, got {other:?}"),
-            },
-        })
-    }
-
-    /// Opens a recording stream for this mode (`None` when off). `spawn_viewer` is false for
-    /// the processes that only join a viewer the sim spawned.
-    pub fn open(
-        &self,
-        run_id: &str,
-        run_dir: &Path,
-        stem: &str,
-        spawn_viewer: bool,
-    ) -> Result<Option<RecordingStream>> {
-        let builder = RecordingStreamBuilder::new(APPLICATION_ID).recording_id(run_id.to_string());
-        let stream = match self {
-            Self::Off => return Ok(None),
-            Self::Save => builder.save(run_dir.join(format!("{stem}.rrd")))?,
-            Self::Connect(url) => builder.connect_grpc_opts(url.clone())?,
-            Self::Spawn if spawn_viewer => builder
-                .spawn()
-                .context("cannot start the `rerun` viewer (pip install rerun-sdk==0.36.3)")?,
-            Self::Spawn => builder.connect_grpc()?,
-        };
-        Ok(Some(stream))
-    }
-}
 
 /// The default layout: the world beside the formation and training curves.
 pub fn blueprint() -> Blueprint {
@@ -215,13 +165,16 @@ impl WorldView {
         let flip = |x: f32, y: f32| [x, -y];
         let positions: Vec<[f32; 2]> = state.poses[..n].iter().map(|p| flip(p[0], p[1])).collect();
         let colours: Vec<[u8; 3]> = (0..n).map(robot_colour).collect();
-        self.stream.log(
-            "world/robots",
-            &rerun::Points2D::new(positions.iter().copied())
-                .with_radii([0.12])
-                .with_colors(colours.iter().copied())
-                .with_labels((0..n).map(|i| format!("robot {i}"))),
-        )?;
+        let robots = rerun::Points2D::new(positions.iter().copied())
+            .with_radii([0.12])
+            .with_colors(colours.iter().copied());
+        // Labels drown a large swarm's picture: names up to 12 robots, bare numbers up to 24.
+        let robots = match n {
+            0..=12 => robots.with_labels((0..n).map(|i| format!("robot {i}"))),
+            13..=24 => robots.with_labels((0..n).map(|i| i.to_string())),
+            _ => robots,
+        };
+        self.stream.log("world/robots", &robots)?;
         self.stream.log(
             "world/headings",
             &rerun::Arrows2D::from_vectors(state.poses[..n].iter().map(|p| [0.35 * p[2].cos(), -0.35 * p[2].sin()]))
@@ -231,6 +184,7 @@ impl WorldView {
         // Each undirected observed edge once, coloured by its error.
         let mut strips = Vec::with_capacity(2 * n);
         let mut edge_colours = Vec::with_capacity(2 * n);
+        let (mut error_sum, mut error_max) = (0.0f32, 0.0f32);
         for i in 0..n {
             for (k, j) in neighbours(i, n).into_iter().enumerate() {
                 if n == 3 && j < i {
@@ -243,6 +197,8 @@ impl WorldView {
                 let error = ((dx * dx + dy * dy).sqrt() - state.desired[i][k]).abs();
                 strips.push(vec![positions[i], positions[j]]);
                 edge_colours.push(error_colour(error, self.eps_form));
+                error_sum += error;
+                error_max = error_max.max(error);
                 if n <= 8 {
                     self.stream.log(
                         format!("plots/formation/edge_error/e{i}{j}"),
@@ -251,11 +207,32 @@ impl WorldView {
                 }
             }
         }
+        if n > 8 {
+            // One series per edge would be a wall of lines: the mean and the worst instead.
+            let mean = error_sum / strips.len().max(1) as f32;
+            for (name, value) in [("mean", mean), ("max", error_max)] {
+                self.stream.log(
+                    format!("plots/formation/edge_error/{name}"),
+                    &rerun::Scalars::single(f64::from(value)),
+                )?;
+            }
+        }
         self.stream.log(
             "world/edges",
             &rerun::LineStrips2D::new(strips)
                 .with_colors(edge_colours)
                 .with_radii([0.03]),
+        )?;
+        // The goal formation: where each robot's slot is (the start shape moved to the goal).
+        self.stream.log(
+            "world/slots",
+            &rerun::Points2D::new(
+                state.slots[..n]
+                    .iter()
+                    .map(|s| flip(state.goal[0] + s[0], state.goal[1] + s[1])),
+            )
+            .with_radii([0.05])
+            .with_colors([[170, 170, 170]]),
         )?;
         let centroid = positions.iter().fold([0.0f32; 2], |acc, p| {
             [acc[0] + p[0] / n as f32, acc[1] + p[1] / n as f32]

@@ -6,7 +6,7 @@
 
 use std::time::{Duration, Instant};
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::Parser;
 use formation_protocol::services::{self, RunIdentity, Sizing};
 use formation_protocol::wire::{CommandMsg, FLAG_HELLO, Header, PROTOCOL_VERSION};
@@ -43,12 +43,12 @@ fn main() -> Result<()> {
     let publisher = services::command_stream(&node, &sizing, cli.agent)?
         .publisher_builder()
         .create()
-        .map_err(|e| anyhow::anyhow!("publisher: {e:?}"))?;
+        .context("publisher")?;
     let notifier = services::command_event(&node, &sizing)?
         .notifier_builder()
         .default_event_id(services::agent_event_id(cli.agent))
         .create()
-        .map_err(|e| anyhow::anyhow!("notifier: {e:?}"))?;
+        .context("notifier")?;
     let started = Instant::now();
     let mut sent = 0u64;
     while started.elapsed().as_secs_f64() < cli.seconds {
@@ -69,8 +69,8 @@ fn main() -> Result<()> {
                 session: 1,
                 ..good
             };
-            publisher.send_copy(hello).map_err(|e| anyhow::anyhow!("send: {e:?}"))?;
-            notifier.notify().map_err(|e| anyhow::anyhow!("notify: {e:?}"))?;
+            publisher.send_copy(hello).context("send")?;
+            notifier.notify().context("notify")?;
             sent += 1;
             std::thread::sleep(Duration::from_millis(20));
             continue;
@@ -98,10 +98,10 @@ fn main() -> Result<()> {
             },
         ];
         for msg in bad {
-            publisher.send_copy(msg).map_err(|e| anyhow::anyhow!("send: {e:?}"))?;
+            publisher.send_copy(msg).context("send")?;
             sent += 1;
         }
-        notifier.notify().map_err(|e| anyhow::anyhow!("notify: {e:?}"))?;
+        notifier.notify().context("notify")?;
         std::thread::sleep(Duration::from_millis(20));
     }
     println!("sent {sent} messages");

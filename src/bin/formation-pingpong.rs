@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use anyhow::{Context, Result, anyhow};
+use anyhow::{Context, Result};
 use clap::{Parser, ValueEnum};
 use formation_protocol::placement::{self, Placement, Role};
 use formation_protocol::services::RunIdentity;
@@ -49,10 +49,10 @@ fn iox_events(
     let identity = RunIdentity::new(name)?;
     let node = formation_protocol::services::create_node::<ipc::Service>(&identity, "pingpong")?;
     let open = |suffix: &str| {
-        node.service_builder(&ServiceName::new(&format!("pingpong/{suffix}")).map_err(|e| anyhow!("{e:?}"))?)
+        node.service_builder(&ServiceName::new(&format!("pingpong/{suffix}")).map_err(anyhow::Error::from)?)
             .event()
             .open_or_create()
-            .map_err(|e| anyhow!("event {suffix}: {e:?}"))
+            .with_context(|| format!("event {suffix}"))
     };
     let ping = open("ping")?;
     let pong = open("pong")?;
@@ -64,12 +64,12 @@ fn child(cli: &Cli, name: &str) -> Result<()> {
     match cli.transport {
         Transport::Iceoryx2 => {
             let (_node, [ping, pong]) = iox_events(name)?;
-            let listener = ping.listener_builder().create().map_err(|e| anyhow!("{e:?}"))?;
-            let notifier = pong.notifier_builder().create().map_err(|e| anyhow!("{e:?}"))?;
-            notifier.notify().map_err(|e| anyhow!("{e:?}"))?; // ready
+            let listener = ping.listener_builder().create().map_err(anyhow::Error::from)?;
+            let notifier = pong.notifier_builder().create().map_err(anyhow::Error::from)?;
+            notifier.notify().map_err(anyhow::Error::from)?; // ready
             for _ in 0..total {
-                listener.blocking_wait(|_| {}).map_err(|e| anyhow!("{e:?}"))?;
-                notifier.notify().map_err(|e| anyhow!("{e:?}"))?;
+                listener.blocking_wait(|_| {}).map_err(anyhow::Error::from)?;
+                notifier.notify().map_err(anyhow::Error::from)?;
             }
         }
         Transport::Uds => {
@@ -117,14 +117,14 @@ fn main() -> Result<()> {
     match cli.transport {
         Transport::Iceoryx2 => {
             let (_node, [ping, pong]) = iox_events(&name)?;
-            let notifier = ping.notifier_builder().create().map_err(|e| anyhow!("{e:?}"))?;
-            let listener = pong.listener_builder().create().map_err(|e| anyhow!("{e:?}"))?;
+            let notifier = ping.notifier_builder().create().map_err(anyhow::Error::from)?;
+            let listener = pong.listener_builder().create().map_err(anyhow::Error::from)?;
             let mut echo = spawn_child(&name)?;
-            listener.blocking_wait(|_| {}).map_err(|e| anyhow!("{e:?}"))?;
+            listener.blocking_wait(|_| {}).map_err(anyhow::Error::from)?;
             for i in 0..cli.round_trips + WARMUP {
                 let start = Instant::now();
-                notifier.notify().map_err(|e| anyhow!("{e:?}"))?;
-                listener.blocking_wait(|_| {}).map_err(|e| anyhow!("{e:?}"))?;
+                notifier.notify().map_err(anyhow::Error::from)?;
+                listener.blocking_wait(|_| {}).map_err(anyhow::Error::from)?;
                 if i >= WARMUP {
                     samples.push(start.elapsed());
                 }

@@ -8,6 +8,8 @@ use anyhow::{Context, Result, bail};
 use candle_core::{Device, Tensor};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
+use formation_protocol::config::ObservationModel;
+
 use crate::actor::ActorShape;
 
 /// Marks files written by this project.
@@ -17,11 +19,16 @@ pub const FILE_NAME: &str = "checkpoint.safetensors";
 /// The best checkpoint (by rolling success rate) inside a run directory.
 pub const BEST_FILE_NAME: &str = "best.safetensors";
 
+/// Observation width of the files written before the metadata named their observation model.
+const PAPER_OBS_DIM: usize = 12;
+
 /// What a checkpoint describes.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CheckpointMeta {
     /// Robots the critic was trained for.
     pub n_agents: usize,
+    /// What the robots observed (checkpoints from before the models existed: `paper`).
+    pub observation: ObservationModel,
     /// Number of actors stored (1 when shared).
     pub n_actors: usize,
     /// The actors' shape.
@@ -36,6 +43,8 @@ impl CheckpointMeta {
         map.insert("format".into(), FORMAT.into());
         map.insert("n_agents".into(), self.n_agents.to_string());
         map.insert("n_actors".into(), self.n_actors.to_string());
+        map.insert("observation".into(), self.observation.as_str().into());
+        map.insert("obs_dim".into(), self.actor.obs_dim.to_string());
         map.insert("history".into(), self.actor.history.to_string());
         map.insert("actor_hidden".into(), format!("{:?}", self.actor.hidden));
         map
@@ -60,15 +69,48 @@ impl CheckpointMeta {
         };
         let hidden: Vec<usize> = serde_json::from_str(field("actor_hidden")?)
             .with_context(|| format!("checkpoint {}: metadata actor_hidden is not a list", path.display()))?;
+        // Files written before observation models existed hold the paper's 12 floats.
+        let observation = match map.get("observation") {
+            None => ObservationModel::Paper,
+            Some(name) => ObservationModel::from_name(name)
+                .with_context(|| format!("checkpoint {}: unknown observation model {name:?}", path.display()))?,
+        };
+        let obs_dim = if map.contains_key("obs_dim") {
+            number("obs_dim")?
+        } else {
+            PAPER_OBS_DIM
+        };
         Ok(Self {
             n_agents: number("n_agents")?,
+            observation,
             n_actors: number("n_actors")?,
             actor: ActorShape {
+                obs_dim,
                 history: number("history")?,
                 hidden,
             },
             extra: map.clone(),
         })
+    }
+}
+
+impl CheckpointMeta {
+    /// Refuses a checkpoint trained on another observation than the run's, saying what to do.
+    pub fn check_observation(&self, path: &Path, run_model: ObservationModel, run_dim: usize) -> Result<()> {
+        if self.observation != run_model || self.actor.obs_dim != run_dim {
+            bail!(
+                "checkpoint {} was trained on the {:?} observation ({} floats), but this run observes {:?} \
+                 ({run_dim} floats): set env.observation = \"{}\" in the --config file, or use a checkpoint \
+                 trained on {:?}",
+                path.display(),
+                self.observation.as_str(),
+                self.actor.obs_dim,
+                run_model.as_str(),
+                self.observation.as_str(),
+                run_model.as_str()
+            );
+        }
+        Ok(())
     }
 }
 
@@ -196,6 +238,7 @@ mod tests {
     fn round_trip_and_bad_files() {
         let dir = temp_dir("rt");
         let shape = ActorShape {
+            obs_dim: 14,
             history: 2,
             hidden: vec![4],
         };
@@ -213,6 +256,7 @@ mod tests {
             .collect();
         let meta = CheckpointMeta {
             n_agents: 3,
+            observation: ObservationModel::Slot,
             n_actors: 1,
             actor: shape.clone(),
             extra: HashMap::new(),
@@ -221,6 +265,20 @@ mod tests {
         save(&path, &tensors, &meta).expect("save");
         let loaded = load(&path).expect("load");
         assert_eq!(loaded.meta.actor, shape);
+        assert_eq!(loaded.meta.observation, ObservationModel::Slot);
+        loaded
+            .meta
+            .check_observation(&path, ObservationModel::Slot, 14)
+            .expect("same observation");
+        let refusal = loaded
+            .meta
+            .check_observation(&path, ObservationModel::Paper, 12)
+            .expect_err("another observation is refused")
+            .to_string();
+        assert!(
+            refusal.contains("\"slot\" observation (14 floats)") && refusal.contains("\"paper\" (12 floats)"),
+            "{refusal}"
+        );
         let flat = loaded.actor_weights(5).expect("shared actor serves any robot");
         assert_eq!(flat.len(), shape.parameter_count());
         assert_eq!(resolve(&dir).expect("dir resolves"), path);

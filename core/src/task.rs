@@ -1,10 +1,11 @@
-//! The task: what each robot observes, the paper's conditions C1-C3 and its reward table.
+//! The task: the paper's conditions C1-C3, its reward table and how an episode ends.
 //!
 //! Pure functions shared by the sim (online) and the replay (HER relabelling), so a relabelled
 //! reward is computed by exactly the code that produced the original one.
 
 use formation_protocol::config::EnvConfig;
-use formation_protocol::{NEIGHBOURS, OBS_DIM, neighbours};
+use formation_protocol::wire::{OUTCOME_ABORTED, OUTCOME_COLLISION, OUTCOME_RUNNING, OUTCOME_SUCCESS, OUTCOME_TIMEOUT};
+use formation_protocol::{NEIGHBOURS, neighbours};
 
 use crate::physics::Pose;
 
@@ -13,34 +14,6 @@ pub fn centroid(poses: &[Pose]) -> [f64; 2] {
     let n = poses.len().max(1) as f64;
     let (sx, sy) = poses.iter().fold((0.0, 0.0), |(sx, sy), p| (sx + p.x, sy + p.y));
     [sx / n, sy / n]
-}
-
-/// A world-frame point expressed in the frame of a robot at `pose` (x ahead, y to the left).
-pub fn to_robot_frame(pose: &Pose, point: [f64; 2]) -> [f64; 2] {
-    let (dx, dy) = (point[0] - pose.x, point[1] - pose.y);
-    let (s, c) = pose.theta.sin_cos();
-    [c * dx + s * dy, -s * dx + c * dy]
-}
-
-/// What robot `agent` observes: for each neighbour its position, relative heading (cos, sin)
-/// and desired distance, then the goal, all in the robot's own frame.
-pub fn observe(agent: usize, poses: &[Pose], desired: &[[f64; NEIGHBOURS]], goal: [f64; 2]) -> [f32; OBS_DIM] {
-    let me = &poses[agent];
-    let mut obs = [0.0f32; OBS_DIM];
-    for (k, &other) in neighbours(agent, poses.len()).iter().enumerate() {
-        let rel = to_robot_frame(me, [poses[other].x, poses[other].y]);
-        let (s, c) = (poses[other].theta - me.theta).sin_cos();
-        let base = k * formation_protocol::NEIGHBOUR_FEATURES;
-        obs[base] = rel[0] as f32;
-        obs[base + 1] = rel[1] as f32;
-        obs[base + 2] = c as f32;
-        obs[base + 3] = s as f32;
-        obs[base + 4] = desired[agent][k] as f32;
-    }
-    let g = to_robot_frame(me, goal);
-    obs[OBS_DIM - 2] = g[0] as f32;
-    obs[OBS_DIM - 1] = g[1] as f32;
-    obs
 }
 
 /// The conditions of the paper's Table I at one state.
@@ -110,6 +83,8 @@ pub enum Outcome {
     Collision,
     /// Time limit (truncation: the value of the next state still counts).
     Timeout,
+    /// The run was stopped mid-episode (truncation, like the time limit).
+    Aborted,
 }
 
 impl Outcome {
@@ -118,15 +93,44 @@ impl Outcome {
         matches!(self, Outcome::Success | Outcome::Collision)
     }
 
-    /// The wire code (`OUTCOME_*`).
+    /// The wire code (`StateMsg::outcome`).
     pub fn code(self) -> u32 {
-        use formation_protocol::wire::*;
         match self {
             Outcome::Running => OUTCOME_RUNNING,
             Outcome::Success => OUTCOME_SUCCESS,
             Outcome::Collision => OUTCOME_COLLISION,
             Outcome::Timeout => OUTCOME_TIMEOUT,
+            Outcome::Aborted => OUTCOME_ABORTED,
         }
+    }
+
+    /// The name used in files and reports.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Outcome::Running => "running",
+            Outcome::Success => "success",
+            Outcome::Collision => "collision",
+            Outcome::Timeout => "timeout",
+            Outcome::Aborted => "aborted",
+        }
+    }
+}
+
+impl TryFrom<u32> for Outcome {
+    type Error = u32;
+
+    /// Reads a wire code; an unknown code is handed back.
+    fn try_from(code: u32) -> Result<Self, u32> {
+        [
+            Outcome::Running,
+            Outcome::Success,
+            Outcome::Collision,
+            Outcome::Timeout,
+            Outcome::Aborted,
+        ]
+        .into_iter()
+        .find(|outcome| outcome.code() == code)
+        .ok_or(code)
     }
 }
 
@@ -183,34 +187,6 @@ mod tests {
     }
 
     #[test]
-    fn neighbour_straight_ahead_is_plus_x() {
-        let me = Pose {
-            x: 1.0,
-            y: 1.0,
-            theta: std::f64::consts::FRAC_PI_2,
-        };
-        let p = to_robot_frame(&me, [1.0, 3.0]);
-        assert!((p[0] - 2.0).abs() < 1e-12 && p[1].abs() < 1e-12);
-        let left = to_robot_frame(&me, [0.0, 1.0]);
-        assert!(
-            left[0].abs() < 1e-12 && (left[1] - 1.0).abs() < 1e-12,
-            "a point to the robot's left is at +y"
-        );
-    }
-
-    #[test]
-    fn observation_layout() {
-        let (mut poses, desired) = triangle();
-        poses[1].theta = 0.5;
-        let obs = observe(0, &poses, &desired, [0.0, 2.0]);
-        assert!((obs[0] - 1.0).abs() < 1e-6 && obs[1].abs() < 1e-6);
-        assert!((obs[2] - 0.5f32.cos()).abs() < 1e-6 && (obs[3] - 0.5f32.sin()).abs() < 1e-6);
-        assert!((obs[4] - 1.0).abs() < 1e-6);
-        assert!((obs[5] - 0.5).abs() < 1e-6 && (obs[6] - 0.8).abs() < 1e-6);
-        assert!(obs[10].abs() < 1e-6 && (obs[11] - 2.0).abs() < 1e-6);
-    }
-
-    #[test]
     fn reward_table_and_priority() {
         let env = EnvConfig::default();
         let (poses, desired) = triangle();
@@ -236,5 +212,20 @@ mod tests {
         let col = conditions(&crashed, &desired, centroid(&crashed), &env);
         assert_eq!(reward(&col, env.max_steps, &env), (env.r_collision, Outcome::Collision));
         assert!(Outcome::Collision.is_terminal() && Outcome::Success.is_terminal() && !Outcome::Timeout.is_terminal());
+        assert!(!Outcome::Aborted.is_terminal());
+    }
+
+    #[test]
+    fn outcome_codes_round_trip_and_unknown_codes_are_refused() {
+        for outcome in [
+            Outcome::Running,
+            Outcome::Success,
+            Outcome::Collision,
+            Outcome::Timeout,
+            Outcome::Aborted,
+        ] {
+            assert_eq!(Outcome::try_from(outcome.code()), Ok(outcome));
+        }
+        assert_eq!(Outcome::try_from(99), Err(99));
     }
 }

@@ -1,11 +1,12 @@
 //! One episode's world: poses, formation, goal, and the step that applies the robots' commands.
 
 use formation_protocol::config::EnvConfig;
-use formation_protocol::{NEIGHBOURS, OBS_DIM};
+use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS};
 
 use crate::formation::EpisodeInit;
+use crate::observation::{Observer, Scene};
 use crate::physics::{Pose, integrate};
-use crate::task::{Conditions, Outcome, conditions, observe, reward};
+use crate::task::{Conditions, Outcome, conditions, reward};
 
 /// The true state of an episode.
 #[derive(Debug, Clone)]
@@ -20,6 +21,10 @@ pub struct World {
     pub desired: Vec<[f64; NEIGHBOURS]>,
     /// Goal of the centroid.
     pub goal: [f64; 2],
+    /// Each robot's offset from the goal in the goal formation, world frame.
+    pub slots: Vec<[f64; 2]>,
+    /// The run's observation model.
+    pub observer: Observer,
     /// Steps taken in this episode.
     pub steps: u32,
 }
@@ -45,6 +50,8 @@ impl World {
             poses: init.poses,
             desired: init.desired,
             goal: init.goal,
+            slots: init.slots,
+            observer: Observer::new(env),
             steps: 0,
         }
     }
@@ -54,9 +61,19 @@ impl World {
         self.poses.len()
     }
 
-    /// Robot `agent`'s observation now.
-    pub fn observation(&self, agent: usize) -> [f32; OBS_DIM] {
-        observe(agent, &self.poses, &self.desired, self.goal)
+    /// The true state the observations are computed from.
+    pub fn scene(&self) -> Scene<'_> {
+        Scene {
+            poses: &self.poses,
+            desired: &self.desired,
+            goal: self.goal,
+            slots: &self.slots,
+        }
+    }
+
+    /// Robot `agent`'s observation now (entries past the model's dimension are zero).
+    pub fn observation(&self, agent: usize) -> [f32; MAX_OBS_DIM] {
+        self.observer.observation(agent, &self.scene())
     }
 
     /// C1-C3 now.

@@ -11,12 +11,14 @@
 
 use candle_core::{Module, Tensor};
 use candle_nn::{Linear, VarBuilder};
-use formation_protocol::{ACTION_DIM, OBS_DIM};
+use formation_protocol::ACTION_DIM;
 use nalgebra::{DMatrix, DMatrixView, DVector, DVectorView};
 
 /// Sizes of an actor.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ActorShape {
+    /// Floats per observation (the observation model's dimension).
+    pub obs_dim: usize,
     /// Observations in the input window (H).
     pub history: usize,
     /// Widths of the hidden layers.
@@ -24,9 +26,9 @@ pub struct ActorShape {
 }
 
 impl ActorShape {
-    /// Width of the input row: H * OBS_DIM.
+    /// Width of the input row: H * obs_dim.
     pub fn input_dim(&self) -> usize {
-        self.history * OBS_DIM
+        self.history * self.obs_dim
     }
 
     fn layer_dims(&self) -> Vec<(usize, usize)> {
@@ -81,7 +83,7 @@ impl Actor {
         Ok(Self { layers })
     }
 
-    /// Actions in [-1, 1]^2 for a batch of flattened windows (rows of H * OBS_DIM).
+    /// Actions in [-1, 1]^2 for a batch of flattened windows (rows of H * obs_dim).
     pub fn forward(&self, windows: &Tensor) -> candle_core::Result<Tensor> {
         let mut x = windows.clone();
         for (i, layer) in self.layers.iter().enumerate() {
@@ -149,7 +151,7 @@ impl FrozenActor {
         Ok(())
     }
 
-    /// The action in [-1, 1]^2 for one flattened window (H * OBS_DIM values).
+    /// The action in [-1, 1]^2 for one flattened window (H * obs_dim values).
     pub fn act(&mut self, window: &[f32]) -> anyhow::Result<[f32; ACTION_DIM]> {
         anyhow::ensure!(
             window.len() == self.shape.input_dim(),
@@ -207,6 +209,7 @@ mod tests {
     #[test]
     fn frozen_actor_acts_as_the_trained_network() {
         let shape = ActorShape {
+            obs_dim: 12,
             history: 4,
             hidden: vec![16, 8],
         };

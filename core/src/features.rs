@@ -1,0 +1,173 @@
+//! What the critic sees of a tick, and the recomputations HER needs (observations and rewards
+//! for a new goal) on the replay's `f32` copy of the true state.
+//!
+//! The critic state of a tick: each robot's position relative to that tick's centroid and its
+//! heading (cos, sin), the goal relative to the centroid, the desired edge lengths, and for
+//! the observation models with slots each robot's slot offset. All of it is rotated into one
+//! frame per window, the heading of robot 0 at the window's last tick, so the critic does not
+//! have to learn every rotation of the same scene.
+//!
+//! For N = 3 and the paper's observation that is 4 * 3 + 2 + 2 * 3 = 20 floats a tick; the
+//! paper's critic sees every robot's observation instead (3 * 12 = 36 floats), which holds the
+//! same relative geometry in three frames.
+
+use formation_protocol::config::{EnvConfig, ObservationModel};
+use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS};
+
+use crate::observation::{Layout, Observer, Scene};
+use crate::physics::Pose;
+use crate::task::{conditions, reward};
+
+/// One tick of the true state as the replay stores it.
+#[derive(Debug, Clone, Copy)]
+pub struct TickState<'a> {
+    /// World poses (x, y, theta).
+    pub poses: &'a [[f32; 3]],
+    /// Desired length of each robot's observed edges.
+    pub desired: &'a [[f32; NEIGHBOURS]],
+    /// Each robot's offset from the goal in the goal formation, world frame.
+    pub slots: &'a [[f32; 2]],
+    /// Goal of the centroid, world frame.
+    pub goal: [f32; 2],
+}
+
+/// Layout of one tick of critic state for a swarm of `n_agents`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CriticFeatures {
+    /// Robots in the swarm.
+    pub n_agents: usize,
+    /// Whether the robots' slot offsets are part of the state.
+    pub slots: bool,
+}
+
+impl CriticFeatures {
+    /// The features for `n_agents` robots observing with `model`.
+    pub fn new(n_agents: usize, model: ObservationModel) -> Self {
+        Self {
+            n_agents,
+            slots: Layout::of(model).slot().is_some(),
+        }
+    }
+
+    /// Floats per tick.
+    pub fn dim(&self) -> usize {
+        let n = self.n_agents;
+        4 * n + 2 + NEIGHBOURS * n + if self.slots { 2 * n } else { 0 }
+    }
+
+    /// Writes one tick into `out` (length [`CriticFeatures::dim`]), rotated by `-frame`.
+    pub fn write(&self, out: &mut [f32], tick: &TickState, frame: f32) {
+        let n = self.n_agents;
+        debug_assert_eq!(out.len(), self.dim());
+        let c = centroid(tick.poses);
+        let (s, co) = frame.sin_cos();
+        let rotate = |dx: f32, dy: f32| [co * dx + s * dy, -s * dx + co * dy];
+        for (i, p) in tick.poses.iter().enumerate() {
+            let r = rotate(p[0] - c[0], p[1] - c[1]);
+            let (hs, hc) = (p[2] - frame).sin_cos();
+            out[4 * i..4 * i + 4].copy_from_slice(&[r[0], r[1], hc, hs]);
+        }
+        let g = rotate(tick.goal[0] - c[0], tick.goal[1] - c[1]);
+        out[4 * n..4 * n + 2].copy_from_slice(&g);
+        let desired_at = 4 * n + 2;
+        for (i, d) in tick.desired.iter().enumerate() {
+            out[desired_at + NEIGHBOURS * i..desired_at + NEIGHBOURS * (i + 1)].copy_from_slice(d);
+        }
+        if self.slots {
+            let slots_at = desired_at + NEIGHBOURS * n;
+            for (i, slot) in tick.slots.iter().enumerate() {
+                out[slots_at + 2 * i..slots_at + 2 * i + 2].copy_from_slice(&rotate(slot[0], slot[1]));
+            }
+        }
+    }
+}
+
+/// Converts wire poses to physics poses.
+pub fn to_poses(poses: &[[f32; 3]]) -> Vec<Pose> {
+    poses
+        .iter()
+        .map(|p| Pose {
+            x: f64::from(p[0]),
+            y: f64::from(p[1]),
+            theta: f64::from(p[2]),
+        })
+        .collect()
+}
+
+fn widen<const K: usize>(values: &[[f32; K]]) -> Vec<[f64; K]> {
+    values.iter().map(|v| v.map(f64::from)).collect()
+}
+
+/// The centroid of a tick's poses.
+pub fn centroid(poses: &[[f32; 3]]) -> [f32; 2] {
+    let n = poses.len() as f32;
+    let (sx, sy) = poses.iter().fold((0.0, 0.0), |(sx, sy), p| (sx + p[0], sy + p[1]));
+    [sx / n, sy / n]
+}
+
+/// What robot `agent` observes in `tick`: the sim's own observation model.
+pub fn observation(observer: &Observer, agent: usize, tick: &TickState) -> [f32; MAX_OBS_DIM] {
+    let poses = to_poses(tick.poses);
+    let desired = widen(tick.desired);
+    let slots = widen(tick.slots);
+    let scene = Scene {
+        poses: &poses,
+        desired: &desired,
+        goal: tick.goal.map(f64::from),
+        slots: &slots,
+    };
+    observer.observation(agent, &scene)
+}
+
+/// Reward and terminal flag of reaching `tick` after `steps` steps: the sim's own reward code.
+pub fn transition_reward(tick: &TickState, steps: u32, env: &EnvConfig) -> (f32, bool) {
+    let c = conditions(
+        &to_poses(tick.poses),
+        &widen(tick.desired),
+        tick.goal.map(f64::from),
+        env,
+    );
+    let (r, outcome) = reward(&c, steps, env);
+    (r as f32, outcome.is_terminal())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn state_is_centroid_relative_and_rotated_into_robot_zeros_heading() {
+        // Robot 0 faces +y; the centroid is (1, 1); the goal is 2 m along +y from it.
+        let poses = [
+            [1.0, 0.0, std::f32::consts::FRAC_PI_2],
+            [2.0, 2.0, 0.0],
+            [0.0, 1.0, std::f32::consts::PI],
+        ];
+        let desired = [[1.0, 1.5], [1.2, 1.3], [1.4, 1.6]];
+        let slots = [[0.0, -1.0], [1.0, 1.0], [-1.0, 0.0]];
+        let tick = TickState {
+            poses: &poses,
+            desired: &desired,
+            slots: &slots,
+            goal: [1.0, 3.0],
+        };
+        let features = CriticFeatures::new(3, ObservationModel::Slot);
+        assert_eq!(features.dim(), 12 + 2 + 6 + 6);
+        let mut out = vec![0.0; features.dim()];
+        features.write(&mut out, &tick, std::f32::consts::FRAC_PI_2);
+        let close = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-5);
+        // World +y is the frame's +x, world +x its -y.
+        assert!(close(&out[0..4], &[-1.0, 0.0, 1.0, 0.0]), "robot 0: {:?}", &out[0..4]);
+        assert!(close(&out[4..8], &[1.0, -1.0, 0.0, -1.0]), "robot 1: {:?}", &out[4..8]);
+        assert!(close(&out[8..12], &[0.0, 1.0, 0.0, 1.0]), "robot 2: {:?}", &out[8..12]);
+        assert!(close(&out[12..14], &[2.0, 0.0]), "goal: {:?}", &out[12..14]);
+        assert!(close(&out[14..20], &[1.0, 1.5, 1.2, 1.3, 1.4, 1.6]), "desired");
+        assert!(
+            close(&out[20..26], &[-1.0, 0.0, 1.0, -1.0, 0.0, 1.0]),
+            "slots: {:?}",
+            &out[20..26]
+        );
+        // The paper's observation has no slots in the critic state.
+        assert_eq!(CriticFeatures::new(3, ObservationModel::Paper).dim(), 20);
+    }
+}

@@ -1,0 +1,16 @@
+//! The formation-control task, free of any transport: what the sim computes online and what
+//! the critic's replay recomputes for HER are the same functions from here.
+//!
+//! * [`physics`]: unicycle poses and their exact integration over a step;
+//! * [`formation`]: formation shapes (random and named) and random episodes;
+//! * [`observation`]: the observation models, their named layout and what a robot sees;
+//! * [`task`]: conditions C1-C3, the paper's reward and the episode [`task::Outcome`];
+//! * [`world`]: one episode's true state and the step that applies the robots' commands;
+//! * [`features`]: the critic's view of a tick (poses relative to the centroid).
+
+pub mod features;
+pub mod formation;
+pub mod observation;
+pub mod physics;
+pub mod task;
+pub mod world;

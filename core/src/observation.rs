@@ -1,0 +1,346 @@
+//! What a robot is told each tick, in its own frame (x ahead, y to the left): the observation
+//! models, their layout named in one place, and the function that computes them.
+//!
+//! Every model starts with the paper's 12 floats; the others append to them:
+//!
+//! | floats | `paper` | `slot` | `slot_proximity` |
+//! |---|---|---|---|
+//! | 0..5 | neighbour (i+1) mod N: x, y, cos and sin of its relative heading, desired distance | same | same |
+//! | 5..10 | neighbour (i+2) mod N, the same five | same | same |
+//! | 10..12 | the formation's goal (for its centroid) | same | same |
+//! | 12..14 | - | the robot's own slot: the goal plus its offset in the goal formation | same |
+//! | 14..16 | - | - | the nearest robot that is not a neighbour, as `(1 - d/R) * unit vector` within R, else 0 |
+//!
+//! The slot is what displacement-based formation control gives each robot: with it a robot
+//! knows where the formation's centroid must end up relative to itself at any N, which its own
+//! triangle cannot tell it once N > 3. The proximity term lets robots of a large swarm avoid
+//! robots they do not track. A robot never reads the true state: the sim computes these from
+//! it and sends each robot its own.
+
+use formation_protocol::config::{EnvConfig, ObservationModel};
+use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS, neighbours};
+
+use crate::physics::Pose;
+
+/// Floats per observed neighbour.
+pub const NEIGHBOUR_FEATURES: usize = 5;
+
+/// Where each quantity sits in an observation of one model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Layout {
+    /// The model this layout belongs to.
+    pub model: ObservationModel,
+}
+
+impl Layout {
+    /// The layout of `model`.
+    pub const fn of(model: ObservationModel) -> Self {
+        Self { model }
+    }
+
+    /// Floats in one observation.
+    pub const fn dim(self) -> usize {
+        match self.model {
+            ObservationModel::Paper => 12,
+            ObservationModel::Slot => 14,
+            ObservationModel::SlotProximity => 16,
+        }
+    }
+
+    /// Start of neighbour `k`'s block: x, y, cos, sin, desired distance.
+    pub const fn neighbour(self, k: usize) -> usize {
+        k * NEIGHBOUR_FEATURES
+    }
+
+    /// Start of the goal's (x, y).
+    pub const fn goal(self) -> usize {
+        NEIGHBOURS * NEIGHBOUR_FEATURES
+    }
+
+    /// Start of the robot's own slot (x, y), if the model has one.
+    pub const fn slot(self) -> Option<usize> {
+        match self.model {
+            ObservationModel::Paper => None,
+            ObservationModel::Slot | ObservationModel::SlotProximity => Some(self.goal() + 2),
+        }
+    }
+
+    /// Start of the proximity term (x, y), if the model has one.
+    pub const fn proximity(self) -> Option<usize> {
+        match self.model {
+            ObservationModel::SlotProximity => Some(self.goal() + 4),
+            ObservationModel::Paper | ObservationModel::Slot => None,
+        }
+    }
+}
+
+/// One observed neighbour, read from an observation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NeighbourView {
+    /// Position in the observer's frame, metres.
+    pub position: [f64; 2],
+    /// cos and sin of its heading relative to the observer's.
+    pub relative_heading: [f64; 2],
+    /// Desired distance to it, metres.
+    pub desired: f64,
+}
+
+/// Named read access to one observation.
+#[derive(Debug, Clone, Copy)]
+pub struct ObservationView<'a> {
+    layout: Layout,
+    values: &'a [f32],
+}
+
+impl<'a> ObservationView<'a> {
+    /// Reads `values` (at least `layout.dim()` floats) as an observation of `layout`.
+    pub fn new(layout: Layout, values: &'a [f32]) -> Self {
+        debug_assert!(values.len() >= layout.dim());
+        Self { layout, values }
+    }
+
+    fn pair(&self, at: usize) -> [f64; 2] {
+        [f64::from(self.values[at]), f64::from(self.values[at + 1])]
+    }
+
+    /// Neighbour `k` (0: (i+1) mod N, 1: (i+2) mod N).
+    pub fn neighbour(&self, k: usize) -> NeighbourView {
+        let at = self.layout.neighbour(k);
+        NeighbourView {
+            position: self.pair(at),
+            relative_heading: self.pair(at + 2),
+            desired: f64::from(self.values[at + 4]),
+        }
+    }
+
+    /// The formation's goal.
+    pub fn goal(&self) -> [f64; 2] {
+        self.pair(self.layout.goal())
+    }
+
+    /// The robot's own slot, if the model has one.
+    pub fn slot(&self) -> Option<[f64; 2]> {
+        self.layout.slot().map(|at| self.pair(at))
+    }
+
+    /// The proximity term, if the model has one.
+    pub fn proximity(&self) -> Option<[f64; 2]> {
+        self.layout.proximity().map(|at| self.pair(at))
+    }
+}
+
+/// A world-frame point expressed in the frame of a robot at `pose` (x ahead, y to the left).
+pub fn to_robot_frame(pose: &Pose, point: [f64; 2]) -> [f64; 2] {
+    let (dx, dy) = (point[0] - pose.x, point[1] - pose.y);
+    let (s, c) = pose.theta.sin_cos();
+    [c * dx + s * dy, -s * dx + c * dy]
+}
+
+/// What the observation is computed from: the true state of one tick.
+#[derive(Debug, Clone, Copy)]
+pub struct Scene<'a> {
+    /// Every robot's pose.
+    pub poses: &'a [Pose],
+    /// Desired length of each robot's two observed edges.
+    pub desired: &'a [[f64; NEIGHBOURS]],
+    /// Goal of the centroid, world frame.
+    pub goal: [f64; 2],
+    /// Each robot's offset from the goal in the goal formation, world frame.
+    pub slots: &'a [[f64; 2]],
+}
+
+/// Computes observations of one model; allocation-free.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Observer {
+    /// The layout written.
+    pub layout: Layout,
+    proximity_range_m: f64,
+}
+
+impl Observer {
+    /// The observer the run's environment asks for.
+    pub fn new(env: &EnvConfig) -> Self {
+        Self {
+            layout: Layout::of(env.observation),
+            proximity_range_m: env.proximity_range_m,
+        }
+    }
+
+    /// Floats per observation.
+    pub fn dim(&self) -> usize {
+        self.layout.dim()
+    }
+
+    /// Writes what robot `agent` sees in `scene` into `out[..dim]`; the rest of `out` is zeroed.
+    pub fn observe(&self, agent: usize, scene: &Scene, out: &mut [f32]) {
+        debug_assert!(out.len() >= self.dim());
+        out.fill(0.0);
+        let me = &scene.poses[agent];
+        let n = scene.poses.len();
+        let observed = neighbours(agent, n);
+        for (k, &other) in observed.iter().enumerate() {
+            let at = self.layout.neighbour(k);
+            let rel = to_robot_frame(me, [scene.poses[other].x, scene.poses[other].y]);
+            let (s, c) = (scene.poses[other].theta - me.theta).sin_cos();
+            out[at..at + NEIGHBOUR_FEATURES]
+                .copy_from_slice(&[rel[0], rel[1], c, s, scene.desired[agent][k]].map(|v| v as f32));
+        }
+        let goal = to_robot_frame(me, scene.goal);
+        let at = self.layout.goal();
+        out[at..at + 2].copy_from_slice(&goal.map(|v| v as f32));
+        if let Some(at) = self.layout.slot() {
+            let offset = scene.slots[agent];
+            let slot = to_robot_frame(me, [scene.goal[0] + offset[0], scene.goal[1] + offset[1]]);
+            out[at..at + 2].copy_from_slice(&slot.map(|v| v as f32));
+        }
+        if let Some(at) = self.layout.proximity() {
+            let range = self.proximity_range_m;
+            let nearest = (0..n)
+                .filter(|&j| j != agent && !observed.contains(&j))
+                .map(|j| (j, (scene.poses[j].x - me.x).hypot(scene.poses[j].y - me.y)))
+                .min_by(|a, b| a.1.total_cmp(&b.1));
+            if let Some((j, d)) = nearest.filter(|&(_, d)| d < range) {
+                let rel = to_robot_frame(me, [scene.poses[j].x, scene.poses[j].y]);
+                let weight = (1.0 - d / range) / d.max(1e-9);
+                out[at..at + 2].copy_from_slice(&[(rel[0] * weight) as f32, (rel[1] * weight) as f32]);
+            }
+        }
+    }
+
+    /// What robot `agent` sees, as a fixed-size array (entries past `dim` are zero).
+    pub fn observation(&self, agent: usize, scene: &Scene) -> [f32; MAX_OBS_DIM] {
+        let mut out = [0.0; MAX_OBS_DIM];
+        self.observe(agent, scene, &mut out);
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pose(x: f64, y: f64, theta: f64) -> Pose {
+        Pose { x, y, theta }
+    }
+
+    fn observer(model: ObservationModel) -> Observer {
+        Observer::new(&EnvConfig {
+            observation: model,
+            ..EnvConfig::default()
+        })
+    }
+
+    #[test]
+    fn neighbour_straight_ahead_is_plus_x() {
+        let me = pose(1.0, 1.0, std::f64::consts::FRAC_PI_2);
+        let p = to_robot_frame(&me, [1.0, 3.0]);
+        assert!((p[0] - 2.0).abs() < 1e-12 && p[1].abs() < 1e-12);
+        let left = to_robot_frame(&me, [0.0, 1.0]);
+        assert!(
+            left[0].abs() < 1e-12 && (left[1] - 1.0).abs() < 1e-12,
+            "a point to the left is at +y"
+        );
+    }
+
+    #[test]
+    fn paper_layout_matches_the_paper() {
+        let poses = [pose(0.0, 0.0, 0.0), pose(1.0, 0.0, 0.5), pose(0.5, 0.8, 0.0)];
+        let desired = [[1.0, 0.9], [1.1, 1.2], [1.3, 1.4]];
+        let slots = [[0.0; 2]; 3];
+        let scene = Scene {
+            poses: &poses,
+            desired: &desired,
+            goal: [0.0, 2.0],
+            slots: &slots,
+        };
+        let observer = observer(ObservationModel::Paper);
+        assert_eq!(observer.dim(), 12);
+        let obs = observer.observation(0, &scene);
+        let expected = [
+            1.0,
+            0.0,
+            0.5f32.cos(),
+            0.5f32.sin(),
+            1.0,
+            0.5,
+            0.8,
+            1.0,
+            0.0,
+            0.9,
+            0.0,
+            2.0,
+        ];
+        for (i, (got, want)) in obs.iter().zip(expected).enumerate() {
+            assert!((got - want).abs() < 1e-6, "float {i}: {got} vs {want}");
+        }
+        assert!(
+            obs[12..].iter().all(|&v| v == 0.0),
+            "nothing past the paper's 12 floats"
+        );
+        let view = ObservationView::new(observer.layout, &obs);
+        assert_eq!(view.neighbour(1).position, [0.5f32 as f64, 0.8f32 as f64]);
+        assert_eq!(view.goal(), [0.0, 2.0]);
+        assert!(view.slot().is_none() && view.proximity().is_none());
+    }
+
+    #[test]
+    fn slot_is_goal_plus_offset_in_the_robots_frame() {
+        // Robot 0 faces +y from (2, 1); its slot offset is (1, 0) from the goal (2, 3), so the
+        // slot (3, 3) is 2 m ahead and 1 m to its right.
+        let poses = [
+            pose(2.0, 1.0, std::f64::consts::FRAC_PI_2),
+            pose(3.0, 1.0, 0.0),
+            pose(2.5, 2.0, 0.0),
+        ];
+        let desired = [[1.0, 1.0]; 3];
+        let slots = [[1.0, 0.0], [0.0, 0.0], [0.0, 0.0]];
+        let scene = Scene {
+            poses: &poses,
+            desired: &desired,
+            goal: [2.0, 3.0],
+            slots: &slots,
+        };
+        let observer = observer(ObservationModel::Slot);
+        let obs = observer.observation(0, &scene);
+        let view = ObservationView::new(observer.layout, &obs);
+        let slot = view.slot().expect("slot model");
+        assert!((slot[0] - 2.0).abs() < 1e-6 && (slot[1] + 1.0).abs() < 1e-6, "{slot:?}");
+        assert!(view.proximity().is_none());
+        assert_eq!(observer.dim(), 14);
+    }
+
+    #[test]
+    fn proximity_sees_only_close_robots_it_does_not_track() {
+        // Robot 0 observes 1 and 2; robot 3 is 0.5 m to its left, robot 4 far away.
+        let poses = [
+            pose(0.0, 0.0, 0.0),
+            pose(1.0, 0.0, 0.0),
+            pose(0.0, -1.0, 0.0),
+            pose(0.0, 0.5, 0.0),
+            pose(5.0, 5.0, 0.0),
+        ];
+        let desired = [[1.0, 1.0]; 5];
+        let slots = [[0.0; 2]; 5];
+        let scene = Scene {
+            poses: &poses,
+            desired: &desired,
+            goal: [0.0, 0.0],
+            slots: &slots,
+        };
+        let observer = observer(ObservationModel::SlotProximity);
+        let view_of = |agent: usize| {
+            let obs = observer.observation(agent, &scene);
+            ObservationView::new(observer.layout, &obs)
+                .proximity()
+                .expect("proximity model")
+        };
+        let near = view_of(0);
+        let range = EnvConfig::default().proximity_range_m;
+        assert!(
+            near[0].abs() < 1e-6 && (near[1] - (1.0 - 0.5 / range)).abs() < 1e-6,
+            "{near:?}"
+        );
+        // Robot 4 tracks 0 and 1; everyone else is far: nothing in range.
+        assert_eq!(view_of(4), [0.0, 0.0]);
+    }
+}

@@ -1,0 +1,372 @@
+//! One tick's commands: waiting (event-driven) until every present robot has answered or the
+//! deadline passes, keeping each robot's valid answer, rejecting malformed ones, dropping late
+//! ones, and holding the last command of a robot that missed the tick.
+
+use std::time::Instant;
+
+use anyhow::Result;
+use formation_protocol::services::{self, FileDescriptorBased};
+use formation_protocol::wire::{CommandMsg, FLAG_HELLO, Header, PROTOCOL_VERSION};
+use iceoryx2::port::listener::Listener;
+use iceoryx2::prelude::*;
+
+use crate::ports::SimPorts;
+
+/// Consecutive missed ticks after which the sim stops waiting for a robot.
+pub const ABSENT_AFTER: u32 = 3;
+/// Malformed commands logged one by one before the log goes quiet (they are still counted).
+const REJECTIONS_LOGGED: u64 = 10;
+
+/// Which robots the sim waits for: one that missed [`ABSENT_AFTER`] ticks in a row is treated
+/// as gone (its last command is held without waiting) until it answers or greets again.
+#[derive(Debug, Clone)]
+pub struct Presence {
+    consecutive_misses: Vec<u32>,
+    sessions: Vec<u32>,
+}
+
+impl Presence {
+    /// Nobody has greeted yet.
+    pub fn new(n: usize) -> Self {
+        Self {
+            consecutive_misses: vec![0; n],
+            sessions: vec![0; n],
+        }
+    }
+
+    /// True while the sim does not wait for `agent`.
+    pub fn is_absent(&self, agent: usize) -> bool {
+        self.consecutive_misses[agent] >= ABSENT_AFTER
+    }
+
+    fn all_present_answered(&self, received: &[bool]) -> bool {
+        received
+            .iter()
+            .enumerate()
+            .all(|(agent, &got)| got || self.is_absent(agent))
+    }
+
+    fn record(&mut self, agent: usize, answered: bool) {
+        if answered {
+            self.consecutive_misses[agent] = 0;
+        } else {
+            self.consecutive_misses[agent] = self.consecutive_misses[agent].saturating_add(1);
+            if self.consecutive_misses[agent] == ABSENT_AFTER {
+                eprintln!(
+                    "sim: agent {agent} missed {ABSENT_AFTER} ticks in a row; holding its last command without waiting"
+                );
+            }
+        }
+    }
+
+    /// Records a greeting; true when it comes from a new process of a robot already known.
+    pub fn greeted(&mut self, agent: usize, session: u32) -> bool {
+        let previous = std::mem::replace(&mut self.sessions[agent], session);
+        if previous == session {
+            return false;
+        }
+        self.consecutive_misses[agent] = 0;
+        previous != 0
+    }
+}
+
+/// Why a command read from robot `agent`'s stream during tick `now` cannot be applied, if so.
+pub fn rejection(cmd: &CommandMsg, agent: usize, now: (u32, u32)) -> Option<&'static str> {
+    if cmd.header.protocol_version != PROTOCOL_VERSION {
+        Some("protocol version")
+    } else if cmd.agent as usize != agent {
+        Some("robot index")
+    } else if !(cmd.v.is_finite() && cmd.w.is_finite()) {
+        Some("non-finite (v, w)")
+    } else if (cmd.header.episode, cmd.header.tick) > now {
+        Some("episode or tick in the future")
+    } else {
+        None
+    }
+}
+
+/// What the command rounds have counted, over the run.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct CommandCounters {
+    /// Robot-ticks whose command was missing.
+    pub missed: u64,
+    /// Malformed commands refused.
+    pub rejected: u64,
+    /// Robots that greeted again from a new process.
+    pub rejoins: u64,
+}
+
+/// Collects the commands of one tick after another; allocation-free after construction.
+#[derive(Debug, Clone)]
+pub struct CommandRound {
+    received: Vec<bool>,
+    notified: Vec<usize>,
+    last_commands: Vec<(f64, f64)>,
+    /// Who is waited for.
+    pub presence: Presence,
+    /// Counted so far.
+    pub counters: CommandCounters,
+}
+
+impl CommandRound {
+    /// Rounds for `n` robots.
+    pub fn new(n: usize) -> Self {
+        Self {
+            received: vec![false; n],
+            notified: Vec::with_capacity(n),
+            last_commands: vec![(0.0, 0.0); n],
+            presence: Presence::new(n),
+            counters: CommandCounters::default(),
+        }
+    }
+
+    /// A new episode: nothing is held from the last one.
+    pub fn reset_episode(&mut self) {
+        self.last_commands.iter_mut().for_each(|c| *c = (0.0, 0.0));
+    }
+
+    /// The commands to apply: each robot's answer of this round, or its last one held.
+    pub fn commands(&self) -> &[(f64, f64)] {
+        &self.last_commands
+    }
+
+    /// Waits until every present robot has answered `header` or `deadline` passes, reading
+    /// only the robots whose event id arrived (every robot after an unknown id).
+    pub fn collect<S: Service>(&mut self, ports: &SimPorts<S>, header: Header, deadline: Instant) -> Result<()>
+    where
+        Listener<S>: FileDescriptorBased,
+    {
+        let n = self.received.len();
+        self.received.iter_mut().for_each(|r| *r = false);
+        loop {
+            if self.presence.all_present_answered(&self.received) {
+                return Ok(());
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Ok(());
+            }
+            self.notified.clear();
+            let mut stranger = false;
+            let notified = &mut self.notified;
+            services::wait_for_events(&ports.command_ready, deadline - now, |id| {
+                if id < n {
+                    notified.push(id);
+                } else {
+                    stranger = true;
+                }
+            })?;
+            if stranger {
+                self.notified.clear();
+                self.notified.extend(0..n);
+            }
+            self.drain(ports, header);
+        }
+    }
+
+    /// Ends the round: records who answered; returns how many robots missed it.
+    pub fn settle(&mut self) -> u32 {
+        let mut missed = 0;
+        for (agent, &got) in self.received.iter().enumerate() {
+            self.presence.record(agent, got);
+            missed += u32::from(!got);
+        }
+        self.counters.missed += u64::from(missed);
+        missed
+    }
+
+    /// Takes every pending command of the notified robots, keeping this tick's valid one.
+    fn drain<S: Service>(&mut self, ports: &SimPorts<S>, header: Header) {
+        let now = (header.episode, header.tick);
+        for &agent in &self.notified {
+            while let Ok(Some(sample)) = ports.agents[agent].command.receive() {
+                let cmd = sample.payload();
+                if cmd.header.has(FLAG_HELLO) {
+                    if cmd.header.protocol_version == PROTOCOL_VERSION && self.presence.greeted(agent, cmd.session) {
+                        self.counters.rejoins += 1;
+                        eprintln!("sim: agent {agent} rejoined at episode {} tick {}", now.0, now.1);
+                    }
+                    continue;
+                }
+                if let Some(reason) = rejection(cmd, agent, now) {
+                    self.counters.rejected += 1;
+                    if self.counters.rejected <= REJECTIONS_LOGGED {
+                        eprintln!("sim: rejected a command from agent {agent} ({reason}): {cmd:?}");
+                    }
+                    continue;
+                }
+                if (cmd.header.episode, cmd.header.tick) < now || self.received[agent] {
+                    // A late answer to an earlier tick: already counted as missed.
+                    continue;
+                }
+                self.last_commands[agent] = (f64::from(cmd.v), f64::from(cmd.w));
+                self.received[agent] = true;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::Duration;
+
+    use formation_protocol::services::{RunIdentity, Sizing};
+
+    use super::*;
+
+    /// Fake robots over iceoryx2's in-process `local` service: their command publishers and
+    /// the shared wake-up, facing a sim's real ports.
+    struct FakeRobots {
+        commands: Vec<iceoryx2::port::publisher::Publisher<local::Service, CommandMsg, ()>>,
+        ready: iceoryx2::port::notifier::Notifier<local::Service>,
+    }
+
+    impl FakeRobots {
+        fn answer(&self, agent: usize, cmd: CommandMsg) {
+            self.commands[agent].send_copy(cmd).expect("send");
+            self.ready
+                .notify_with_custom_event_id(services::agent_event_id(agent))
+                .expect("notify");
+        }
+    }
+
+    fn command(agent: u32, episode: u32, tick: u32, v: f32) -> CommandMsg {
+        CommandMsg {
+            header: Header::new(episode, tick, 0),
+            agent,
+            v,
+            w: 0.1,
+            session: 7,
+            ..CommandMsg::default()
+        }
+    }
+
+    fn sim_and_robots(n: usize, run: &str) -> (Node<local::Service>, SimPorts<local::Service>, FakeRobots) {
+        let identity = RunIdentity::new(&format!("{run}{}", std::process::id())).expect("identity");
+        let node = services::create_node::<local::Service>(&identity, "sim").expect("node");
+        let sizing = Sizing::new(n, 8);
+        let ports = SimPorts::open(&node, &sizing).expect("ports");
+        let robots = FakeRobots {
+            commands: (0..n)
+                .map(|agent| {
+                    services::command_stream(&node, &sizing, agent)
+                        .expect("stream")
+                        .publisher_builder()
+                        .create()
+                        .expect("publisher")
+                })
+                .collect(),
+            ready: services::command_event(&node, &sizing)
+                .expect("event")
+                .notifier_builder()
+                .create()
+                .expect("notifier"),
+        };
+        (node, ports, robots)
+    }
+
+    #[test]
+    fn a_round_keeps_valid_answers_holds_missing_ones_and_counts_the_rest() {
+        let (_node, ports, robots) = sim_and_robots(3, "cmdround");
+        let mut round = CommandRound::new(3);
+        let tick = Header::new(2, 5, 0);
+        // Robot 0 answers; robot 1 sends a late answer, a malformed one, then nothing valid;
+        // robot 2 answers twice (the first counts).
+        robots.answer(0, command(0, 2, 5, 0.3));
+        robots.answer(1, command(1, 2, 4, 0.9));
+        robots.answer(1, command(0, 2, 5, 0.9));
+        robots.answer(2, command(2, 2, 5, 0.2));
+        robots.answer(2, command(2, 2, 5, 0.4));
+        let started = Instant::now();
+        round
+            .collect(&ports, tick, started + Duration::from_millis(300))
+            .expect("collect");
+        assert!(
+            started.elapsed() >= Duration::from_millis(300),
+            "robot 1 is waited for until the deadline"
+        );
+        assert_eq!(round.settle(), 1, "robot 1 missed the tick");
+        assert_eq!(
+            round.commands(),
+            &[
+                (0.3f32 as f64, 0.1f32 as f64),
+                (0.0, 0.0),
+                (0.2f32 as f64, 0.1f32 as f64)
+            ]
+        );
+        assert_eq!(
+            round.counters,
+            CommandCounters {
+                missed: 1,
+                rejected: 1,
+                rejoins: 0
+            }
+        );
+
+        // Next tick: robot 1 answers, robot 0 does not; robot 0's last command is held.
+        let tick = Header::new(2, 6, 0);
+        robots.answer(1, command(1, 2, 6, 0.5));
+        robots.answer(2, command(2, 2, 6, 0.1));
+        round
+            .collect(&ports, tick, Instant::now() + Duration::from_millis(50))
+            .expect("collect");
+        assert_eq!(round.settle(), 1);
+        assert_eq!(round.commands()[0], (0.3f32 as f64, 0.1f32 as f64), "held");
+        assert_eq!(round.commands()[1].0, 0.5f32 as f64);
+    }
+
+    #[test]
+    fn a_robot_that_keeps_missing_is_no_longer_waited_for() {
+        let (_node, ports, robots) = sim_and_robots(3, "cmdabsent");
+        let mut round = CommandRound::new(3);
+        for tick in 0..ABSENT_AFTER {
+            robots.answer(0, command(0, 0, tick, 0.1));
+            robots.answer(1, command(1, 0, tick, 0.1));
+            round
+                .collect(
+                    &ports,
+                    Header::new(0, tick, 0),
+                    Instant::now() + Duration::from_millis(30),
+                )
+                .expect("collect");
+            round.settle();
+        }
+        assert!(round.presence.is_absent(2));
+        // Robot 2 is absent: a round with 0 and 1 in returns at once, not at the deadline.
+        robots.answer(0, command(0, 0, 9, 0.1));
+        robots.answer(1, command(1, 0, 9, 0.1));
+        let started = Instant::now();
+        round
+            .collect(&ports, Header::new(0, 9, 0), started + Duration::from_secs(5))
+            .expect("collect");
+        assert!(started.elapsed() < Duration::from_secs(1));
+        // A greeting from a new process of robot 2 brings it back.
+        assert!(!round.presence.greeted(2, 0), "same (empty) session: not a rejoin");
+        round.presence.greeted(2, 11);
+        assert!(
+            round.presence.greeted(2, 12),
+            "a new session of a known robot is a rejoin"
+        );
+        assert!(!round.presence.is_absent(2));
+    }
+
+    #[test]
+    fn malformed_commands_say_why() {
+        let now = (3, 10);
+        let ok = command(1, 3, 10, 0.2);
+        assert_eq!(rejection(&ok, 1, now), None);
+        assert_eq!(rejection(&ok, 2, now), Some("robot index"));
+        let future = command(1, 3, 11, 0.2);
+        assert_eq!(rejection(&future, 1, now), Some("episode or tick in the future"));
+        let nan = CommandMsg { v: f32::NAN, ..ok };
+        assert_eq!(rejection(&nan, 1, now), Some("non-finite (v, w)"));
+        let old = CommandMsg {
+            header: Header {
+                protocol_version: PROTOCOL_VERSION - 1,
+                ..ok.header
+            },
+            ..ok
+        };
+        assert_eq!(rejection(&old, 1, now), Some("protocol version"));
+    }
+}

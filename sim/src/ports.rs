@@ -1,0 +1,174 @@
+//! The sim's ends of the run's services: each robot's observation stream and wake-up, the
+//! command streams and their shared wake-up, the state stream, and the critic's progress.
+
+use anyhow::{Context, Result};
+use formation_core::task::Outcome;
+use formation_core::world::World;
+use formation_protocol::services::{self, Sizing};
+use formation_protocol::wire::*;
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+
+/// The sim's ports towards one robot.
+pub struct AgentPorts<S: Service> {
+    /// Its observations.
+    pub observation: Publisher<S, ObservationMsg, ()>,
+    /// Wakes it when an observation is out.
+    pub wake: Notifier<S>,
+    /// Its commands (and greetings).
+    pub command: Subscriber<S, CommandMsg, ()>,
+}
+
+/// Every port the sim uses.
+pub struct SimPorts<S: Service> {
+    /// One set per robot.
+    pub agents: Vec<AgentPorts<S>>,
+    /// Robots raise their index here after sending a command.
+    pub command_ready: Listener<S>,
+    /// The true state, for the critic and observers.
+    pub state: Publisher<S, StateMsg, ()>,
+    /// Wakes the critic.
+    pub critic_wake: Notifier<S>,
+    /// How far the critic has consumed the stream.
+    pub critic_progress: Subscriber<S, CriticProgressMsg, ()>,
+    /// Raised when the critic's progress changes.
+    pub critic_progress_ready: Listener<S>,
+}
+
+/// What led to a published state.
+#[derive(Debug, Clone, Copy)]
+pub struct Transition<'a> {
+    /// How the transition into this state ended.
+    pub outcome: Outcome,
+    /// Its shared reward.
+    pub reward: f64,
+    /// Robots whose command was missing (their last one was held).
+    pub missed: u32,
+    /// The commands applied, clamped.
+    pub applied: &'a [(f64, f64)],
+}
+
+impl<S: Service> SimPorts<S> {
+    /// Creates (or opens) every port for the swarm `sizing` describes.
+    pub fn open(node: &Node<S>, sizing: &Sizing) -> Result<Self> {
+        let err = |what: &str| format!("sim cannot create {what}");
+        let mut agents = Vec::with_capacity(sizing.n_agents);
+        for agent in 0..sizing.n_agents {
+            agents.push(AgentPorts {
+                observation: services::observation_stream(node, sizing, agent)?
+                    .publisher_builder()
+                    .create()
+                    .with_context(|| err("observation publisher"))?,
+                wake: services::observation_event(node, sizing, agent)?
+                    .notifier_builder()
+                    .create()
+                    .with_context(|| err("observation notifier"))?,
+                command: services::command_stream(node, sizing, agent)?
+                    .subscriber_builder()
+                    .buffer_size(sizing.stream_buffer)
+                    .create()
+                    .with_context(|| err("command subscriber"))?,
+            });
+        }
+        Ok(Self {
+            agents,
+            command_ready: services::command_event(node, sizing)?
+                .listener_builder()
+                .create()
+                .with_context(|| err("command listener"))?,
+            state: services::state_stream(node, sizing)?
+                .publisher_builder()
+                .create()
+                .with_context(|| err("state publisher"))?,
+            critic_wake: services::critic_wake_event(node, sizing)?
+                .notifier_builder()
+                .create()
+                .with_context(|| err("critic notifier"))?,
+            critic_progress: services::critic_progress_stream(node, sizing)?
+                .subscriber_builder()
+                .create()
+                .with_context(|| err("progress subscriber"))?,
+            critic_progress_ready: services::critic_progress_event(node, sizing)?
+                .listener_builder()
+                .create()
+                .with_context(|| err("progress listener"))?,
+        })
+    }
+
+    /// Sends every robot its observation of `world` (written in place) and, unless the
+    /// episode ends here, wakes it.
+    pub fn publish_observations(&self, world: &World, header: Header) -> Result<()> {
+        let n = world.n_agents() as u32;
+        for (agent, agent_ports) in self.agents.iter().enumerate() {
+            let mut sample = agent_ports.observation.loan().context("loan observation")?;
+            let msg = sample.payload_mut();
+            msg.header = header;
+            msg.agent = agent as u32;
+            msg.n_agents = n;
+            msg.dim = world.observer.dim() as u32;
+            msg.obs = world.observation(agent);
+            sample.send().context("send observation")?;
+            if !header.has(FLAG_EPISODE_END) {
+                agent_ports
+                    .wake
+                    .notify()
+                    .with_context(|| format!("wake agent {agent}"))?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Publishes the true state as state number `sequence`; returns a copy when `keep_copy`
+    /// (for the view).
+    pub fn publish_state(
+        &self,
+        world: &World,
+        header: Header,
+        transition: &Transition,
+        sequence: u64,
+        keep_copy: bool,
+    ) -> Result<Option<StateMsg>> {
+        let mut sample = self.state.loan().context("loan state")?;
+        let msg = sample.payload_mut();
+        msg.header = header;
+        msg.n_agents = world.n_agents() as u32;
+        msg.outcome = transition.outcome.code();
+        msg.reward = transition.reward as f32;
+        msg.missed = transition.missed;
+        msg.sequence = sequence;
+        for (agent, pose) in world.poses.iter().enumerate() {
+            msg.poses[agent] = [pose.x as f32, pose.y as f32, pose.theta as f32];
+            msg.applied[agent] = [transition.applied[agent].0 as f32, transition.applied[agent].1 as f32];
+            msg.desired[agent] = world.desired[agent].map(|d| d as f32);
+            msg.slots[agent] = world.slots[agent].map(|d| d as f32);
+        }
+        msg.goal = world.goal.map(|g| g as f32);
+        let copy = keep_copy.then_some(*msg);
+        sample.send().context("send state")?;
+        Ok(copy)
+    }
+
+    /// Wakes the critic to read what is waiting.
+    pub fn wake_critic(&self) -> Result<()> {
+        self.critic_wake.notify().context("critic wake")?;
+        Ok(())
+    }
+
+    /// Tells every robot and the critic that the run is over.
+    pub fn announce_run_end(&self) -> Result<()> {
+        let header = Header::new(u32::MAX, 0, FLAG_RUN_END | FLAG_EPISODE_END);
+        for agent in &self.agents {
+            let mut sample = agent.observation.loan().context("loan")?;
+            sample.payload_mut().header = header;
+            sample.send().context("send")?;
+            agent.wake.notify().context("notify")?;
+        }
+        let mut sample = self.state.loan().context("loan")?;
+        sample.payload_mut().header = header;
+        sample.send().context("send")?;
+        self.wake_critic()
+    }
+}
