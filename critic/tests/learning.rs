@@ -165,9 +165,26 @@ fn checkpoint_round_trip_and_shape_mismatch() {
     let mut mismatched = Learner::new(3, &env, &wider, 7).expect("learner");
     let err = mismatched.load(&path).expect_err("shape mismatch").to_string();
     assert!(err.contains("checkpoint.safetensors"), "{err}");
-    // Another swarm size is refused too.
+    // Another swarm size takes the shared actor (it is N-agnostic); the critic starts fresh.
     let mut six = Learner::new(6, &env, &learn, 7).expect("learner");
-    assert!(six.load(&path).is_err());
+    six.load(&path).expect("a shared actor carries over to another N");
+    assert_eq!(six.actor_weights(0).expect("w"), learner.actor_weights(0).expect("w"));
+    // Independent actors are one per robot, so another swarm size is refused.
+    let independent = LearnConfig {
+        shared_actor: false,
+        ..learn.clone()
+    };
+    let three_independent = Learner::new(3, &env, &independent, 8).expect("learner");
+    let independent_path = dir.join("independent.safetensors");
+    three_independent
+        .save(&independent_path, Default::default())
+        .expect("save");
+    let mut six_independent = Learner::new(6, &env, &independent, 9).expect("learner");
+    let err = six_independent
+        .load(&independent_path)
+        .expect_err("robots differ")
+        .to_string();
+    assert!(err.contains("3 robots"), "{err}");
     std::fs::remove_dir_all(&dir).expect("cleanup");
 }
 
