@@ -1,11 +1,21 @@
 //! The central critic process: it subscribes to the true state, every observation and every
 //! command, assembles joint episodes into the replay, trains the critic(s) and actor(s), and
 //! streams actor weights back to the agents.
+//!
+//! * [`run`]: the process's loop and the flow-control link to the sim;
+//! * [`collector`]: the subscriptions, assembling each tick of every stream into episodes;
+//! * [`trainer`]: replay, updates at the update-to-data ratio, weights, checkpoints;
+//! * [`learner`]: the networks and one gradient update (TD3 or DDPG);
+//! * [`weights`]: the weights services towards the agents;
+//! * [`progress`], [`view`]: the progress display, `training.csv` and the training curves.
 
 pub mod collector;
 pub mod learner;
+pub mod progress;
 pub mod run;
+pub mod trainer;
 pub mod view;
+pub mod weights;
 
 /// Keeps glibc from handing big buffers back to the OS after every update: each update
 /// allocates and frees megabytes of tensors, and the page faults of fresh mappings cost about
