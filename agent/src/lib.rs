@@ -3,5 +3,6 @@
 //! is `formation_model`).
 
 pub mod policy;
+pub mod ports;
 pub mod run;
 pub mod scripted;

@@ -3,7 +3,7 @@
 
 use std::time::Duration;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use formation_protocol::config::RunConfig;
 use formation_protocol::services::{self, FileDescriptorBased, RunIdentity, Sizing};
 use formation_protocol::termination_requested;
@@ -12,6 +12,7 @@ use iceoryx2::port::listener::Listener;
 use iceoryx2::prelude::*;
 
 use crate::policy::{LearnedPolicy, Policy};
+use crate::ports::AgentPorts;
 use formation_core::observation::Layout;
 use formation_model::history::ObservationHistory;
 
@@ -64,52 +65,8 @@ where
     let agent = options.agent;
     let node = services::create_node::<S>(identity, &format!("agent{agent}"))?;
     let sizing = Sizing::new(options.n_agents, options.config.ticks.critic_window);
-    let observations = services::observation_stream(&node, &sizing, agent)?
-        .subscriber_builder()
-        .buffer_size(16)
-        .create()
-        .with_context(|| format!("agent {agent}: observation subscriber"))?;
-    let wake = services::observation_event(&node, &sizing, agent)?
-        .listener_builder()
-        .create()
-        .with_context(|| format!("agent {agent}: listener"))?;
-    let commands = services::command_stream(&node, &sizing, agent)?
-        .publisher_builder()
-        .create()
-        .with_context(|| format!("agent {agent}: command publisher"))?;
-    let command_ready = services::command_event(&node, &sizing)?
-        .notifier_builder()
-        .default_event_id(services::agent_event_id(agent))
-        .create()
-        .with_context(|| format!("agent {agent}: notifier"))?;
-    let weights = match options.weights_from {
-        Some(index) => Some(
-            services::weights_stream(&node, &sizing, index)?
-                .subscriber_builder()
-                .create()
-                .with_context(|| format!("agent {agent}: weights subscriber"))?,
-        ),
-        None => None,
-    };
-
-    // Greet the sim (history 1 keeps the greeting for a sim that starts later).
-    let session = rand::random_range(1..u32::MAX);
-    let hello = CommandMsg {
-        header: Header::new(0, 0, FLAG_HELLO),
-        agent: agent as u32,
-        session,
-        ..CommandMsg::default()
-    };
-    let greet = || -> Result<()> {
-        commands
-            .send_copy(hello)
-            .with_context(|| format!("agent {agent}: hello"))?;
-        command_ready
-            .notify()
-            .with_context(|| format!("agent {agent}: notify"))?;
-        Ok(())
-    };
-    greet()?;
+    let ports = AgentPorts::open(&node, &sizing, agent, options.weights_from)?;
+    ports.greet()?;
 
     let obs_dim = Layout::of(options.config.env.observation).dim();
     let mut history = ObservationHistory::new(options.config.env.history, obs_dim);
@@ -123,12 +80,9 @@ where
     );
 
     loop {
-        services::wait_for_event(&wake, Duration::from_millis(100))?;
+        ports.wait(Duration::from_millis(100))?;
         let mut reply_to = None;
-        while let Some(sample) = observations
-            .receive()
-            .with_context(|| format!("agent {agent}: receive"))?
-        {
+        while let Some(sample) = ports.receive_observation()? {
             let msg = sample.payload();
             if msg.header.protocol_version != PROTOCOL_VERSION {
                 bail!(
@@ -166,7 +120,7 @@ where
             if !sim_watch.heard_any() {
                 // A publisher hands its history to subscribers it has seen; greet again until
                 // the sim has connected and answered.
-                greet()?;
+                ports.greet()?;
             }
             if termination_requested() {
                 return Ok(stats);
@@ -180,8 +134,8 @@ where
             continue;
         };
         // New weights only between ticks, never mid-inference.
-        if let (Some(weights), AgentPolicy::Learned(learned)) = (&weights, &mut policy) {
-            while let Some(sample) = weights.receive().with_context(|| format!("agent {agent}: weights"))? {
+        if let AgentPolicy::Learned(learned) = &mut policy {
+            while let Some(sample) = ports.receive_weights()? {
                 let head = *sample.user_header();
                 if head.protocol_version == PROTOCOL_VERSION && head.version > learned.version() {
                     learned.load(sample.payload(), head.version)?;
@@ -191,19 +145,13 @@ where
         }
         let (v, w) = policy.policy().command(&history)?;
         let version = policy.policy().version();
-        let mut sample = commands.loan().with_context(|| format!("agent {agent}: loan"))?;
-        *sample.payload_mut() = CommandMsg {
+        ports.send(CommandMsg {
             header: Header::new(header.episode, header.tick, 0),
-            agent: agent as u32,
             policy_version: version,
             v: v as f32,
             w: w as f32,
-            session,
-        };
-        sample.send().with_context(|| format!("agent {agent}: send"))?;
-        command_ready
-            .notify()
-            .with_context(|| format!("agent {agent}: notify"))?;
+            ..CommandMsg::default()
+        })?;
         stats.commands += 1;
         stats.policy_version = version;
     }
