@@ -7,7 +7,7 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use formation_agent::policy::{Exploration, LearnedPolicy, Policy};
-use formation_agent::scripted::{BaselineGains, ScriptedBaseline};
+use formation_core::baseline::{BaselineGains, ScriptedBaseline};
 use formation_core::formation::random_episode;
 use formation_core::world::World;
 use formation_model::actor::ActorShape;

@@ -5,4 +5,3 @@
 pub mod policy;
 pub mod ports;
 pub mod run;
-pub mod scripted;

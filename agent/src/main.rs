@@ -7,7 +7,7 @@ use anyhow::{Result, bail};
 use clap::{Parser, ValueEnum};
 use formation_agent::policy::{Exploration, LearnedPolicy};
 use formation_agent::run::{AgentOptions, AgentPolicy, run};
-use formation_agent::scripted::{BaselineGains, ScriptedBaseline};
+use formation_core::baseline::{BaselineGains, ScriptedBaseline};
 use formation_core::observation::Layout;
 use formation_model::actor::ActorShape;
 use formation_model::checkpoint;

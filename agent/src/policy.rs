@@ -9,7 +9,7 @@ use rand_distr::{Distribution, Normal};
 use formation_model::actor::{ActorShape, FrozenActor};
 use formation_model::history::ObservationHistory;
 
-use crate::scripted::ScriptedBaseline;
+use formation_core::baseline::ScriptedBaseline;
 
 /// A robot's controller: a command from its observation window.
 pub trait Policy: Send {

@@ -1,6 +1,7 @@
 //! The formation-control task, free of any transport: what the sim computes online and what
 //! the critic's replay recomputes for HER are the same functions from here.
 //!
+//! * [`baseline`]: the scripted controller, the yardstick and the learner's optional teacher;
 //! * [`physics`]: unicycle poses and their exact integration over a step;
 //! * [`formation`]: formation shapes (random and named) and random episodes;
 //! * [`observation`]: the observation models, their named layout and what a robot sees;
@@ -8,6 +9,7 @@
 //! * [`world`]: one episode's true state and the step that applies the robots' commands;
 //! * [`features`]: the critic's view of a tick (poses relative to the centroid).
 
+pub mod baseline;
 pub mod features;
 pub mod formation;
 pub mod observation;

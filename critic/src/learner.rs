@@ -12,6 +12,7 @@ use std::path::Path;
 use anyhow::{Context, Result, bail};
 use candle_core::{DType, Device, Module, Tensor, Var};
 use candle_nn::{AdamW, Linear, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+use formation_core::baseline::{BaselineGains, ScriptedBaseline};
 use formation_core::features::CriticFeatures;
 use formation_core::observation::Layout;
 use formation_model::actor::{Actor, ActorShape, flatten_parameters};
@@ -83,6 +84,8 @@ pub struct Learner {
     critic_optimizer: AdamW,
     updates: u64,
     rng: StdRng,
+    /// The scripted baseline and the environment it commands, when `imitation_alpha` > 0.
+    teacher: Option<(ScriptedBaseline, EnvConfig)>,
 }
 
 /// Re-draws every variable from `rng`, U(-1/sqrt(fan_in), 1/sqrt(fan_in)) (PyTorch's default
@@ -223,6 +226,8 @@ impl Learner {
             critic_targets,
             updates: 0,
             rng,
+            teacher: (config.imitation_alpha > 0.0)
+                .then(|| (ScriptedBaseline::new(env, BaselineGains::default()), env.clone())),
         })
     }
 
@@ -252,6 +257,42 @@ impl Learner {
             .map(|agent| actors[agent].forward(&observations.narrow(1, agent, 1)?.squeeze(1)?))
             .collect::<candle_core::Result<Vec<_>>>()?;
         Ok(Tensor::cat(&per_agent, 1)?)
+    }
+
+    /// The teacher's normalised actions [B, N * 2] on each robot's newest observation of the
+    /// batch, or `None` without a teacher.
+    fn teacher_actions(&self, batch: &Batch) -> Result<Option<Tensor>> {
+        let Some((baseline, env)) = &self.teacher else {
+            return Ok(None);
+        };
+        let window = batch.window_dim();
+        let newest = (batch.history - 1) * batch.obs_dim;
+        let actions: Vec<f32> = batch
+            .observations
+            .chunks_exact(window)
+            .flat_map(|robot_window| {
+                let (v, w) = baseline.command(&robot_window[newest..newest + batch.obs_dim]);
+                env.action_from_command(v, w)
+            })
+            .collect();
+        let shape = (batch.batch_size, batch.n_agents * ACTION_DIM);
+        Ok(Some(Tensor::from_vec(actions, shape, &Device::Cpu)?))
+    }
+
+    /// Mean squared distance between the actors' and the teacher's normalised actions on a
+    /// batch, or `None` without a teacher.
+    pub fn imitation_error(&self, batch: &Batch) -> Result<Option<f64>> {
+        let Some(teacher) = self.teacher_actions(batch)? else {
+            return Ok(None);
+        };
+        let obs = Tensor::from_slice(
+            &batch.observations,
+            (batch.batch_size, batch.n_agents, batch.window_dim()),
+            &Device::Cpu,
+        )?;
+        let current = Self::joint_actions(&self.actors, &obs)?;
+        let error = candle_nn::loss::mse(&current, &teacher)?.to_scalar::<f32>()?;
+        Ok(Some(f64::from(error)))
     }
 
     /// The TD target y for a batch (no gradient flows through it).
@@ -341,6 +382,12 @@ impl Learner {
             let window = Tensor::cat(&[actions.narrow(1, 0, (h - 1) * joint)?, current.clone()], 1)?;
             let q = self.critics[0].forward(&Tensor::cat(&[states, window], 1)?)?;
             let mut actor_loss = q.mean_all()?.neg()?;
+            if let Some(teacher) = self.teacher_actions(batch)? {
+                // TD3+BC: Q normalised by its mean magnitude (no gradient through the scale).
+                let q_scale = f64::from(q.abs()?.mean_all()?.to_scalar::<f32>()?).max(1e-6);
+                let imitation = candle_nn::loss::mse(&current, &teacher)?;
+                actor_loss = (actor_loss.affine(self.config.imitation_alpha / q_scale, 0.0)? + imitation)?;
+            }
             if self.config.action_l2 > 0.0 {
                 actor_loss = (actor_loss + current.sqr()?.mean_all()?.affine(self.config.action_l2, 0.0)?)?;
             }

@@ -3,7 +3,7 @@
 //! checkpoint and add the learner's figures to `summary.json`.
 
 use std::path::PathBuf;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use formation_model::checkpoint::FILE_NAME;
@@ -21,6 +21,10 @@ use iceoryx2::prelude::*;
 use crate::collector::Collector;
 use crate::progress::{Progress, TrainingStatus};
 use crate::trainer::Trainer;
+
+/// Longest silence towards the sim (it gives a critic up after a quarter of
+/// `ticks.sim_silence_ms`, 500 ms by default).
+const HEARTBEAT_EVERY: Duration = Duration::from_millis(100);
 
 /// How the critic runs.
 #[derive(Debug, Clone)]
@@ -66,6 +70,7 @@ where
     );
     let mut paid_ticks = u64::MAX;
     let mut last_acknowledged = 0;
+    let mut last_progress = Instant::now();
     progress_link.publish(0, trainer.as_ref().map(Trainer::status))?;
 
     loop {
@@ -110,10 +115,16 @@ where
 
         // Acknowledge only the ticks the updates have paid for: the sim stays at most
         // `critic_window` ticks ahead, which holds the update-to-data ratio.
+        // Progress also goes out as a heartbeat: the sim takes a critic silent for a while
+        // as gone and runs on without flow control.
         let acknowledged = collector.acknowledgeable(paid_ticks);
-        if acknowledged != last_acknowledged || collector.stats.ticks_received == 0 {
+        if acknowledged != last_acknowledged
+            || collector.stats.ticks_received == 0
+            || last_progress.elapsed() >= HEARTBEAT_EVERY
+        {
             // Before the first tick this repeats the greeting until the sim has connected.
             last_acknowledged = acknowledged;
+            last_progress = Instant::now();
             progress_link.publish(acknowledged, trainer.as_ref().map(Trainer::status))?;
         }
         progress.report(collector.stats.ticks_received, trainer.as_ref().map(Trainer::status))?;

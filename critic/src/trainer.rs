@@ -21,8 +21,9 @@ use crate::progress::{Rolling, TrainingStatus};
 use crate::run::CriticOptions;
 use crate::weights::WeightsPublisher;
 
-/// Updates done between two drains of the streams (keeps flow control responsive).
-const UPDATES_PER_DRAIN: u64 = 8;
+/// Longest run of updates between two drains of the streams: the critic keeps telling the sim
+/// it is alive (and acknowledging) while updates are slow, e.g. a big swarm on a busy machine.
+const UPDATES_BETWEEN_DRAINS: Duration = Duration::from_millis(40);
 
 /// The learning half of the critic process (absent in eval mode).
 pub struct Trainer<S: Service> {
@@ -116,11 +117,15 @@ impl<S: Service> Trainer<S> {
         self.weights.update_connections()
     }
 
-    /// Does up to a few of the updates owed for `ticks` received, streams weights every
+    /// Does the updates owed for `ticks` received, for at most 40 ms (at least one), streams weights every
     /// `publish_every_updates`, checkpoints every `checkpoint_every_s`; returns the ticks the
     /// updates have paid for (what the critic may acknowledge to the sim).
     pub fn train(&mut self, ticks: u64, rolling: &Rolling) -> Result<u64> {
-        for _ in 0..self.updates_owed(ticks).min(UPDATES_PER_DRAIN) {
+        let started = Instant::now();
+        for _ in 0..self.updates_owed(ticks) {
+            if started.elapsed() >= UPDATES_BETWEEN_DRAINS {
+                break;
+            }
             let Some(batch) = self.sampler.sample(&self.replay, self.batch_size, &mut self.rng) else {
                 break;
             };

@@ -201,3 +201,26 @@ fn independent_actors_have_one_network_per_robot() {
     let losses = learner.update(&batch).expect("update");
     assert!(losses.critic.is_finite() && losses.actor.is_some());
 }
+
+#[test]
+fn a_teacher_pulls_the_actor_towards_the_baseline() {
+    let (env, learn) = small_config(Algorithm::Td3);
+    let env = EnvConfig { history: 1, ..env };
+    let taught = LearnConfig {
+        imitation_alpha: 0.1,
+        policy_delay: 1,
+        actor_lr: 1e-3,
+        ..learn.clone()
+    };
+    let batch = random_batch(&env, 3, 64, 21);
+    let mut learner = Learner::new(3, &env, &taught, 22).expect("learner");
+    let before = learner.imitation_error(&batch).expect("error").expect("a teacher");
+    for _ in 0..300 {
+        learner.update(&batch).expect("update");
+    }
+    let after = learner.imitation_error(&batch).expect("error").expect("a teacher");
+    assert!(after < 0.5 * before, "imitation error {before} -> {after}");
+    // Without a teacher there is nothing to imitate.
+    let plain = Learner::new(3, &env, &learn, 22).expect("learner");
+    assert!(plain.imitation_error(&batch).expect("error").is_none());
+}

@@ -308,6 +308,10 @@ pub struct LearnConfig {
     pub reward_scale: f64,
     /// Weight of mean(a^2) added to the actor loss (keeps tanh out of saturation; 0 = off).
     pub action_l2: f64,
+    /// The scripted baseline as a teacher (TD3+BC, Fujimoto & Gu 2021): the actor loss becomes
+    /// -alpha Q / mean|Q| plus the squared distance between the actor's action and the
+    /// baseline's on the same replayed observation. 0 = off (plain TD3 or DDPG, the paper).
+    pub imitation_alpha: f64,
     /// Replay capacity in ticks.
     pub replay_capacity: usize,
     /// New actor weights are published every this many updates.
@@ -343,6 +347,7 @@ impl Default for LearnConfig {
             target_noise_clip: 0.5,
             reward_scale: 1.0,
             action_l2: 0.0,
+            imitation_alpha: 0.0,
             replay_capacity: 1_000_000,
             publish_every_updates: 50,
             checkpoint_every_s: 120,
@@ -617,6 +622,12 @@ impl RunConfig {
             "learn.action_l2",
             l.action_l2,
             "must be >= 0",
+        )?;
+        check(
+            l.imitation_alpha.is_finite() && l.imitation_alpha >= 0.0,
+            "learn.imitation_alpha",
+            l.imitation_alpha,
+            "must be >= 0 (0 = no teacher)",
         )?;
         check(
             l.replay_capacity >= 1000,

@@ -8,7 +8,7 @@ use std::path::PathBuf;
 use anyhow::{Result, anyhow};
 use clap::{Parser, ValueEnum};
 use formation_agent::run::{AgentOptions, AgentPolicy, run as run_agent};
-use formation_agent::scripted::{BaselineGains, ScriptedBaseline};
+use formation_core::baseline::{BaselineGains, ScriptedBaseline};
 use formation_protocol::cli::Mode;
 use formation_protocol::config::{RunConfig, validate_agent_count};
 use formation_protocol::placement::{self, Placement, Role};

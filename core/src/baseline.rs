@@ -13,7 +13,7 @@
 //! The desired velocity u is then tracked by a unicycle: turn towards u, drive forward with
 //! the component of u along the heading (never backwards).
 
-use formation_core::observation::{Layout, ObservationView};
+use crate::observation::{Layout, ObservationView};
 use formation_protocol::NEIGHBOURS;
 use formation_protocol::config::EnvConfig;
 
@@ -126,9 +126,9 @@ impl ScriptedBaseline {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use formation_core::formation::random_episode;
-    use formation_core::task::Outcome;
-    use formation_core::world::World;
+    use crate::formation::random_episode;
+    use crate::task::Outcome;
+    use crate::world::World;
     use formation_protocol::MAX_OBS_DIM;
     use formation_protocol::config::{FormationShape, ObservationModel};
     use rand::SeedableRng;
@@ -256,7 +256,7 @@ mod report {
     use formation_protocol::config::ObservationModel;
 
     /// Prints the baseline's in-process success rates for every observation model, shape and
-    /// size: `cargo test --release -p formation-agent baseline_report -- --ignored --nocapture`.
+    /// size: `cargo test --release -p formation-core baseline_report -- --ignored --nocapture`.
     #[test]
     #[ignore = "a report, not a check"]
     fn baseline_report() {
