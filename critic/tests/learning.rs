@@ -224,3 +224,29 @@ fn a_teacher_pulls_the_actor_towards_the_baseline() {
     let plain = Learner::new(3, &env, &learn, 22).expect("learner");
     assert!(plain.imitation_error(&batch).expect("error").is_none());
 }
+
+#[test]
+fn td3_bootstraps_from_the_smaller_of_its_twin_critics() {
+    // Same seed: TD3's first critic is DDPG's only critic (variables are drawn in name order),
+    // so TD3's target can only be the same (its first critic is the smaller) or lower.
+    let (env, ddpg_config) = small_config(Algorithm::Ddpg);
+    let (_, td3_config) = small_config(Algorithm::Td3);
+    let batch = random_batch(&env, 3, 64, 31);
+    let (mut same, mut lower) = (0, 0);
+    for seed in 30..40 {
+        let mut ddpg = Learner::new(3, &env, &ddpg_config, seed).expect("learner");
+        let mut td3 = Learner::new(3, &env, &td3_config, seed).expect("learner");
+        let (single, twin) = (td_targets(&mut ddpg, &batch), td_targets(&mut td3, &batch));
+        for (s, t) in single.iter().zip(&twin) {
+            assert!(
+                t <= &(s + 1e-6),
+                "seed {seed}: a twin target {t} above the single one {s}"
+            );
+            if (s - t).abs() < 1e-6 { same += 1 } else { lower += 1 }
+        }
+    }
+    assert!(
+        same > 0 && lower > 0,
+        "each critic should be the minimum somewhere: {same} same, {lower} lower"
+    );
+}
