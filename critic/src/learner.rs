@@ -346,6 +346,48 @@ impl Learner {
         loss.context("no critic")
     }
 
+    /// Q_1 of the current policy on a batch (each robot's action at t replaced by its actor's
+    /// output, the earlier actions of the window as played), and those actions.
+    fn policy_q(&self, batch: &Batch) -> Result<(Tensor, Tensor)> {
+        let device = Device::Cpu;
+        let b = batch.batch_size;
+        let joint = self.n_agents * ACTION_DIM;
+        let obs = Tensor::from_slice(&batch.observations, (b, self.n_agents, batch.window_dim()), &device)?;
+        let states = Tensor::from_slice(&batch.states, (b, batch.state_window_dim()), &device)?;
+        let actions = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?;
+        let current = Self::joint_actions(&self.actors, &obs)?;
+        let window = Tensor::cat(&[actions.narrow(1, 0, (self.history - 1) * joint)?, current.clone()], 1)?;
+        let q = self.critics[0].forward(&Tensor::cat(&[states, window], 1)?)?;
+        Ok((q, current))
+    }
+
+    /// Mean Q_1 of the current policy on a batch: what an actor step raises.
+    pub fn policy_value(&self, batch: &Batch) -> Result<f64> {
+        let (q, _) = self.policy_q(batch)?;
+        Ok(f64::from(q.mean_all()?.to_scalar::<f32>()?))
+    }
+
+    /// One gradient step of the actor(s) up the first critic (and towards the teacher, if any);
+    /// the critics are left alone. Returns the actor loss and the mean |action|.
+    pub fn actor_step(&mut self, batch: &Batch) -> Result<(f64, f64)> {
+        let (q, current) = self.policy_q(batch)?;
+        let mut actor_loss = q.mean_all()?.neg()?;
+        if let Some(teacher) = self.teacher_actions(batch)? {
+            // TD3+BC: Q normalised by its mean magnitude (no gradient through the scale).
+            let q_scale = f64::from(q.abs()?.mean_all()?.to_scalar::<f32>()?).max(1e-6);
+            let imitation = candle_nn::loss::mse(&current, &teacher)?;
+            actor_loss = (actor_loss.affine(self.config.imitation_alpha / q_scale, 0.0)? + imitation)?;
+        }
+        if self.config.action_l2 > 0.0 {
+            actor_loss = (actor_loss + current.sqr()?.mean_all()?.affine(self.config.action_l2, 0.0)?)?;
+        }
+        self.actor_optimizer.backward_step(&actor_loss)?;
+        Ok((
+            f64::from(actor_loss.to_scalar::<f32>()?),
+            f64::from(current.abs()?.mean_all()?.to_scalar::<f32>()?),
+        ))
+    }
+
     /// One gradient update of the critic(s), and of the actor(s) and targets when due.
     pub fn update(&mut self, batch: &Batch) -> Result<Losses> {
         if batch.n_agents != self.n_agents || batch.history != self.history {
@@ -357,10 +399,6 @@ impl Learner {
                 self.history
             );
         }
-        let device = Device::Cpu;
-        let b = batch.batch_size;
-        let n = self.n_agents;
-        let h = self.history;
         let target = self.td_target(batch)?;
         let critic_loss = self.critic_loss(batch, &target)?;
         self.critic_optimizer.backward_step(&critic_loss)?;
@@ -374,26 +412,9 @@ impl Learner {
             Algorithm::Td3 => u64::from(self.config.policy_delay),
         };
         if self.updates.is_multiple_of(delay) {
-            let obs = Tensor::from_slice(&batch.observations, (b, n, batch.window_dim()), &device)?;
-            let states = Tensor::from_slice(&batch.states, (b, batch.state_window_dim()), &device)?;
-            let actions = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?;
-            let current = Self::joint_actions(&self.actors, &obs)?;
-            let joint = n * ACTION_DIM;
-            let window = Tensor::cat(&[actions.narrow(1, 0, (h - 1) * joint)?, current.clone()], 1)?;
-            let q = self.critics[0].forward(&Tensor::cat(&[states, window], 1)?)?;
-            let mut actor_loss = q.mean_all()?.neg()?;
-            if let Some(teacher) = self.teacher_actions(batch)? {
-                // TD3+BC: Q normalised by its mean magnitude (no gradient through the scale).
-                let q_scale = f64::from(q.abs()?.mean_all()?.to_scalar::<f32>()?).max(1e-6);
-                let imitation = candle_nn::loss::mse(&current, &teacher)?;
-                actor_loss = (actor_loss.affine(self.config.imitation_alpha / q_scale, 0.0)? + imitation)?;
-            }
-            if self.config.action_l2 > 0.0 {
-                actor_loss = (actor_loss + current.sqr()?.mean_all()?.affine(self.config.action_l2, 0.0)?)?;
-            }
-            self.actor_optimizer.backward_step(&actor_loss)?;
-            losses.actor = Some(f64::from(actor_loss.to_scalar::<f32>()?));
-            losses.action_magnitude = Some(f64::from(current.abs()?.mean_all()?.to_scalar::<f32>()?));
+            let (actor_loss, action_magnitude) = self.actor_step(batch)?;
+            losses.actor = Some(actor_loss);
+            losses.action_magnitude = Some(action_magnitude);
             soft_update(&self.actor_vars, &self.actor_target_vars, self.config.tau)?;
             soft_update(&self.critic_vars, &self.critic_target_vars, self.config.tau)?;
         }

@@ -250,3 +250,25 @@ fn td3_bootstraps_from_the_smaller_of_its_twin_critics() {
         "each critic should be the minimum somewhere: {same} same, {lower} lower"
     );
 }
+
+#[test]
+fn an_actor_step_raises_q_and_leaves_the_critic_alone() {
+    let (env, learn) = small_config(Algorithm::Td3);
+    let mut learner = Learner::new(3, &env, &learn, 40).expect("learner");
+    let batch = random_batch(&env, 3, 64, 41);
+    let target = Tensor::from_slice(&batch.rewards, (64, 1), &Device::Cpu).expect("target");
+    let critic_loss = |learner: &Learner| {
+        learner
+            .critic_loss(&batch, &target)
+            .expect("loss")
+            .to_scalar::<f32>()
+            .expect("scalar")
+    };
+    let (q_before, loss_before) = (learner.policy_value(&batch).expect("q"), critic_loss(&learner));
+    for _ in 0..20 {
+        learner.actor_step(&batch).expect("actor step");
+    }
+    let q_after = learner.policy_value(&batch).expect("q");
+    assert!(q_after > q_before, "Q of the policy {q_before} -> {q_after}");
+    assert_eq!(critic_loss(&learner), loss_before, "the critic moved");
+}
