@@ -33,6 +33,20 @@ pub struct CollectorStats {
     pub sequence_range: Option<(u64, u64)>,
 }
 
+impl CollectorStats {
+    /// The state sequence the critic may acknowledge: the latest it has read, less the ticks
+    /// read but not yet paid for by updates (`paid_ticks` of `ticks_received`). Counting back
+    /// from the latest, not forward from the first, keeps states lost in a gap (a critic that
+    /// fell behind) from being owed forever, which would hold the sim at its window for good.
+    pub fn acknowledgeable(&self, paid_ticks: u64) -> u64 {
+        let unpaid = self.ticks_received.saturating_sub(paid_ticks);
+        match self.sequence_range {
+            Some((_, last)) => last.min((last + 1).saturating_sub(unpaid)),
+            None => 0,
+        }
+    }
+}
+
 /// An episode as it ended.
 #[derive(Debug, Clone)]
 pub struct FinishedEpisode {
@@ -132,15 +146,6 @@ where
             }
         }
         Ok(finished)
-    }
-
-    /// The state sequence the critic may acknowledge: the latest it has read, but no further
-    /// than `paid_ticks` past the first it read.
-    pub fn acknowledgeable(&self, paid_ticks: u64) -> u64 {
-        match self.stats.sequence_range {
-            Some((first, last)) => last.min(first.saturating_add(paid_ticks)),
-            None => 0,
-        }
     }
 
     /// The observation of `agent` for (episode, tick), or `None` when it never arrived.
@@ -253,5 +258,34 @@ where
             episode_return: builder.episode_return,
             eval: builder.eval,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::CollectorStats;
+
+    fn stats(first: u64, last: u64, received: u64) -> CollectorStats {
+        CollectorStats {
+            ticks_received: received,
+            sequence_range: Some((first, last)),
+            ..CollectorStats::default()
+        }
+    }
+
+    #[test]
+    fn acknowledges_what_updates_paid_for_and_never_owes_lost_states() {
+        assert_eq!(CollectorStats::default().acknowledgeable(10), 0, "nothing read yet");
+        // No gap: 100 states read, 50 paid for.
+        assert_eq!(stats(100, 199, 100).acknowledgeable(50), 150);
+        assert_eq!(stats(100, 199, 100).acknowledgeable(100), 199);
+        assert_eq!(
+            stats(100, 199, 100).acknowledgeable(u64::MAX),
+            199,
+            "eval: everything read"
+        );
+        // 100 states lost in a gap: the 10 unpaid ones are the newest, not 110 of them.
+        assert_eq!(stats(100, 299, 100).acknowledgeable(90), 290);
+        assert_eq!(stats(100, 299, 100).acknowledgeable(100), 299);
     }
 }

@@ -117,7 +117,7 @@ where
         // `critic_window` ticks ahead, which holds the update-to-data ratio.
         // Progress also goes out as a heartbeat: the sim takes a critic silent for a while
         // as gone and runs on without flow control.
-        let acknowledged = collector.acknowledgeable(paid_ticks);
+        let acknowledged = collector.stats.acknowledgeable(paid_ticks);
         if acknowledged != last_acknowledged
             || collector.stats.ticks_received == 0
             || last_progress.elapsed() >= HEARTBEAT_EVERY
