@@ -456,7 +456,23 @@ impl RunConfig {
 
     /// Rejects values that make the task impossible or the numbers meaningless.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let e = &self.env;
+        self.env.validate()?;
+        self.ticks.validate()?;
+        self.learn.validate()?;
+        check(
+            self.view.world_every_episodes >= 1,
+            "view.world_every_episodes",
+            self.view.world_every_episodes,
+            "must be >= 1",
+        )?;
+        Ok(())
+    }
+}
+
+impl EnvConfig {
+    /// The task: robots, formations, observation and episode limits.
+    fn validate(&self) -> Result<(), ConfigError> {
+        let e = self;
         check(
             positive(e.dt_s) && e.dt_s <= 1.0,
             "env.dt_s",
@@ -526,8 +542,14 @@ impl RunConfig {
             e.history,
             "must be in 1..=64",
         )?;
+        Ok(())
+    }
+}
 
-        let t = &self.ticks;
+impl TickConfig {
+    /// Timing of the tick protocol.
+    fn validate(&self) -> Result<(), ConfigError> {
+        let t = self;
         check(
             t.command_timeout_ms >= 1,
             "ticks.command_timeout_ms",
@@ -552,8 +574,14 @@ impl RunConfig {
             t.sim_silence_ms,
             "must be >= 100",
         )?;
+        Ok(())
+    }
+}
 
-        let l = &self.learn;
+impl LearnConfig {
+    /// The learner: algorithm, sizes and rates.
+    fn validate(&self) -> Result<(), ConfigError> {
+        let l = self;
         check(
             (1..=65536).contains(&l.batch_size),
             "learn.batch_size",
@@ -651,12 +679,6 @@ impl RunConfig {
             l.eval_every_episodes >= 1,
             "learn.eval_every_episodes",
             l.eval_every_episodes,
-            "must be >= 1",
-        )?;
-        check(
-            self.view.world_every_episodes >= 1,
-            "view.world_every_episodes",
-            self.view.world_every_episodes,
             "must be >= 1",
         )?;
         Ok(())
