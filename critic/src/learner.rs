@@ -373,8 +373,10 @@ impl Learner {
         let (q, current) = self.policy_q(batch)?;
         let mut actor_loss = q.mean_all()?.neg()?;
         if let Some(teacher) = self.teacher_actions(batch)? {
-            // TD3+BC: Q normalised by its mean magnitude (no gradient through the scale).
-            let q_scale = f64::from(q.abs()?.mean_all()?.to_scalar::<f32>()?).max(1e-6);
+            // TD3+BC: Q normalised by its mean magnitude (no gradient through the scale), at
+            // least 1 so that a fresh critic (Q near 0, e.g. after a change of N) cannot blow
+            // its random gradients up over the teacher's.
+            let q_scale = f64::from(q.abs()?.mean_all()?.to_scalar::<f32>()?).max(1.0);
             let imitation = candle_nn::loss::mse(&current, &teacher)?;
             actor_loss = (actor_loss.affine(self.config.imitation_alpha / q_scale, 0.0)? + imitation)?;
         }
