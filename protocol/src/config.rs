@@ -309,7 +309,7 @@ pub struct LearnConfig {
     /// Weight of mean(a^2) added to the actor loss (keeps tanh out of saturation; 0 = off).
     pub action_l2: f64,
     /// The scripted baseline as a teacher (TD3+BC, Fujimoto & Gu 2021): the actor loss becomes
-    /// -alpha Q / mean|Q| plus the squared distance between the actor's action and the
+    /// -alpha Q / max(mean|Q|, 1) plus the squared distance between the actor's action and the
     /// baseline's on the same replayed observation. 0 = off (plain TD3 or DDPG, the paper).
     pub imitation_alpha: f64,
     /// Replay capacity in ticks.
