@@ -17,6 +17,10 @@ Flags:
   --episodes E            stop after E episodes (eval default: 100)
   --minutes M             stop after M minutes of wall clock (train default: 30)
   --scripted all|i,j,...  robots that run the scripted baseline instead of the learned actor
+  --external all|i,j,...  robots this script does not start: you attach them yourself, e.g.
+                          from Python (pip install ./python; python3 -m formation_swarm
+                          robot RUN_DIR i); the sim waits ticks.startup_timeout_s (60 s) for
+                          them to greet. See README.md, "From Python", and docs/PROTOCOL.md
   --checkpoint PATH       checkpoint file or run directory: eval loads it into the agents,
                           train resumes the critic from it (eval default: the shipped model
                           models/formation.safetensors, one model for any N)
@@ -41,10 +45,15 @@ Flags:
 
 Environment: FORMATION_BIN_DIR=DIR uses prebuilt binaries from DIR instead of building.
 
+Before any process starts, the run directory gets run.json: run id, N, shared-memory prefix,
+iceoryx2 root path, protocol version, observation model and size, the service sizing inputs
+and the robot limits; an external client needs only the run directory.
+
 Examples:
   scripts/run_swarm.sh 3 --scripted all --mode eval --episodes 50 --seed 1 --viewer off
   scripts/run_swarm.sh 3 --minutes 20
   scripts/run_swarm.sh 6 --mode eval --checkpoint runs/my-training
+  scripts/run_swarm.sh 3 --mode eval --scripted 0,1 --external 2 --run-dir runs/py
 USAGE
 }
 
@@ -56,7 +65,7 @@ N=$1; shift
 [[ "$N" =~ ^[0-9]+$ ]] || die "N must be a whole number, got '$N'"
 (( N >= 3 && N <= 64 )) || die "N must be between 3 and 64 (each robot observes two distinct neighbours), got $N"
 
-MODE=train EPISODES="" MINUTES="" SCRIPTED="" CHECKPOINT="" SEED=1 RUN_DIR="" VIEWER="" REALTIME="" CONFIG="" RESTART=on PLACEMENT=auto SHAPE=""
+MODE=train EPISODES="" MINUTES="" SCRIPTED="" EXTERNAL="" CHECKPOINT="" SEED=1 RUN_DIR="" VIEWER="" REALTIME="" CONFIG="" RESTART=on PLACEMENT=auto SHAPE=""
 need() { [[ $# -ge 2 && -n "$2" ]] || die "$1 needs a value"; }
 while [[ $# -gt 0 ]]; do
   case "$1" in
@@ -64,6 +73,7 @@ while [[ $# -gt 0 ]]; do
     --episodes) need "$@"; EPISODES=$2; shift 2 ;;
     --minutes) need "$@"; MINUTES=$2; shift 2 ;;
     --scripted) need "$@"; SCRIPTED=$2; shift 2 ;;
+    --external) need "$@"; EXTERNAL=$2; shift 2 ;;
     --checkpoint) need "$@"; CHECKPOINT=$2; shift 2 ;;
     --seed) need "$@"; SEED=$2; shift 2 ;;
     --run-dir) need "$@"; RUN_DIR=$2; shift 2 ;;
@@ -101,8 +111,35 @@ case "$SCRIPTED" in
       IS_SCRIPTED[p]=1
     done ;;
 esac
+# Which robots are external (started by the user, not here). An index named by both
+# --scripted and --external is a mistake; --scripted all leaves the external ones out.
+declare -a IS_EXTERNAL
+for ((i = 0; i < N; i++)); do IS_EXTERNAL[i]=0; done
+case "$EXTERNAL" in
+  "") ;;
+  all) for ((i = 0; i < N; i++)); do IS_EXTERNAL[i]=1; done ;;
+  *)
+    IFS=',' read -ra picks <<<"$EXTERNAL"
+    (( ${#picks[@]} > 0 )) || die "--external takes 'all' or indices like 0,2; got '$EXTERNAL'"
+    for p in "${picks[@]}"; do
+      [[ "$p" =~ ^[0-9]+$ ]] || die "--external takes 'all' or indices like 0,2; got '$EXTERNAL'"
+      p=$((10#$p))
+      (( p < N )) || die "--external: robot $p does not exist (robots are 0..$((N - 1)))"
+      (( IS_EXTERNAL[p] == 0 )) || die "--external: robot $p is named twice"
+      IS_EXTERNAL[p]=1
+    done ;;
+esac
+if [[ -n "$EXTERNAL" && "$SCRIPTED" != all && -n "$SCRIPTED" ]]; then
+  for ((i = 0; i < N; i++)); do
+    (( IS_SCRIPTED[i] && IS_EXTERNAL[i] )) && die "robot $i cannot be both --scripted and --external"
+  done
+fi
+EXTERNAL_LIST=""
+for ((i = 0; i < N; i++)); do
+  if (( IS_EXTERNAL[i] )); then IS_SCRIPTED[i]=0; EXTERNAL_LIST+="${EXTERNAL_LIST:+,}$i"; fi
+done
 LEARNED=0
-for ((i = 0; i < N; i++)); do (( IS_SCRIPTED[i] )) || LEARNED=$((LEARNED + 1)); done
+for ((i = 0; i < N; i++)); do (( IS_SCRIPTED[i] || IS_EXTERNAL[i] )) || LEARNED=$((LEARNED + 1)); done
 
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 SHIPPED_MODEL="$ROOT/models/formation.safetensors"
@@ -122,12 +159,31 @@ if [[ -n "${FORMATION_BIN_DIR:-}" ]]; then
   BIN=$FORMATION_BIN_DIR
 else
   echo "building (release)..."
-  (cd "$ROOT" && cargo build --release --quiet -p formation-sim -p formation-agent -p formation-critic) || die "build failed"
+  (cd "$ROOT" && cargo build --release --quiet -p formation-sim -p formation-agent -p formation-critic -p formation-protocol) || die "build failed"
   BIN=$ROOT/target/release
 fi
 for b in formation-sim formation-agent formation-critic; do
   [[ -x "$BIN/$b" ]] || die "missing binary $BIN/$b"
 done
+
+# One value of the run's configuration for run.json: KEY of [SECTION] in --config, else the
+# default (the same defaults as protocol/src/config.rs; python/tests checks run.json against
+# the config.toml the sim writes).
+config_value() { # section key default
+  local value=""
+  if [[ -n "$CONFIG" ]]; then
+    value=$(awk -v sec="$1" -v key="$2" '
+      /^[[:space:]]*\[/ { cur = $0; gsub(/[][[:space:]]/, "", cur); next }
+      cur == sec {
+        line = $0; sub(/#.*/, "", line)
+        if (match(line, "^[[:space:]]*" key "[[:space:]]*=")) {
+          v = substr(line, RLENGTH + 1); gsub(/^[[:space:]]+|[[:space:]]+$/, "", v); gsub(/"/, "", v)
+          print v; exit
+        }
+      }' "$CONFIG")
+  fi
+  echo "${value:-$3}"
+}
 
 RUN_DIR=${RUN_DIR:-runs/$(date +%Y%m%d-%H%M%S)}
 RUN_ID="r$(date +%s | tail -c 7)p$$"
@@ -147,6 +203,42 @@ if [[ -n "$CHECKPOINT" && "$MODE" == train ]]; then
   "$BIN/formation-critic" "${COMMON[@]}" --checkpoint "$CHECKPOINT" --check || exit 2
 fi
 mkdir -p "$RUN_DIR/logs"
+
+# run.json: everything a client in another language needs to attach, given the run directory.
+if [[ -x "$BIN/formation-layout" ]]; then
+  PROTOCOL_VERSION=$("$BIN/formation-layout" --protocol-version)
+else
+  PROTOCOL_VERSION=$(sed -n 's/^pub const PROTOCOL_VERSION: u32 = \([0-9]*\);/\1/p' "$ROOT/protocol/src/wire.rs")
+fi
+OBSERVATION=$(config_value env observation slot_proximity)
+case "$OBSERVATION" in
+  paper) OBS_DIM=12 ;; slot) OBS_DIM=14 ;; slot_proximity) OBS_DIM=16 ;;
+  *) die "unknown env.observation '$OBSERVATION' in $CONFIG" ;;
+esac
+TMP_ROOT=${TMPDIR:-/tmp}
+STARTUP_TIMEOUT_S=$(config_value ticks startup_timeout_s 60)
+cat >"$RUN_DIR/run.json.tmp" <<JSON
+{
+  "run_id": "$RUN_ID",
+  "n_agents": $N,
+  "shm_prefix": "fc_${RUN_ID}_",
+  "root_path": "${TMP_ROOT%/}/formation-iox2/$RUN_ID/",
+  "protocol_version": ${PROTOCOL_VERSION:-0},
+  "observation": "$OBSERVATION",
+  "observation_dim": $OBS_DIM,
+  "critic_window": $(config_value ticks critic_window 64),
+  "startup_timeout_s": $STARTUP_TIMEOUT_S,
+  "sim_silence_ms": $(config_value ticks sim_silence_ms 2000),
+  "command_timeout_ms": $(config_value ticks command_timeout_ms 200),
+  "v_max": $(config_value env v_max 0.5),
+  "w_max": $(config_value env w_max 1.0),
+  "proximity_range_m": $(config_value env proximity_range_m 1.0),
+  "mode": "$MODE",
+  "external": [${EXTERNAL_LIST}],
+  "launcher_pid": $$
+}
+JSON
+mv "$RUN_DIR/run.json.tmp" "$RUN_DIR/run.json"
 
 declare -a PIDS=()
 cleanup() {
@@ -183,13 +275,21 @@ start_agent() { # index
 }
 
 start_critic "$CHECKPOINT"
-for ((i = 0; i < N; i++)); do start_agent "$i"; done
+for ((i = 0; i < N; i++)); do
+  if (( IS_EXTERNAL[i] )); then AGENT_PIDS[i]=""; else start_agent "$i"; fi
+done
 
 SIM_ARGS=("${COMMON[@]}" --viewer "$VIEWER")
 [[ -n "$EPISODES" ]] && SIM_ARGS+=(--episodes "$EPISODES")
 [[ -n "$MINUTES" ]] && SIM_ARGS+=(--minutes "$MINUTES")
 [[ -n "$REALTIME" ]] && SIM_ARGS+=(--realtime)
-[[ -n "$SCRIPTED" ]] && SIM_ARGS+=(--scripted "$SCRIPTED")
+if [[ -n "$SCRIPTED" && -n "$EXTERNAL" ]]; then
+  SIM_SCRIPTED=""
+  for ((i = 0; i < N; i++)); do (( IS_SCRIPTED[i] )) && SIM_SCRIPTED+="${SIM_SCRIPTED:+,}$i"; done
+  [[ -n "$SIM_SCRIPTED" ]] && SIM_ARGS+=(--scripted "$SIM_SCRIPTED")
+elif [[ -n "$SCRIPTED" ]]; then
+  SIM_ARGS+=(--scripted "$SCRIPTED")
+fi
 "$BIN/formation-sim" "${SIM_ARGS[@]}" >"$RUN_DIR/logs/sim.log" 2>&1 &
 SIM_PID=$!
 PIDS+=("$SIM_PID")
@@ -197,7 +297,18 @@ PIDS+=("$SIM_PID")
 # Ctrl-C or SIGTERM: ask the sim to end the run; it tells everyone else.
 trap 'echo; echo "stopping: the sim closes the episode and ends the run..."; kill -INT "$SIM_PID" 2>/dev/null || true' INT TERM
 
-echo "run $RUN_ID: sim, $N agents and the critic started; results in $RUN_DIR (logs in $RUN_DIR/logs)"
+if [[ -n "$EXTERNAL_LIST" ]]; then
+  started=0
+  for ((i = 0; i < N; i++)); do (( IS_EXTERNAL[i] )) || started=$((started + 1)); done
+  echo "run $RUN_ID: sim, $started agents and the critic started; results in $RUN_DIR (logs in $RUN_DIR/logs)"
+  echo "external robots $EXTERNAL_LIST: the sim waits ${STARTUP_TIMEOUT_S} s for them to greet. Attach each one with"
+  for ((i = 0; i < N; i++)); do
+    (( IS_EXTERNAL[i] )) && echo "  python3 -m formation_swarm robot $RUN_DIR $i        # the baseline in Python (pip install ./python)"
+  done
+  echo "or from your code: formation_swarm.run_robot(\"$RUN_DIR\", INDEX, policy)  (run.json in $RUN_DIR has the rest)"
+else
+  echo "run $RUN_ID: sim, $N agents and the critic started; results in $RUN_DIR (logs in $RUN_DIR/logs)"
+fi
 # Watch the run: the sim's end ends it; a dead agent or critic is restarted (--restart on).
 status=0
 while kill -0 "$SIM_PID" 2>/dev/null; do

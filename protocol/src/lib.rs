@@ -4,10 +4,12 @@
 //! * [`services`]: service names, the run-unique iceoryx2 configuration and port helpers;
 //! * [`config`]: the one serde configuration every process reads (environment, ticks, learning);
 //! * [`placement`]: which CPU each process works on;
-//! * [`summary`]: the figures a run leaves behind in `summary.json`.
+//! * [`summary`]: the figures a run leaves behind in `summary.json`;
+//! * [`layout`]: the payloads' memory layout as JSON, for bindings in other languages.
 
 pub mod cli;
 pub mod config;
+pub mod layout;
 pub mod placement;
 pub mod services;
 pub mod summary;

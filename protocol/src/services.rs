@@ -20,8 +20,8 @@ use crate::MAX_AGENTS;
 use crate::wire::{CommandMsg, CriticProgressMsg, ObservationMsg, StateMsg, WeightsHeader};
 
 /// Ports left for processes that replace a dead one before iceoryx2 has cleaned it up, and for
-/// observers such as a viewer.
-const SPARE_PORTS: usize = 4;
+/// observers such as a viewer (or a Python `Observer`).
+pub const SPARE_PORTS: usize = 4;
 
 /// Where a run's iceoryx2 files live and what their shared-memory names start with.
 #[derive(Debug, Clone, PartialEq, Eq)]

@@ -1,0 +1,194 @@
+//! The memory layout of every payload in [`crate::wire`], as JSON: size, alignment, iceoryx2
+//! type name and each field's offset, size and element type, plus the protocol's constants.
+//!
+//! Bindings in other languages mirror the payloads by hand (`python/formation_swarm/wire.py`);
+//! `python/formation_swarm/layout.json` holds this output and a unit test here keeps it equal
+//! to the build, so a layout change in Rust fails `cargo test` until the file is regenerated
+//! (`FORMATION_UPDATE_LAYOUT=1 cargo test -p formation-protocol layout`), and then the Python
+//! conformance test fails until the mirrors follow. `formation-layout` prints the same JSON.
+
+use std::fmt::Write as _;
+use std::mem::{align_of, offset_of, size_of};
+
+use iceoryx2::prelude::ZeroCopySend;
+
+use crate::wire::*;
+use crate::{ACTION_DIM, MAX_AGENTS, MAX_OBS_DIM, MIN_AGENTS, NEIGHBOURS};
+
+/// One field: name, byte offset, byte size and element type (`u32`, `f32[16]`, `f32[64][3]`, or
+/// another payload's type name).
+struct Field(&'static str, usize, usize, &'static str);
+
+fn type_name<T: ZeroCopySend>() -> &'static str {
+    // SAFETY: only reads the name the payload declares with `#[type_name]`.
+    unsafe { <T as ZeroCopySend>::type_name() }
+}
+
+fn payload<T: ZeroCopySend>(out: &mut String, rust_name: &str, fields: &[Field]) {
+    let _ = write!(
+        out,
+        "    {{\"rust\": \"{rust_name}\", \"type_name\": \"{}\", \"size\": {}, \"align\": {}, \"fields\": [",
+        type_name::<T>(),
+        size_of::<T>(),
+        align_of::<T>()
+    );
+    for (i, Field(name, offset, size, ty)) in fields.iter().enumerate() {
+        let sep = if i == 0 { "" } else { "," };
+        let _ = write!(
+            out,
+            "{sep}\n      {{\"name\": \"{name}\", \"offset\": {offset}, \"size\": {size}, \"type\": \"{ty}\"}}"
+        );
+    }
+    out.push_str("\n    ]}");
+}
+
+macro_rules! field {
+    ($t:ty, $f:ident, $ty:expr) => {
+        Field(stringify!($f), offset_of!($t, $f), size_of_field(|v: &$t| &v.$f), $ty)
+    };
+}
+
+fn size_of_field<T, F>(_: impl Fn(&T) -> &F) -> usize {
+    size_of::<F>()
+}
+
+/// The layout of every payload and the protocol's constants, as pretty-printed JSON.
+pub fn layout_json() -> String {
+    let mut out = String::from("{\n");
+    let _ = writeln!(out, "  \"protocol_version\": {PROTOCOL_VERSION},");
+    let constants: [(&str, u64); 17] = [
+        ("PROTOCOL_VERSION", u64::from(PROTOCOL_VERSION)),
+        ("FLAG_EPISODE_START", u64::from(FLAG_EPISODE_START)),
+        ("FLAG_EPISODE_END", u64::from(FLAG_EPISODE_END)),
+        ("FLAG_RUN_END", u64::from(FLAG_RUN_END)),
+        ("FLAG_HELLO", u64::from(FLAG_HELLO)),
+        ("FLAG_EVAL_EPISODE", u64::from(FLAG_EVAL_EPISODE)),
+        ("OUTCOME_RUNNING", u64::from(OUTCOME_RUNNING)),
+        ("OUTCOME_SUCCESS", u64::from(OUTCOME_SUCCESS)),
+        ("OUTCOME_COLLISION", u64::from(OUTCOME_COLLISION)),
+        ("OUTCOME_TIMEOUT", u64::from(OUTCOME_TIMEOUT)),
+        ("OUTCOME_ABORTED", u64::from(OUTCOME_ABORTED)),
+        ("MAX_AGENTS", MAX_AGENTS as u64),
+        ("MIN_AGENTS", MIN_AGENTS as u64),
+        ("NEIGHBOURS", NEIGHBOURS as u64),
+        ("MAX_OBS_DIM", MAX_OBS_DIM as u64),
+        ("ACTION_DIM", ACTION_DIM as u64),
+        ("SPARE_PORTS", crate::services::SPARE_PORTS as u64),
+    ];
+    out.push_str("  \"constants\": {");
+    for (i, (name, value)) in constants.iter().enumerate() {
+        let sep = if i == 0 { "" } else { "," };
+        let _ = write!(out, "{sep}\n    \"{name}\": {value}");
+    }
+    out.push_str("\n  },\n  \"payloads\": [\n");
+    payload::<Header>(
+        &mut out,
+        "Header",
+        &[
+            field!(Header, protocol_version, "u32"),
+            field!(Header, episode, "u32"),
+            field!(Header, tick, "u32"),
+            field!(Header, flags, "u32"),
+        ],
+    );
+    out.push_str(",\n");
+    payload::<ObservationMsg>(
+        &mut out,
+        "ObservationMsg",
+        &[
+            field!(ObservationMsg, header, "formation::Header"),
+            field!(ObservationMsg, agent, "u32"),
+            field!(ObservationMsg, n_agents, "u32"),
+            field!(ObservationMsg, dim, "u32"),
+            field!(ObservationMsg, obs, "f32[16]"),
+        ],
+    );
+    out.push_str(",\n");
+    payload::<CommandMsg>(
+        &mut out,
+        "CommandMsg",
+        &[
+            field!(CommandMsg, header, "formation::Header"),
+            field!(CommandMsg, agent, "u32"),
+            field!(CommandMsg, policy_version, "u32"),
+            field!(CommandMsg, v, "f32"),
+            field!(CommandMsg, w, "f32"),
+            field!(CommandMsg, session, "u32"),
+        ],
+    );
+    out.push_str(",\n");
+    payload::<StateMsg>(
+        &mut out,
+        "StateMsg",
+        &[
+            field!(StateMsg, header, "formation::Header"),
+            field!(StateMsg, n_agents, "u32"),
+            field!(StateMsg, outcome, "u32"),
+            field!(StateMsg, reward, "f32"),
+            field!(StateMsg, missed, "u32"),
+            field!(StateMsg, sequence, "u64"),
+            field!(StateMsg, poses, "f32[64][3]"),
+            field!(StateMsg, applied, "f32[64][2]"),
+            field!(StateMsg, desired, "f32[64][2]"),
+            field!(StateMsg, slots, "f32[64][2]"),
+            field!(StateMsg, goal, "f32[2]"),
+        ],
+    );
+    out.push_str(",\n");
+    payload::<CriticProgressMsg>(
+        &mut out,
+        "CriticProgressMsg",
+        &[
+            field!(CriticProgressMsg, protocol_version, "u32"),
+            field!(CriticProgressMsg, weights_version, "u32"),
+            field!(CriticProgressMsg, acknowledged_sequence, "u64"),
+            field!(CriticProgressMsg, updates, "u64"),
+            field!(CriticProgressMsg, session, "u64"),
+        ],
+    );
+    out.push_str(",\n");
+    payload::<WeightsHeader>(
+        &mut out,
+        "WeightsHeader",
+        &[
+            field!(WeightsHeader, protocol_version, "u32"),
+            field!(WeightsHeader, actor_index, "u32"),
+            field!(WeightsHeader, version, "u32"),
+            field!(WeightsHeader, len, "u32"),
+        ],
+    );
+    out.push_str("\n  ]\n}\n");
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The array dimensions the field types spell out are the build's constants.
+    #[test]
+    fn spelled_dimensions_match_the_constants() {
+        assert_eq!(MAX_OBS_DIM, 16);
+        assert_eq!(MAX_AGENTS, 64);
+        assert_eq!((NEIGHBOURS, ACTION_DIM), (2, 2));
+    }
+
+    /// `python/formation_swarm/layout.json` is this build's layout: the Python mirrors are
+    /// checked against that file, so it must never drift from Rust.
+    #[test]
+    fn python_layout_file_matches_the_build() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../python/formation_swarm/layout.json");
+        let expected = layout_json();
+        if std::env::var_os("FORMATION_UPDATE_LAYOUT").is_some() {
+            std::fs::write(&path, &expected).expect("write layout.json");
+        }
+        let found = std::fs::read_to_string(&path).unwrap_or_default();
+        assert!(
+            found == expected,
+            "{} differs from the payloads' layout in this build: regenerate it with \
+             `FORMATION_UPDATE_LAYOUT=1 cargo test -p formation-protocol layout`, update \
+             python/formation_swarm/wire.py and bump PROTOCOL_VERSION. This build's layout:\n{expected}",
+            path.display()
+        );
+    }
+}

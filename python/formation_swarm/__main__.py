@@ -1,0 +1,78 @@
+"""``python -m formation_swarm``: play a robot slot or watch a running swarm.
+
+    python -m formation_swarm robot RUN_DIR INDEX [--policy baseline|MODULE:CALLABLE]
+    python -m formation_swarm observe RUN_DIR [--count K]
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import signal
+import sys
+
+from . import Baseline, FormationError, Observer, connect, run_robot
+
+
+def _load_policy(spec: str, run):
+    if spec == "baseline":
+        return Baseline.for_run(run)
+    module, _, attr = spec.partition(":")
+    if not attr:
+        raise FormationError(f"--policy must be 'baseline' or MODULE:CALLABLE, got {spec!r}")
+    policy = getattr(importlib.import_module(module), attr)
+    # A class or factory taking no argument yields the policy; a plain function is the policy.
+    return policy() if isinstance(policy, type) else policy
+
+
+def _terminate(signum, frame):
+    raise KeyboardInterrupt
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m formation_swarm", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    robot = sub.add_parser("robot", help="play one robot slot until the run ends")
+    robot.add_argument("run_dir")
+    robot.add_argument("index", type=int)
+    robot.add_argument("--policy", default="baseline", help="baseline (default) or MODULE:CALLABLE")
+    robot.add_argument("--connect-timeout", type=float, default=60.0,
+                       help="seconds to wait for the launcher's run.json (default 60)")
+    observe = sub.add_parser("observe", help="print the live true state")
+    observe.add_argument("run_dir")
+    observe.add_argument("--count", type=int, default=0, help="stop after K states (default: run end)")
+    args = parser.parse_args(argv)
+
+    # SIGTERM ends the loop like Ctrl-C: ports and node are released on the way out.
+    signal.signal(signal.SIGTERM, _terminate)
+    try:
+        run = connect(args.run_dir, args.connect_timeout if args.command == "robot" else 60.0)
+        if args.command == "robot":
+            print(f"robot {args.index}: attached to run {run.run_id} ({run.n_agents} robots, "
+                  f"{run.observation} observations)", flush=True)
+            stats = run_robot(run, args.index, _load_policy(args.policy, run))
+            print(f"robot {args.index}: run ended after {stats.commands} commands in {stats.episodes} episodes",
+                  flush=True)
+        else:
+            with Observer(run) as observer:
+                seen = 0
+                for state in observer.states(timeout=run.startup_timeout_s):
+                    centroid = [sum(p[k] for p in state.poses) / state.n_agents for k in (0, 1)]
+                    print(f"episode {state.episode} tick {state.tick} seq {state.sequence} "
+                          f"{state.outcome_name} centroid ({centroid[0]:+.2f}, {centroid[1]:+.2f}) "
+                          f"goal ({state.goal[0]:+.2f}, {state.goal[1]:+.2f})", flush=True)
+                    seen += 1
+                    if args.count and seen >= args.count:
+                        break
+    except FormationError as err:
+        print(f"formation_swarm: error: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("formation_swarm: stopped", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

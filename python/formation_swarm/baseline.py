@@ -1,0 +1,60 @@
+"""The scripted baseline (``core/src/baseline.rs``) in Python: a distance-based formation
+controller from the robot's own observation, tracked by a unicycle. An example policy."""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence, Tuple
+
+
+class Baseline:
+    """``policy(obs) -> (v, w)``; the observation model follows from ``len(obs)`` (12: paper,
+    14: slot, 16: slot_proximity). Gains are the Rust defaults."""
+
+    def __init__(self, v_max: float = 0.5, w_max: float = 1.0, proximity_range: float = 1.0,
+                 k_form: float = 1.5, k_goal: float = 0.6, k_turn: float = 2.5,
+                 repulsion_range: float = 0.5, k_repulsion: float = 3.0) -> None:
+        self.v_max, self.w_max, self.proximity_range = v_max, w_max, proximity_range
+        self.k_form, self.k_goal, self.k_turn = k_form, k_goal, k_turn
+        self.repulsion_range, self.k_repulsion = repulsion_range, k_repulsion
+
+    @classmethod
+    def for_run(cls, run) -> "Baseline":
+        """The baseline with the robot limits of a run (``formation_swarm.connect(...)``)."""
+        return cls(run.v_max, run.w_max, run.proximity_range_m)
+
+    def desired_velocity(self, obs: Sequence[float]) -> Tuple[float, float]:
+        """The desired planar velocity in the robot's frame."""
+        ux = uy = cx = cy = 0.0
+        for k in range(2):  # neighbours (i+1) and (i+2): x, y, cos, sin, desired distance
+            qx, qy, desired = float(obs[5 * k]), float(obs[5 * k + 1]), float(obs[5 * k + 4])
+            dist = max(math.hypot(qx, qy), 1e-6)
+            pull = self.k_form * (dist - desired)
+            push = self.k_repulsion * (self.repulsion_range - dist) if dist < self.repulsion_range else 0.0
+            ux += (pull - push) * qx / dist
+            uy += (pull - push) * qy / dist
+            cx, cy = cx + qx / 3.0, cy + qy / 3.0
+        if len(obs) >= 16:  # nearest untracked robot as (1 - d/R) * unit vector
+            nx, ny = float(obs[14]), float(obs[15])
+            closeness = math.hypot(nx, ny)
+            if closeness > 0.0:
+                dist = (1.0 - closeness) * self.proximity_range
+                push = self.k_repulsion * max(self.repulsion_range - dist, 0.0)
+                ux, uy = ux - push * nx / closeness, uy - push * ny / closeness
+        if len(obs) >= 14:  # the robot's own slot in the goal formation
+            tx, ty = float(obs[12]), float(obs[13])
+        else:  # the goal minus the centroid of the robot's triangle (exact for N = 3)
+            tx, ty = float(obs[10]) - cx, float(obs[11]) - cy
+        gx, gy = self.k_goal * tx, self.k_goal * ty
+        speed = math.hypot(gx, gy)
+        if speed > self.v_max:
+            gx, gy = gx * self.v_max / speed, gy * self.v_max / speed
+        return ux + gx, uy + gy
+
+    def __call__(self, obs: Sequence[float]) -> Tuple[float, float]:
+        """The (v, w) command, clamped to the robot's limits; never drives backwards."""
+        ux, uy = self.desired_velocity(obs)
+        bearing = math.atan2(uy, ux)
+        v = min(max(math.hypot(ux, uy) * math.cos(bearing), 0.0), self.v_max)
+        w = min(max(self.k_turn * bearing, -self.w_max), self.w_max)
+        return v, w

@@ -1,0 +1,162 @@
+"""Reading the live true state (``formation/state``) of a running swarm."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Any, Iterator, List, Optional, Tuple, Union
+
+import iceoryx2 as iox2
+
+from . import run as runmod
+from . import wire
+from .run import RunInfo
+
+
+@dataclasses.dataclass(frozen=True)
+class WorldState:
+    """One tick of the true world (a copy of ``formation::State``, trimmed to ``n_agents``)."""
+
+    episode: int
+    tick: int
+    flags: int
+    sequence: int
+    n_agents: int
+    outcome: int
+    reward: float
+    missed: int
+    #: World poses (x, y, theta) of every robot.
+    poses: List[Tuple[float, float, float]]
+    #: Commands (v, w) applied in the transition into this tick.
+    applied: List[Tuple[float, float]]
+    #: Desired length of each robot's two observed edges.
+    desired: List[Tuple[float, float]]
+    #: Each robot's offset from the goal in the goal formation.
+    slots: List[Tuple[float, float]]
+    #: Goal of the formation's centroid.
+    goal: Tuple[float, float]
+    #: The raw payload copy.
+    raw: wire.State = dataclasses.field(repr=False, compare=False)
+
+    @property
+    def run_end(self) -> bool:
+        """True for the sim's end-of-run message (no world in it)."""
+        return bool(self.flags & wire.FLAG_RUN_END)
+
+    @property
+    def outcome_name(self) -> str:
+        """``running``, ``success``, ``collision``, ``timeout`` or ``aborted``."""
+        return wire.OUTCOME_NAMES.get(self.outcome, str(self.outcome))
+
+    @classmethod
+    def from_payload(cls, raw: wire.State) -> "WorldState":
+        """Copies what is in use of a ``formation::State``."""
+        n = min(int(raw.n_agents), wire.MAX_AGENTS)
+        return cls(
+            episode=raw.header.episode,
+            tick=raw.header.tick,
+            flags=raw.header.flags,
+            sequence=raw.sequence,
+            n_agents=n,
+            outcome=raw.outcome,
+            reward=raw.reward,
+            missed=raw.missed,
+            poses=[tuple(raw.poses[i]) for i in range(n)],
+            applied=[tuple(raw.applied[i]) for i in range(n)],
+            desired=[tuple(raw.desired[i]) for i in range(n)],
+            slots=[tuple(raw.slots[i]) for i in range(n)],
+            goal=(raw.goal[0], raw.goal[1]),
+            raw=raw,
+        )
+
+
+class Observer:
+    """Subscribes to the true state of the run in ``run_dir``.
+
+    Sleeps on ``formation/critic/wake`` (the sim raises it every half critic window and at
+    every episode's end) or at most ``poll_s`` between looks; the state subscriber keeps the
+    last ``2 * critic_window + 16`` states, so an observer that keeps up misses none. The
+    stream overwrites the oldest state for a slow observer: it never holds the sim back.
+    """
+
+    def __init__(
+        self,
+        run_dir: Union[str, Path, RunInfo],
+        *,
+        connect_timeout: Optional[float] = 60.0,
+        poll_s: float = 0.05,
+        name: str = "observer",
+    ) -> None:
+        self.run = run_dir if isinstance(run_dir, RunInfo) else runmod.connect(run_dir, connect_timeout)
+        self.poll_s = poll_s
+        self._node = self.run.create_node(name)
+        self._states = runmod.state_stream(self._node, self.run).subscriber_builder().create()
+        self._wake = runmod.critic_wake_event(self._node, self.run).listener_builder().create()
+        self.run_ended = False
+
+    def receive(self) -> List[WorldState]:
+        """Every state that arrived since the last call (oldest first), without waiting."""
+        out = []
+        while True:
+            sample = self._states.receive()
+            if sample is None:
+                return out
+            raw = wire.State.from_buffer_copy(sample.payload().contents)
+            sample.delete()
+            state = WorldState.from_payload(raw)
+            if state.run_end:
+                self.run_ended = True
+            out.append(state)
+
+    def wait(self, timeout: float) -> List[WorldState]:
+        """Waits up to ``timeout`` seconds for states; returns what arrived (maybe nothing)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            states = self.receive()
+            left = deadline - time.monotonic()
+            if states or left <= 0:
+                return states
+            try:
+                self._wake.timed_wait(iox2.Duration.from_secs_f64(min(left, self.poll_s)))
+            except iox2.ListenerWaitError:
+                pass
+
+    def states(self, timeout: Optional[float] = None) -> Iterator[WorldState]:
+        """Yields every state until the run ends (its end-of-run state, or the sim's process
+        gone), or until none came for ``timeout`` seconds."""
+        idle_since = time.monotonic()
+        heard = False
+        while not self.run_ended:
+            batch = self.wait(0.5)
+            for state in batch:
+                if state.run_end:
+                    return
+                heard = True
+                yield state
+            now = time.monotonic()
+            if batch:
+                idle_since = now
+                continue
+            if heard and not self.run.node_alive("sim"):
+                # The sim exited before its end-of-run state was read (it goes with the sim).
+                self.run_ended = True
+                return
+            if timeout is not None and now - idle_since >= timeout:
+                return
+
+    def close(self) -> None:
+        """Releases the ports and the node."""
+        for port in ("_states", "_wake"):
+            obj = getattr(self, port, None)
+            if obj is not None:
+                obj.delete()
+                setattr(self, port, None)
+        self._node = None
+
+    def __enter__(self) -> "Observer":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+

@@ -1,0 +1,231 @@
+"""Attaching to a running swarm: ``run.json``, the run-unique iceoryx2 configuration, service
+names and sizes.
+
+Mirrors ``protocol/src/services.rs``: the shared-memory prefix ``fc_<run id>_``, the root path
+``$TMPDIR/formation-iox2/<run id>/`` and, for every service a Python process opens, exactly the
+sizes the Rust processes ask for (so whichever side creates a service first, the other opens it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any, Optional, Union
+
+import iceoryx2 as iox2
+
+from . import wire
+
+
+class FormationError(RuntimeError):
+    """Something about the run or the wire is not as this client expects."""
+
+
+class SimGone(FormationError):
+    """The sim fell silent and its process is gone (or it stayed silent too long)."""
+
+
+#: Floats per observation model (``formation_core::observation::Layout::dim``).
+OBSERVATION_DIMS = {"paper": 12, "slot": 14, "slot_proximity": 16}
+
+
+@dataclasses.dataclass(frozen=True)
+class RunInfo:
+    """What ``scripts/run_swarm.sh`` writes into ``<run dir>/run.json`` before anything starts."""
+
+    run_dir: Path
+    run_id: str
+    n_agents: int
+    shm_prefix: str
+    root_path: str
+    protocol_version: int
+    observation: str
+    observation_dim: int
+    critic_window: int
+    startup_timeout_s: float
+    sim_silence_ms: int
+    command_timeout_ms: int
+    v_max: float
+    w_max: float
+    proximity_range_m: float
+    mode: str
+    external: tuple
+    launcher_pid: int
+
+    @classmethod
+    def from_dict(cls, run_dir: Path, raw: dict) -> "RunInfo":
+        """Parses run.json's contents; unknown keys are ignored, missing ones are an error."""
+        try:
+            return cls(
+                run_dir=run_dir,
+                run_id=str(raw["run_id"]),
+                n_agents=int(raw["n_agents"]),
+                shm_prefix=str(raw["shm_prefix"]),
+                root_path=str(raw["root_path"]),
+                protocol_version=int(raw["protocol_version"]),
+                observation=str(raw["observation"]),
+                observation_dim=int(raw["observation_dim"]),
+                critic_window=int(raw["critic_window"]),
+                startup_timeout_s=float(raw["startup_timeout_s"]),
+                sim_silence_ms=int(raw["sim_silence_ms"]),
+                command_timeout_ms=int(raw["command_timeout_ms"]),
+                v_max=float(raw["v_max"]),
+                w_max=float(raw["w_max"]),
+                proximity_range_m=float(raw["proximity_range_m"]),
+                mode=str(raw["mode"]),
+                external=tuple(int(i) for i in raw.get("external", [])),
+                launcher_pid=int(raw.get("launcher_pid", 0)),
+            )
+        except (KeyError, TypeError, ValueError) as err:
+            raise FormationError(f"{run_dir / 'run.json'} is malformed: {err!r}") from err
+
+    def launcher_alive(self) -> bool:
+        """True while the launcher that wrote run.json still runs (False for a finished run)."""
+        if self.launcher_pid <= 0:
+            return True
+        try:
+            os.kill(self.launcher_pid, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:
+            return True
+        return True
+
+    # --- service sizing, as protocol/src/services.rs derives it -----------------------------
+
+    @property
+    def stream_buffer(self) -> int:
+        """``Sizing::stream_buffer``: samples a subscriber may hold."""
+        return 2 * self.critic_window + 16
+
+    @property
+    def shared_nodes(self) -> int:
+        """``Sizing::shared_nodes``."""
+        return self.n_agents + 2 + wire.SPARE_PORTS
+
+    def iceoryx_config(self) -> Any:
+        """The iceoryx2 configuration every process of this run uses."""
+        config = iox2.config.default()
+        config.global_cfg.prefix = iox2.FileName.new(self.shm_prefix)
+        root = self.root_path if self.root_path.endswith("/") else self.root_path + "/"
+        config.global_cfg.root_path = iox2.Path.new(root)
+        return config
+
+    def create_node(self, name: str) -> Any:
+        """A node of this run named ``name`` (shown by ``iox2 node list``).
+
+        iceoryx2's own signal handler is disabled so that Python keeps its SIGINT handling
+        (``KeyboardInterrupt``)."""
+        return (
+            iox2.NodeBuilder.new()
+            .name(iox2.NodeName.new(name))
+            .config(self.iceoryx_config())
+            .signal_handling_mode(iox2.SignalHandlingMode.Disabled)
+            .create(iox2.ServiceType.Ipc)
+        )
+
+    def node_alive(self, name: str) -> bool:
+        """True while a live process of the run holds a node named ``name``."""
+        for state in iox2.Node.list(iox2.ServiceType.Ipc, self.iceoryx_config()):
+            if isinstance(state, iox2.NodeState.Alive):
+                details = state[0].details
+                if details is not None and details.name.as_str() == name:
+                    return True
+        return False
+
+
+def _stream(node: Any, run: RunInfo, name: str, payload: type, history: int, max_nodes: int) -> Any:
+    return (
+        node.service_builder(iox2.ServiceName.new(name))
+        .publish_subscribe(payload)
+        .max_publishers(1 + wire.SPARE_PORTS)
+        .max_subscribers(2 + wire.SPARE_PORTS)
+        .max_nodes(max_nodes)
+        .history_size(history)
+        .subscriber_max_buffer_size(max(run.stream_buffer, history))
+        .open_or_create()
+    )
+
+
+def _event(node: Any, run: RunInfo, name: str, notifiers: int) -> Any:
+    return (
+        node.service_builder(iox2.ServiceName.new(name))
+        .event()
+        .max_notifiers(notifiers + wire.SPARE_PORTS)
+        .max_listeners(1 + wire.SPARE_PORTS)
+        .max_nodes(run.shared_nodes)
+        .event_id_max_value(wire.MAX_AGENTS)
+        .open_or_create()
+    )
+
+
+def observation_stream(node: Any, run: RunInfo, agent: int) -> Any:
+    """``formation/agent/<i>/observation``: history 0, at most 2 + spare nodes."""
+    name = f"formation/agent/{agent}/observation"
+    return _stream(node, run, name, wire.Observation, 0, 2 + wire.SPARE_PORTS)
+
+
+def observation_event(node: Any, run: RunInfo, agent: int) -> Any:
+    """``formation/agent/<i>/observation_ready``: the sim wakes robot i."""
+    return _event(node, run, f"formation/agent/{agent}/observation_ready", 1)
+
+
+def command_stream(node: Any, run: RunInfo, agent: int) -> Any:
+    """``formation/agent/<i>/command``: history 1 keeps the greeting for a sim that starts later."""
+    name = f"formation/agent/{agent}/command"
+    return _stream(node, run, name, wire.Command, 1, 2 + wire.SPARE_PORTS)
+
+
+def command_event(node: Any, run: RunInfo) -> Any:
+    """``formation/command_ready``: every robot raises it (event id = robot index)."""
+    return _event(node, run, "formation/command_ready", run.n_agents)
+
+
+def state_stream(node: Any, run: RunInfo) -> Any:
+    """``formation/state``: the true world, every tick."""
+    return _stream(node, run, "formation/state", wire.State, 0, run.shared_nodes)
+
+
+def critic_wake_event(node: Any, run: RunInfo) -> Any:
+    """``formation/critic/wake``: raised every half critic window and at every episode's end."""
+    return _event(node, run, "formation/critic/wake", 1)
+
+
+def connect(run_dir: Union[str, Path], timeout: Optional[float] = 60.0) -> RunInfo:
+    """Reads ``<run_dir>/run.json`` of a running swarm.
+
+    Waits up to ``timeout`` seconds (``None``: forever) for the launcher to write it, and for a
+    run.json left by a finished run to be replaced by a live one. Refuses a run whose binaries
+    speak another protocol version than this package.
+    """
+    run_dir = Path(run_dir)
+    path = run_dir / "run.json"
+    deadline = None if timeout is None else time.monotonic() + timeout
+    stale = None
+    while True:
+        info = None
+        try:
+            raw = json.loads(path.read_text())
+        except (FileNotFoundError, json.JSONDecodeError):
+            raw = None  # not there yet (the launcher renames a finished file into place)
+        if raw is not None:
+            if raw.get("protocol_version") != wire.PROTOCOL_VERSION:
+                raise FormationError(
+                    f"run {raw.get('run_id')} speaks protocol {raw.get('protocol_version')}, formation_swarm "
+                    f"{wire.PROTOCOL_VERSION}: install the python/ package of the same checkout"
+                )
+            info = RunInfo.from_dict(run_dir, raw)
+            if info.launcher_alive():
+                return info
+            stale = info
+        if deadline is not None and time.monotonic() >= deadline:
+            if stale is not None:
+                raise FormationError(
+                    f"{path} belongs to run {stale.run_id}, which has ended (launcher "
+                    f"{stale.launcher_pid} is gone)"
+                )
+            raise FormationError(f"no {path} after {timeout} s: is scripts/run_swarm.sh running with --run-dir {run_dir}?")
+        time.sleep(0.05)

@@ -1,0 +1,179 @@
+"""ctypes mirrors of the payloads in ``protocol/src/wire.rs``.
+
+Every class carries the same iceoryx2 type name as its Rust twin (``type_name()``), so the
+bindings' service builder declares the same payload type (name, size, alignment) and the
+services open across languages. ``tests/test_layout.py`` checks sizes, alignments and field
+offsets against ``layout.json``, which a Rust unit test keeps equal to the build.
+"""
+
+from __future__ import annotations
+
+import ctypes
+
+#: Bumped whenever a payload's layout or meaning changes (``wire::PROTOCOL_VERSION``).
+PROTOCOL_VERSION = 2
+
+#: ``Header.flags``: first tick of an episode (robots reset their history).
+FLAG_EPISODE_START = 1
+#: ``Header.flags``: the episode has ended at this tick; no command is expected.
+FLAG_EPISODE_END = 2
+#: ``Header.flags``: the run is over; every process finishes and exits.
+FLAG_RUN_END = 4
+#: ``Header.flags`` on a command: a greeting sent at start-up, not a command for a tick.
+FLAG_HELLO = 8
+#: ``Header.flags``: a train-mode episode played without exploration noise.
+FLAG_EVAL_EPISODE = 16
+
+#: ``State.outcome`` of the transition into a tick.
+OUTCOME_RUNNING = 0
+OUTCOME_SUCCESS = 1
+OUTCOME_COLLISION = 2
+OUTCOME_TIMEOUT = 3
+OUTCOME_ABORTED = 4
+OUTCOME_NAMES = {
+    OUTCOME_RUNNING: "running",
+    OUTCOME_SUCCESS: "success",
+    OUTCOME_COLLISION: "collision",
+    OUTCOME_TIMEOUT: "timeout",
+    OUTCOME_ABORTED: "aborted",
+}
+
+#: Largest swarm the payloads have room for.
+MAX_AGENTS = 64
+#: Smallest swarm.
+MIN_AGENTS = 3
+#: Neighbours each robot observes: (i+1) mod N and (i+2) mod N.
+NEIGHBOURS = 2
+#: Room for the largest observation model's floats.
+MAX_OBS_DIM = 16
+#: Actions are (v, w).
+ACTION_DIM = 2
+#: Ports each service keeps for replacements and observers (``services::SPARE_PORTS``).
+SPARE_PORTS = 4
+
+
+class Header(ctypes.Structure):
+    """Common to every payload: who may read it and which tick it belongs to."""
+
+    _fields_ = [
+        ("protocol_version", ctypes.c_uint32),
+        ("episode", ctypes.c_uint32),
+        ("tick", ctypes.c_uint32),
+        ("flags", ctypes.c_uint32),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        """The iceoryx2 type name, as ``#[type_name]`` declares it in Rust."""
+        return "formation::Header"
+
+    @classmethod
+    def new(cls, episode: int, tick: int, flags: int) -> "Header":
+        """A header of this protocol version."""
+        return cls(PROTOCOL_VERSION, episode, tick, flags)
+
+    def has(self, flag: int) -> bool:
+        """True when ``flag`` is set."""
+        return bool(self.flags & flag)
+
+
+class Observation(ctypes.Structure):
+    """sim -> robot i (``ObservationMsg``): what robot i sees at a tick, in its own frame."""
+
+    _fields_ = [
+        ("header", Header),
+        ("agent", ctypes.c_uint32),
+        ("n_agents", ctypes.c_uint32),
+        ("dim", ctypes.c_uint32),
+        ("obs", ctypes.c_float * MAX_OBS_DIM),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        """The iceoryx2 type name."""
+        return "formation::Observation"
+
+
+class Command(ctypes.Structure):
+    """robot i -> sim (``CommandMsg``): the command for one tick."""
+
+    _fields_ = [
+        ("header", Header),
+        ("agent", ctypes.c_uint32),
+        ("policy_version", ctypes.c_uint32),
+        ("v", ctypes.c_float),
+        ("w", ctypes.c_float),
+        ("session", ctypes.c_uint32),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        """The iceoryx2 type name."""
+        return "formation::Command"
+
+
+class State(ctypes.Structure):
+    """sim -> critic and observers (``StateMsg``): the true world at a tick."""
+
+    _fields_ = [
+        ("header", Header),
+        ("n_agents", ctypes.c_uint32),
+        ("outcome", ctypes.c_uint32),
+        ("reward", ctypes.c_float),
+        ("missed", ctypes.c_uint32),
+        ("sequence", ctypes.c_uint64),
+        ("poses", (ctypes.c_float * 3) * MAX_AGENTS),
+        ("applied", (ctypes.c_float * ACTION_DIM) * MAX_AGENTS),
+        ("desired", (ctypes.c_float * NEIGHBOURS) * MAX_AGENTS),
+        ("slots", (ctypes.c_float * 2) * MAX_AGENTS),
+        ("goal", ctypes.c_float * 2),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        """The iceoryx2 type name."""
+        return "formation::State"
+
+
+class CriticProgress(ctypes.Structure):
+    """critic -> sim (``CriticProgressMsg``): train-mode flow control."""
+
+    _fields_ = [
+        ("protocol_version", ctypes.c_uint32),
+        ("weights_version", ctypes.c_uint32),
+        ("acknowledged_sequence", ctypes.c_uint64),
+        ("updates", ctypes.c_uint64),
+        ("session", ctypes.c_uint64),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        """The iceoryx2 type name."""
+        return "formation::CriticProgress"
+
+
+class WeightsHeader(ctypes.Structure):
+    """critic -> robots: the user header in front of one actor's flat ``[f32]`` weights."""
+
+    _fields_ = [
+        ("protocol_version", ctypes.c_uint32),
+        ("actor_index", ctypes.c_uint32),
+        ("version", ctypes.c_uint32),
+        ("len", ctypes.c_uint32),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        """The iceoryx2 type name."""
+        return "formation::WeightsHeader"
+
+
+#: Every mirror, by its Rust struct name (the ``rust`` key of ``layout.json``).
+PAYLOADS = {
+    "Header": Header,
+    "ObservationMsg": Observation,
+    "CommandMsg": Command,
+    "StateMsg": State,
+    "CriticProgressMsg": CriticProgress,
+    "WeightsHeader": WeightsHeader,
+}

@@ -1,0 +1,99 @@
+"""The ctypes mirrors match the Rust payloads: layout.json is what a Rust unit test
+(protocol/src/layout.rs) keeps equal to the build; here every mirror is compared with it."""
+
+import ctypes
+import json
+import re
+import subprocess
+from pathlib import Path
+
+import pytest
+
+import formation_swarm
+from formation_swarm import wire
+
+
+LAYOUT = json.loads((Path(wire.__file__).parent / "layout.json").read_text())
+
+SCALARS = {"u32": ctypes.c_uint32, "u64": ctypes.c_uint64, "f32": ctypes.c_float}
+
+
+def ctype_of(spelled: str):
+    """``u32``, ``f32[16]``, ``f32[64][3]`` or a payload's type name, as a ctypes type."""
+    match = re.fullmatch(r"(\w+)((?:\[\d+\])*)", spelled)
+    if match is None:
+        for cls in wire.PAYLOADS.values():
+            if cls.type_name() == spelled:
+                return cls
+        raise AssertionError(f"no mirror has type name {spelled}")
+    t = SCALARS[match.group(1)]
+    for dim in reversed([int(d) for d in re.findall(r"\[(\d+)\]", match.group(2))]):
+        t = t * dim
+    return t
+
+
+def test_every_rust_payload_has_a_mirror():
+    assert sorted(p["rust"] for p in LAYOUT["payloads"]) == sorted(wire.PAYLOADS)
+
+
+@pytest.mark.parametrize("payload", LAYOUT["payloads"], ids=lambda p: p["rust"])
+def test_mirror_matches_the_rust_layout(payload):
+    cls = wire.PAYLOADS[payload["rust"]]
+    assert cls.type_name() == payload["type_name"]
+    assert ctypes.sizeof(cls) == payload["size"], "size"
+    assert ctypes.alignment(cls) == payload["align"], "alignment"
+    assert [name for name, _ in cls._fields_] == [f["name"] for f in payload["fields"]], "field order"
+    for name, ctype in cls._fields_:
+        field = next(f for f in payload["fields"] if f["name"] == name)
+        assert getattr(cls, name).offset == field["offset"], f"offset of {name}"
+        assert getattr(cls, name).size == field["size"], f"size of {name}"
+        expected = ctype_of(field["type"])
+        assert ctypes.sizeof(ctype) == ctypes.sizeof(expected) and (
+            ctype is expected or getattr(ctype, "_type_", None) == getattr(expected, "_type_", None)
+            or ctype.__name__ == expected.__name__
+        ), f"type of {name}: {ctype} vs {field['type']}"
+
+
+def test_iceoryx2_declares_the_rust_type_names():
+    """The bindings take the type name from ``type_name()``, as the service builder sends it."""
+    import iceoryx2 as iox2
+
+    for cls in wire.PAYLOADS.values():
+        assert iox2.get_type_name(cls) == cls.type_name()
+
+
+def test_constants_match():
+    for name, value in LAYOUT["constants"].items():
+        assert getattr(wire, name) == value, name
+    assert formation_swarm.PROTOCOL_VERSION == LAYOUT["protocol_version"]
+
+
+def test_layout_file_matches_the_binaries():
+    """layout.json equals what this checkout's formation-layout binary prints (when built)."""
+    from conftest import bin_dir
+
+    binary = bin_dir() / "formation-layout"
+    if not binary.is_file():
+        pytest.skip(f"{binary} not built (cargo build --workspace --bins builds it)")
+    printed = subprocess.run([str(binary)], check=True, capture_output=True, text=True).stdout
+    assert json.loads(printed) == LAYOUT
+    version = subprocess.run([str(binary), "--protocol-version"], check=True, capture_output=True, text=True)
+    assert int(version.stdout) == wire.PROTOCOL_VERSION
+
+
+def test_baseline_matches_the_rust_unit_tests():
+    """The hand-made observations of core/src/baseline.rs's tests, same answers."""
+    def obs_with(neighbours, desired, goal):
+        obs = [0.0] * 12
+        for k in range(2):
+            obs[5 * k], obs[5 * k + 1], obs[5 * k + 2], obs[5 * k + 4] = *neighbours[k], 1.0, desired[k]
+        obs[10], obs[11] = goal
+        return obs
+
+    baseline = formation_swarm.Baseline()
+    v, w = baseline(obs_with([(-1.0, 0.5), (-1.0, -0.5)], [1.25 ** 0.5] * 2, (2.0, 0.0)))
+    assert abs(v - 0.5) < 1e-9 and abs(w) < 1e-6
+    v, w = baseline(obs_with([(0.0, 1.0), (0.0, -1.0)], [1.0, 1.0], (-2.0, 0.5)))
+    assert v == 0.0 and abs(w - 1.0) < 1e-9
+    ux, _ = baseline.desired_velocity(obs_with([(2.0, 0.0), (0.0, 1.0)], [1.0, 1.0], (2 / 3, 1 / 3)))
+    assert ux > 1.0
