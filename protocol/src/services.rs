@@ -10,6 +10,8 @@ use anyhow::{Context, Result, bail};
 use iceoryx2::node::NodeView;
 use iceoryx2::port::listener::{Listener, ListenerWaitError};
 use iceoryx2::prelude::*;
+use iceoryx2::service::builder::event::{EventOpenError, EventOpenOrCreateError};
+use iceoryx2::service::builder::publish_subscribe::{PublishSubscribeOpenError, PublishSubscribeOpenOrCreateError};
 use iceoryx2::service::port_factory::{event, publish_subscribe};
 
 /// What [`wait_for_events`] needs of a listener: a socket to poll (every iceoryx2 service type
@@ -177,6 +179,35 @@ pub type WeightsStream<S> = publish_subscribe::PortFactory<S, [f32], WeightsHead
 /// Port factory of an event.
 pub type Event<S> = event::PortFactory<S>;
 
+/// How long opening a service waits for another process that is still creating it.
+const OPEN_PATIENCE: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// Opens (or creates) a service, retrying while iceoryx2 reports that another process is still
+/// creating it: with dozens of processes starting at once on a loaded machine, a creation can
+/// take longer than iceoryx2's own wait, and giving up then would fail the whole run.
+fn open_patiently<T, E: std::fmt::Debug>(
+    mut open: impl FnMut() -> std::result::Result<T, E>,
+    in_creation: impl Fn(&E) -> bool,
+) -> std::result::Result<T, E> {
+    let started = std::time::Instant::now();
+    loop {
+        match open() {
+            Err(err) if in_creation(&err) && started.elapsed() < OPEN_PATIENCE => {
+                std::thread::sleep(std::time::Duration::from_millis(50));
+            }
+            result => return result,
+        }
+    }
+}
+
+fn publish_subscribe_in_creation(err: &PublishSubscribeOpenOrCreateError) -> bool {
+    matches!(
+        err,
+        PublishSubscribeOpenOrCreateError::PublishSubscribeOpenError(PublishSubscribeOpenError::HangsInCreation)
+            | PublishSubscribeOpenOrCreateError::SystemInFlux
+    )
+}
+
 fn stream<S: Service, T>(
     node: &Node<S>,
     name: &str,
@@ -187,26 +218,44 @@ fn stream<S: Service, T>(
 where
     T: std::fmt::Debug + ZeroCopySend + Copy + 'static,
 {
-    node.service_builder(&service_name(name)?)
-        .publish_subscribe::<T>()
-        .max_publishers(1 + SPARE_PORTS)
-        .max_subscribers(2 + SPARE_PORTS)
-        .max_nodes(max_nodes)
-        .history_size(history)
-        .subscriber_max_buffer_size(sizing.stream_buffer.max(history))
-        .open_or_create()
-        .with_context(|| format!("cannot open service {name}"))
+    let service = service_name(name)?;
+    open_patiently(
+        || {
+            node.service_builder(&service)
+                .publish_subscribe::<T>()
+                .max_publishers(1 + SPARE_PORTS)
+                .max_subscribers(2 + SPARE_PORTS)
+                .max_nodes(max_nodes)
+                .history_size(history)
+                .subscriber_max_buffer_size(sizing.stream_buffer.max(history))
+                .open_or_create()
+        },
+        publish_subscribe_in_creation,
+    )
+    .with_context(|| format!("cannot open service {name}"))
 }
 
 fn event_service<S: Service>(node: &Node<S>, name: &str, sizing: &Sizing, notifiers: usize) -> Result<Event<S>> {
-    node.service_builder(&service_name(name)?)
-        .event()
-        .max_notifiers(notifiers + SPARE_PORTS)
-        .max_listeners(1 + SPARE_PORTS)
-        .max_nodes(sizing.shared_nodes())
-        .event_id_max_value(MAX_AGENTS)
-        .open_or_create()
-        .with_context(|| format!("cannot open event {name}"))
+    let service = service_name(name)?;
+    open_patiently(
+        || {
+            node.service_builder(&service)
+                .event()
+                .max_notifiers(notifiers + SPARE_PORTS)
+                .max_listeners(1 + SPARE_PORTS)
+                .max_nodes(sizing.shared_nodes())
+                .event_id_max_value(MAX_AGENTS)
+                .open_or_create()
+        },
+        |err| {
+            matches!(
+                err,
+                EventOpenOrCreateError::EventOpenError(EventOpenError::HangsInCreation)
+                    | EventOpenOrCreateError::SystemInFlux
+            )
+        },
+    )
+    .with_context(|| format!("cannot open event {name}"))
 }
 
 /// Observation stream of one agent.
@@ -257,16 +306,22 @@ pub fn critic_progress_event<S: Service>(node: &Node<S>, sizing: &Sizing) -> Res
 /// Weights of one actor (history 1: a restarted agent gets the latest at once).
 pub fn weights_stream<S: Service>(node: &Node<S>, sizing: &Sizing, actor_index: usize) -> Result<WeightsStream<S>> {
     let name = weights_service_name(actor_index);
-    node.service_builder(&service_name(&name)?)
-        .publish_subscribe::<[f32]>()
-        .user_header::<WeightsHeader>()
-        .max_publishers(1 + SPARE_PORTS)
-        .max_subscribers(sizing.n_agents + SPARE_PORTS)
-        .max_nodes(sizing.shared_nodes())
-        .history_size(1)
-        .subscriber_max_buffer_size(2)
-        .open_or_create()
-        .with_context(|| format!("cannot open weights service {name}"))
+    let service = service_name(&name)?;
+    open_patiently(
+        || {
+            node.service_builder(&service)
+                .publish_subscribe::<[f32]>()
+                .user_header::<WeightsHeader>()
+                .max_publishers(1 + SPARE_PORTS)
+                .max_subscribers(sizing.n_agents + SPARE_PORTS)
+                .max_nodes(sizing.shared_nodes())
+                .history_size(1)
+                .subscriber_max_buffer_size(2)
+                .open_or_create()
+        },
+        publish_subscribe_in_creation,
+    )
+    .with_context(|| format!("cannot open weights service {name}"))
 }
 
 /// Blocks until `listener` is notified or `timeout` passes. A signal arriving meanwhile counts
