@@ -113,6 +113,37 @@ fn twelve_scripted_robots_with_slots_reach_the_goal_in_a_grid() {
 }
 
 #[test]
+fn the_shipped_model_drives_six_robots_to_the_goal() {
+    let dir = scratch_dir("learned-6");
+    // No --checkpoint: eval uses models/formation.safetensors, the one model for any N.
+    let run = run_swarm(
+        &[
+            "6",
+            "--mode",
+            "eval",
+            "--episodes",
+            "10",
+            "--seed",
+            "9",
+            "--shape",
+            "mixed",
+            "--viewer",
+            "off",
+        ],
+        &dir.join("run"),
+        Duration::from_secs(180),
+    )
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "launcher failed:\n{}", run.output);
+    let summary = run.summary().expect("summary.json");
+    assert_eq!(summary["episodes"], serde_json::json!(10), "{summary}");
+    assert!(summary["success_rate"].as_f64().expect("success") >= 0.8, "{summary}");
+    assert_eq!(summary["scripted_agents"], serde_json::json!([]), "{summary}");
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
 fn bad_input_is_refused_before_anything_starts() {
     let dir = scratch_dir("bad-input");
     for (args, needle) in [
