@@ -1,10 +1,10 @@
 //! The tick path allocates nothing: the sim's observations, step and score, and an agent's
 //! window update and action (scripted baseline, learned actor with and without exploration
-//! noise), counted by a global allocator. This file is its own test binary with one test, so
-//! the counter sees nothing else.
+//! noise), counted by a global allocator per thread, so that the test harness's own threads
+//! (which allocate now and then on a busy machine) are not counted.
 
 use std::alloc::{GlobalAlloc, Layout, System};
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::cell::Cell;
 
 use formation_agent::policy::{Exploration, LearnedPolicy, Policy};
 use formation_core::baseline::{BaselineGains, ScriptedBaseline};
@@ -19,12 +19,24 @@ use rand::rngs::StdRng;
 
 struct Counting;
 
-static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+thread_local! {
+    /// Allocations made by this thread (a const-initialised thread local never allocates).
+    static ALLOCATIONS: Cell<usize> = const { Cell::new(0) };
+}
+
+fn count_one() {
+    ALLOCATIONS.with(|count| count.set(count.get() + 1));
+}
+
+/// Allocations made so far by the calling thread.
+fn allocations() -> usize {
+    ALLOCATIONS.with(Cell::get)
+}
 
 // SAFETY: forwards to the system allocator, only counting.
 unsafe impl GlobalAlloc for Counting {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        count_one();
         // SAFETY: same contract as ours.
         unsafe { System.alloc(layout) }
     }
@@ -33,7 +45,7 @@ unsafe impl GlobalAlloc for Counting {
         unsafe { System.dealloc(ptr, layout) }
     }
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        count_one();
         // SAFETY: same contract as ours.
         unsafe { System.realloc(ptr, layout, new_size) }
     }
@@ -50,12 +62,12 @@ fn allocations_per_500_ticks(policy: &mut dyn Policy, history_length: usize, dim
     history.reset(&obs(0));
     policy.begin_episode(1, true);
     policy.command(&history).expect("warm-up");
-    let before = ALLOCATIONS.load(Ordering::Relaxed);
+    let before = allocations();
     for t in 1..=500 {
         history.push(&obs(t));
         std::hint::black_box(policy.command(&history).expect("command"));
     }
-    ALLOCATIONS.load(Ordering::Relaxed) - before
+    allocations() - before
 }
 
 #[test]
@@ -116,10 +128,10 @@ fn agent_ticks_allocate_nothing() {
                 "learned, H = {history}, exploration {exploration:?}"
             );
             // The counter does count: installing new weights for the first time allocates.
-            let before = ALLOCATIONS.load(Ordering::Relaxed);
+            let before = allocations();
             let mut fresh = LearnedPolicy::new(&config.env, shape.clone(), None, StdRng::seed_from_u64(4));
             fresh.load(&weights, 1).expect("weights");
-            assert!(ALLOCATIONS.load(Ordering::Relaxed) > before);
+            assert!(allocations() > before);
         }
     }
 }
@@ -129,7 +141,7 @@ fn sim_observing_and_stepping_allocate_nothing() {
     for (env, n) in environments().flat_map(|env| [3, 12, 48].map(|n| (env.clone(), n))) {
         let mut world = World::new(&env, random_episode(n, &env, &mut rng));
         let commands: Vec<(f64, f64)> = (0..n).map(|i| (0.3, 0.2 * (i as f64).sin())).collect();
-        let before = ALLOCATIONS.load(Ordering::Relaxed);
+        let before = allocations();
         let mut checksum = 0.0f32;
         for _ in 0..200 {
             for agent in 0..n {
@@ -137,16 +149,11 @@ fn sim_observing_and_stepping_allocate_nothing() {
             }
             std::hint::black_box(world.step(&commands));
         }
-        assert_eq!(
-            ALLOCATIONS.load(Ordering::Relaxed) - before,
-            0,
-            "N = {n}, {:?}",
-            env.observation
-        );
+        assert_eq!(allocations() - before, 0, "N = {n}, {:?}", env.observation);
         assert!(checksum.is_finite() && world.steps == 200);
     }
     // The counter does count: a new episode allocates its poses.
-    let before = ALLOCATIONS.load(Ordering::Relaxed);
+    let before = allocations();
     std::hint::black_box(random_episode(3, &EnvConfig::default(), &mut rng));
-    assert!(ALLOCATIONS.load(Ordering::Relaxed) > before);
+    assert!(allocations() > before);
 }
