@@ -162,16 +162,23 @@ impl WorldView {
         self.stream.set_time_sequence("tick", self.ticks);
         self.stream
             .set_time_sequence("episode", i64::from(state.header.episode));
-        let flip = |x: f32, y: f32| [x, -y];
         let positions: Vec<[f32; 2]> = state.poses[..n].iter().map(|p| flip(p[0], p[1])).collect();
         let colours: Vec<[u8; 3]> = (0..n).map(robot_colour).collect();
+        self.log_robots(state, &positions, &colours)?;
+        self.log_edges(state, &positions)?;
+        self.log_goal_and_trails(state, &positions, colours)
+    }
+
+    /// The robots (labelled while the picture stays readable) and their headings.
+    fn log_robots(&self, state: &StateMsg, positions: &[[f32; 2]], colours: &[[u8; 3]]) -> Result<()> {
+        let n = positions.len();
         let robots = rerun::Points2D::new(positions.iter().copied())
             .with_radii([0.12])
             .with_colors(colours.iter().copied());
-        // Labels drown a large swarm's picture: names up to 12 robots, bare numbers up to 24.
+        // Labels drown a large swarm's picture: names up to 6 robots, bare numbers up to 24.
         let robots = match n {
-            0..=12 => robots.with_labels((0..n).map(|i| format!("robot {i}"))),
-            13..=24 => robots.with_labels((0..n).map(|i| i.to_string())),
+            0..=6 => robots.with_labels((0..n).map(|i| format!("robot {i}"))),
+            7..=24 => robots.with_labels((0..n).map(|i| i.to_string())),
             _ => robots,
         };
         self.stream.log("world/robots", &robots)?;
@@ -181,6 +188,12 @@ impl WorldView {
                 .with_origins(positions.iter().copied())
                 .with_colors(colours.iter().copied()),
         )?;
+        Ok(())
+    }
+
+    /// Each observed edge coloured by its error, and the edge-error curves.
+    fn log_edges(&self, state: &StateMsg, positions: &[[f32; 2]]) -> Result<()> {
+        let n = positions.len();
         // Each undirected observed edge once, coloured by its error.
         let mut strips = Vec::with_capacity(2 * n);
         let mut edge_colours = Vec::with_capacity(2 * n);
@@ -223,6 +236,12 @@ impl WorldView {
                 .with_colors(edge_colours)
                 .with_radii([0.03]),
         )?;
+        Ok(())
+    }
+
+    /// The goal formation's slots, the goal, the centroid, the trails and the task curves.
+    fn log_goal_and_trails(&mut self, state: &StateMsg, positions: &[[f32; 2]], colours: Vec<[u8; 3]>) -> Result<()> {
+        let n = positions.len();
         // The goal formation: where each robot's slot is (the start shape moved to the goal).
         self.stream.log(
             "world/slots",
@@ -251,7 +270,7 @@ impl WorldView {
                 .with_radii([0.06])
                 .with_colors([[20, 20, 20]]),
         )?;
-        for (trail, p) in self.trails.iter_mut().zip(&positions) {
+        for (trail, p) in self.trails.iter_mut().zip(positions) {
             if trail.len() == self.trail_ticks {
                 trail.pop_front();
             }
@@ -272,4 +291,9 @@ impl WorldView {
             .log("plots/reward", &rerun::Scalars::single(f64::from(state.reward)))?;
         Ok(())
     }
+}
+
+/// Rerun's 2-D views are y-down: the world's y goes up.
+fn flip(x: f32, y: f32) -> [f32; 2] {
+    [x, -y]
 }
