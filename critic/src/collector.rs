@@ -29,8 +29,8 @@ pub struct CollectorStats {
     pub lost_transitions: u64,
     /// The sim announced the end of the run.
     pub run_ended: bool,
-    /// `StateMsg::sequence` of the first and the latest state taken in.
-    pub sequence_range: Option<(u64, u64)>,
+    /// `StateMsg::sequence` of the latest state taken in.
+    pub latest_sequence: Option<u64>,
 }
 
 impl CollectorStats {
@@ -40,10 +40,8 @@ impl CollectorStats {
     /// fell behind) from being owed forever, which would hold the sim at its window for good.
     pub fn acknowledgeable(&self, paid_ticks: u64) -> u64 {
         let unpaid = self.ticks_received.saturating_sub(paid_ticks);
-        match self.sequence_range {
-            Some((_, last)) => last.min((last + 1).saturating_sub(unpaid)),
-            None => 0,
-        }
+        self.latest_sequence
+            .map_or(0, |last| last.min((last + 1).saturating_sub(unpaid)))
     }
 }
 
@@ -137,10 +135,7 @@ where
                 break;
             }
             self.stats.ticks_received += 1;
-            self.stats.sequence_range = Some(match self.stats.sequence_range {
-                Some((first, _)) => (first, state.sequence),
-                None => (state.sequence, state.sequence),
-            });
+            self.stats.latest_sequence = Some(state.sequence);
             if let Some(done) = self.take_tick(&state) {
                 finished.push(done);
             }
@@ -265,10 +260,10 @@ where
 mod tests {
     use super::CollectorStats;
 
-    fn stats(first: u64, last: u64, received: u64) -> CollectorStats {
+    fn stats(last: u64, received: u64) -> CollectorStats {
         CollectorStats {
             ticks_received: received,
-            sequence_range: Some((first, last)),
+            latest_sequence: Some(last),
             ..CollectorStats::default()
         }
     }
@@ -276,16 +271,12 @@ mod tests {
     #[test]
     fn acknowledges_what_updates_paid_for_and_never_owes_lost_states() {
         assert_eq!(CollectorStats::default().acknowledgeable(10), 0, "nothing read yet");
-        // No gap: 100 states read, 50 paid for.
-        assert_eq!(stats(100, 199, 100).acknowledgeable(50), 150);
-        assert_eq!(stats(100, 199, 100).acknowledgeable(100), 199);
-        assert_eq!(
-            stats(100, 199, 100).acknowledgeable(u64::MAX),
-            199,
-            "eval: everything read"
-        );
-        // 100 states lost in a gap: the 10 unpaid ones are the newest, not 110 of them.
-        assert_eq!(stats(100, 299, 100).acknowledgeable(90), 290);
-        assert_eq!(stats(100, 299, 100).acknowledgeable(100), 299);
+        // No gap: states 100..=199 read, 50 paid for.
+        assert_eq!(stats(199, 100).acknowledgeable(50), 150);
+        assert_eq!(stats(199, 100).acknowledgeable(100), 199);
+        assert_eq!(stats(199, 100).acknowledgeable(u64::MAX), 199, "eval: everything read");
+        // 100 of states 100..=299 lost in a gap: the 10 unpaid ones are the newest, not 110.
+        assert_eq!(stats(299, 100).acknowledgeable(90), 290);
+        assert_eq!(stats(299, 100).acknowledgeable(100), 299);
     }
 }
