@@ -38,6 +38,11 @@ Flags:
                           others (ticks are 2-4x faster than letting the OS place them);
                           24 robots or more split into groups of at least 12 per CPU.
                           off: the OS places every process
+  --extra-swarms N1,N2,.. train mode: besides the N-robot swarm, run one swarm of each of these
+                          sizes (its own sim and robots, all learned, results in
+                          RUN_DIR/swarm-K-nNK), every one feeding this run's one critic, so that
+                          one actor learns all the sizes at once; needs learn.critic = "pooled"
+                          (configs/any-n.toml)
   --restart on|off        restart an agent or the critic that dies mid-run (default on; a
                           restarted agent rejoins at once with the latest weights, a restarted
                           critic resumes from the run's last checkpoint)
@@ -54,6 +59,7 @@ Examples:
   scripts/run_swarm.sh 3 --minutes 20
   scripts/run_swarm.sh 6 --mode eval --checkpoint runs/my-training
   scripts/run_swarm.sh 3 --mode eval --scripted 0,1 --external 2 --run-dir runs/py
+  scripts/run_swarm.sh 4 --extra-swarms 3,8,16 --config configs/any-n.toml --minutes 30
 USAGE
 }
 
@@ -65,7 +71,7 @@ N=$1; shift
 [[ "$N" =~ ^[0-9]+$ ]] || die "N must be a whole number, got '$N'"
 (( N >= 3 && N <= 64 )) || die "N must be between 3 and 64 (each robot observes two distinct neighbours), got $N"
 
-MODE=train EPISODES="" MINUTES="" SCRIPTED="" EXTERNAL="" CHECKPOINT="" SEED=1 RUN_DIR="" VIEWER="" REALTIME="" CONFIG="" RESTART=on PLACEMENT=auto SHAPE=""
+MODE=train EPISODES="" MINUTES="" SCRIPTED="" EXTERNAL="" EXTRA_SWARMS="" CHECKPOINT="" SEED=1 RUN_DIR="" VIEWER="" REALTIME="" CONFIG="" RESTART=on PLACEMENT=auto SHAPE=""
 need() { [[ $# -ge 2 && -n "$2" ]] || die "$1 needs a value"; }
 while [[ $# -gt 0 ]]; do
   case "$1" in
@@ -74,6 +80,7 @@ while [[ $# -gt 0 ]]; do
     --minutes) need "$@"; MINUTES=$2; shift 2 ;;
     --scripted) need "$@"; SCRIPTED=$2; shift 2 ;;
     --external) need "$@"; EXTERNAL=$2; shift 2 ;;
+    --extra-swarms) need "$@"; EXTRA_SWARMS=$2; shift 2 ;;
     --checkpoint) need "$@"; CHECKPOINT=$2; shift 2 ;;
     --seed) need "$@"; SEED=$2; shift 2 ;;
     --run-dir) need "$@"; RUN_DIR=$2; shift 2 ;;
@@ -138,6 +145,17 @@ EXTERNAL_LIST=""
 for ((i = 0; i < N; i++)); do
   if (( IS_EXTERNAL[i] )); then IS_SCRIPTED[i]=0; EXTERNAL_LIST+="${EXTERNAL_LIST:+,}$i"; fi
 done
+# Extra swarms (train mode): one size each, numbered 1, 2, ...
+declare -a EXTRA_N=()
+if [[ -n "$EXTRA_SWARMS" ]]; then
+  [[ "$MODE" == train ]] || die "--extra-swarms is for training; evaluate each size on its own"
+  IFS=',' read -ra picks <<<"$EXTRA_SWARMS"
+  for p in "${picks[@]}"; do
+    [[ "$p" =~ ^[0-9]+$ ]] && (( 10#$p >= 3 && 10#$p <= 64 )) || die "--extra-swarms takes sizes 3 to 64 like 3,8; got '$EXTRA_SWARMS'"
+    EXTRA_N+=("$((10#$p))")
+  done
+  (( ${#EXTRA_N[@]} <= 8 )) || die "--extra-swarms: at most 8 extra swarms"
+fi
 LEARNED=0
 for ((i = 0; i < N; i++)); do (( IS_SCRIPTED[i] || IS_EXTERNAL[i] )) || LEARNED=$((LEARNED + 1)); done
 
@@ -188,8 +206,18 @@ config_value() { # section key default
 RUN_DIR=${RUN_DIR:-runs/$(date +%Y%m%d-%H%M%S)}
 RUN_ID="r$(date +%s | tail -c 7)p$$"
 COMMON=(--agents "$N" --mode "$MODE" --run-id "$RUN_ID" --run-dir "$RUN_DIR" --seed "$SEED" --placement "$PLACEMENT")
-[[ -n "$CONFIG" ]] && COMMON+=(--config "$CONFIG")
-[[ -n "$SHAPE" ]] && COMMON+=(--shape "$SHAPE")
+SHARED=(--mode "$MODE" --placement "$PLACEMENT")
+[[ -n "$CONFIG" ]] && SHARED+=(--config "$CONFIG")
+[[ -n "$SHAPE" ]] && SHARED+=(--shape "$SHAPE")
+COMMON+=("${SHARED[@]:4}")
+# Extra swarm K: its own run id (its own shared memory), run directory and episode seed.
+declare -a EXTRA_ID=() EXTRA_DIR=() EXTRA_ARGS=()
+for ((k = 1; k <= ${#EXTRA_N[@]}; k++)); do
+  n=${EXTRA_N[k - 1]}
+  EXTRA_ID[k]="${RUN_ID}x$k"
+  EXTRA_DIR[k]="$RUN_DIR/swarm-$k-n$n"
+  EXTRA_ARGS[k]="--agents $n --run-id ${EXTRA_ID[k]} --run-dir ${EXTRA_DIR[k]} --seed $((SEED + 7919 * k))"
+done
 
 # Validate the configuration (and a checkpoint) once, before anything starts.
 "$BIN/formation-sim" "${COMMON[@]}" --viewer "$VIEWER" --check-config || exit 2
@@ -199,8 +227,10 @@ if [[ -n "$CHECKPOINT" && "$MODE" == eval && $LEARNED -gt 0 ]]; then
     "$BIN/formation-agent" "${COMMON[@]}" --agent "$i" --policy learned --checkpoint "$CHECKPOINT" --check || exit 2
   done
 fi
-if [[ -n "$CHECKPOINT" && "$MODE" == train ]]; then
-  "$BIN/formation-critic" "${COMMON[@]}" --checkpoint "$CHECKPOINT" --check || exit 2
+CRITIC_EXTRA=()
+for ((k = 1; k <= ${#EXTRA_N[@]}; k++)); do CRITIC_EXTRA+=(--extra-swarm "${EXTRA_ID[k]}:${EXTRA_N[k - 1]}"); done
+if [[ ( -n "$CHECKPOINT" && "$MODE" == train ) || ${#EXTRA_N[@]} -gt 0 ]]; then
+  "$BIN/formation-critic" "${COMMON[@]}" "${CRITIC_EXTRA[@]}" ${CHECKPOINT:+--checkpoint "$CHECKPOINT"} --check || exit 2
 fi
 mkdir -p "$RUN_DIR/logs"
 
@@ -235,6 +265,9 @@ cat >"$RUN_DIR/run.json.tmp" <<JSON
   "proximity_range_m": $(config_value env proximity_range_m 1.0),
   "mode": "$MODE",
   "external": [${EXTERNAL_LIST}],
+  "extra_swarms": [$(for ((k = 1; k <= ${#EXTRA_N[@]}; k++)); do
+      printf '%s{"run_id": "%s", "n_agents": %d, "run_dir": "%s"}' "$( ((k > 1)) && echo ', ')" "${EXTRA_ID[k]}" "${EXTRA_N[k - 1]}" "${EXTRA_DIR[k]}"
+    done)],
   "launcher_pid": $$
 }
 JSON
@@ -246,13 +279,18 @@ cleanup() {
   for pid in "${PIDS[@]}"; do kill -TERM "$pid" 2>/dev/null || true; done
   sleep 0.5
   for pid in "${PIDS[@]}"; do kill -KILL "$pid" 2>/dev/null || true; wait "$pid" 2>/dev/null || true; done
-  rm -f /dev/shm/fc_"${RUN_ID}"_* 2>/dev/null || true
-  rm -rf "${TMPDIR:-/tmp}/formation-iox2/$RUN_ID" 2>/dev/null || true
+  local id
+  for id in "$RUN_ID" "${EXTRA_ID[@]}"; do
+    rm -f /dev/shm/fc_"${id}"_* 2>/dev/null || true
+    rm -rf "${TMPDIR:-/tmp}/formation-iox2/$id" 2>/dev/null || true
+  done
 }
 trap cleanup EXIT
 
 start_critic() { # [checkpoint to resume from]
-  local args=("${COMMON[@]}" --viewer "$VIEWER")
+  local args=("${COMMON[@]}" "${CRITIC_EXTRA[@]}" --viewer "$VIEWER")
+  # The time left for the critic's display (a restarted critic gets what remains).
+  [[ -n "$ENDS_AT" ]] && args+=(--minutes "$(awk -v end="$ENDS_AT" -v now="$(date +%s)" 'BEGIN { m = (end - now) / 60; print (m > 0.01 ? m : 0.01) }')")
   [[ "$MODE" == train && -n "${1:-}" ]] && args+=(--checkpoint "$1")
   # tee ignores Ctrl-C so the critic can still report while the run winds down.
   "$BIN/formation-critic" "${args[@]}" 2> >(trap '' INT; tee -a "$RUN_DIR/logs/critic.log" >&2) &
@@ -274,9 +312,37 @@ start_agent() { # index
   PIDS+=("$!")
 }
 
+# Robot I of extra swarm K (always learned).
+declare -A EXTRA_AGENT_PIDS=()
+start_extra_agent() { # swarm index
+  local k=$1 i=$2
+  # shellcheck disable=SC2086 # EXTRA_ARGS holds flags and values without spaces
+  "$BIN/formation-agent" ${EXTRA_ARGS[k]} "${SHARED[@]}" --agent "$i" --policy learned >>"${EXTRA_DIR[k]}/logs/agent-$i.log" 2>&1 &
+  EXTRA_AGENT_PIDS[$k,$i]=$!
+  PIDS+=("$!")
+}
+
+ENDS_AT=""
+if [[ -n "$MINUTES" ]]; then
+  ENDS_AT=$(awk -v m="$MINUTES" -v now="$(date +%s)" 'BEGIN { printf "%d", now + m * 60 }')
+elif [[ "$MODE" == train && -z "$EPISODES" ]]; then
+  ENDS_AT=$(($(date +%s) + 30 * 60))
+fi
 start_critic "$CHECKPOINT"
 for ((i = 0; i < N; i++)); do
   if (( IS_EXTERNAL[i] )); then AGENT_PIDS[i]=""; else start_agent "$i"; fi
+done
+declare -a EXTRA_SIM_PIDS=()
+for ((k = 1; k <= ${#EXTRA_N[@]}; k++)); do
+  mkdir -p "${EXTRA_DIR[k]}/logs"
+  for ((i = 0; i < EXTRA_N[k - 1]; i++)); do start_extra_agent "$k" "$i"; done
+  x_args=("${SHARED[@]}" --viewer off)
+  [[ -n "$MINUTES" ]] && x_args+=(--minutes "$MINUTES")
+  [[ -n "$EPISODES" ]] && x_args+=(--episodes "$EPISODES")
+  # shellcheck disable=SC2086
+  "$BIN/formation-sim" ${EXTRA_ARGS[k]} "${x_args[@]}" >"${EXTRA_DIR[k]}/logs/sim.log" 2>&1 &
+  EXTRA_SIM_PIDS[k]=$!
+  PIDS+=("$!")
 done
 
 SIM_ARGS=("${COMMON[@]}" --viewer "$VIEWER")
@@ -295,7 +361,7 @@ SIM_PID=$!
 PIDS+=("$SIM_PID")
 
 # Ctrl-C or SIGTERM: ask the sim to end the run; it tells everyone else.
-trap 'echo; echo "stopping: the sim closes the episode and ends the run..."; kill -INT "$SIM_PID" 2>/dev/null || true' INT TERM
+trap 'echo; echo "stopping: the sim closes the episode and ends the run..."; kill -INT "$SIM_PID" "${EXTRA_SIM_PIDS[@]}" 2>/dev/null || true' INT TERM
 
 if [[ -n "$EXTERNAL_LIST" ]]; then
   started=0
@@ -309,6 +375,9 @@ if [[ -n "$EXTERNAL_LIST" ]]; then
 else
   echo "run $RUN_ID: sim, $N agents and the critic started; results in $RUN_DIR (logs in $RUN_DIR/logs)"
 fi
+for ((k = 1; k <= ${#EXTRA_N[@]}; k++)); do
+  echo "extra swarm $k: ${EXTRA_N[k - 1]} robots and their sim, run ${EXTRA_ID[k]}; results in ${EXTRA_DIR[k]}"
+done
 # Watch the run: the sim's end ends it; a dead agent or critic is restarted (--restart on).
 status=0
 while kill -0 "$SIM_PID" 2>/dev/null; do
@@ -323,6 +392,14 @@ while kill -0 "$SIM_PID" 2>/dev/null; do
     echo "agent $i died (status $rc); restarting it"
     start_agent "$i"
   done
+  for key in "${!EXTRA_AGENT_PIDS[@]}"; do
+    [[ -n "${EXTRA_AGENT_PIDS[$key]}" ]] && ! kill -0 "${EXTRA_AGENT_PIDS[$key]}" 2>/dev/null || continue
+    rc=0; wait "${EXTRA_AGENT_PIDS[$key]}" 2>/dev/null || rc=$?
+    EXTRA_AGENT_PIDS[$key]=""
+    (( rc != 0 )) || continue
+    echo "extra swarm ${key%,*}: agent ${key#*,} died (status $rc); restarting it"
+    start_extra_agent "${key%,*}" "${key#*,}"
+  done
   if [[ -n "$CRITIC_PID" ]] && ! kill -0 "$CRITIC_PID" 2>/dev/null; then
     rc=0; wait "$CRITIC_PID" 2>/dev/null || rc=$?
     CRITIC_PID=""
@@ -334,6 +411,11 @@ while kill -0 "$SIM_PID" 2>/dev/null; do
   fi
 done
 wait "$SIM_PID" 2>/dev/null || status=$?
+# Extra swarms were given the same length; a primary stopped early stops them too.
+for pid in "${EXTRA_SIM_PIDS[@]}"; do
+  kill -0 "$pid" 2>/dev/null && { sleep 2 || true; kill -INT "$pid" 2>/dev/null || true; }
+  wait "$pid" 2>/dev/null || true
+done
 if (( status != 0 )); then
   echo "run_swarm.sh: the sim exited with status $status:" >&2
   tail -n 5 "$RUN_DIR/logs/sim.log" >&2

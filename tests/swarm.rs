@@ -3,7 +3,7 @@
 
 use std::time::Duration;
 
-use formation_swarm::{assert_clean, run_swarm, scratch_dir};
+use formation_swarm::{assert_clean, processes_of_run, repo_root, run_swarm, scratch_dir, shm_leftovers};
 
 fn scripted_eval(n: &str, episodes: &str) {
     let dir = scratch_dir(&format!("scripted-{n}"));
@@ -144,6 +144,53 @@ fn the_shipped_model_drives_six_robots_to_the_goal() {
 }
 
 #[test]
+fn one_critic_trains_one_actor_on_two_swarm_sizes_at_once() {
+    let dir = scratch_dir("two-sizes");
+    std::fs::create_dir_all(&dir).expect("dir");
+    let config = dir.join("two-sizes.toml");
+    let base = std::fs::read_to_string(repo_root().join("configs/multi-size.toml")).expect("config");
+    // Short: updates start after 300 ticks of each swarm.
+    let quick = base.replace("[learn]\n", "[learn]\nwarmup_transitions = 300\nbatch_size = 32\n");
+    assert_ne!(quick, base, "configs/multi-size.toml has a [learn] section");
+    std::fs::write(&config, quick).expect("write");
+    let run = run_swarm(
+        &[
+            "3",
+            "--extra-swarms",
+            "4",
+            "--config",
+            config.to_str().expect("utf8"),
+            "--minutes",
+            "0.4",
+            "--seed",
+            "5",
+            "--viewer",
+            "off",
+        ],
+        &dir.join("run"),
+        Duration::from_secs(180),
+    )
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "launcher failed:\n{}", run.output);
+    let summary = run.summary().expect("summary.json");
+    assert!(summary["episodes"].as_u64().expect("episodes") > 0, "{summary}");
+    assert!(summary["updates"].as_u64().expect("updates") > 0, "{summary}");
+    let extra = run.run_dir.join("swarm-1-n4/summary.json");
+    let extra: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&extra).expect("the extra swarm's summary")).expect("json");
+    assert_eq!(extra["n_agents"], serde_json::json!(4), "{extra}");
+    assert!(extra["episodes"].as_u64().expect("episodes") > 0, "{extra}");
+    let checkpoint =
+        formation_model::checkpoint::load(&run.run_dir.join("checkpoint.safetensors")).expect("checkpoint");
+    assert_eq!(checkpoint.meta.extra["swarm_sizes"], "3,4");
+    assert_clean(&run);
+    let extra_id = format!("{}x1", run.run_id.as_deref().expect("run id"));
+    assert!(shm_leftovers(&extra_id).is_empty(), "{:?}", shm_leftovers(&extra_id));
+    assert!(processes_of_run(&extra_id).is_empty());
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
 fn bad_input_is_refused_before_anything_starts() {
     let dir = scratch_dir("bad-input");
     for (args, needle) in [
@@ -153,6 +200,10 @@ fn bad_input_is_refused_before_anything_starts() {
         (vec!["3", "--mode", "fly"], "--mode"),
         (vec!["3", "--scripted", "0,7"], "robot 7 does not exist"),
         (vec!["3", "--shape", "blob"], "--shape"),
+        (vec!["3", "--extra-swarms", "4,2"], "sizes 3 to 64"),
+        (vec!["3", "--extra-swarms", "4", "--mode", "eval"], "for training"),
+        // The default critic is sized by N: it cannot serve several sizes.
+        (vec!["3", "--extra-swarms", "4"], "pooled"),
     ] {
         let run = run_swarm(&args, &dir.join("run"), Duration::from_secs(60)).expect("launch");
         assert_eq!(

@@ -11,8 +11,8 @@
 //! paper's critic sees every robot's observation instead (3 * 12 = 36 floats), which holds the
 //! same relative geometry in three frames.
 
-use formation_protocol::config::{EnvConfig, ObservationModel};
-use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS};
+use formation_protocol::config::{CriticArchitecture, EnvConfig, ObservationModel};
+use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS, neighbours};
 
 use crate::observation::{Layout, Observer, Scene};
 use crate::physics::Pose;
@@ -32,33 +32,77 @@ pub struct TickState<'a> {
 }
 
 /// Layout of one tick of critic state for a swarm of `n_agents`.
+///
+/// Team-major for the `mlp` critic: every robot's pose, the goal, every robot's desired
+/// edges, every robot's slot. Robot-major for the `pooled` critic: each robot's own token
+/// ([`CriticFeatures::token_dim`] floats), which the critic's encoder reads alone.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct CriticFeatures {
     /// Robots in the swarm.
     pub n_agents: usize,
     /// Whether the robots' slot offsets are part of the state.
     pub slots: bool,
+    /// Robot-major tokens (the `pooled` critic) instead of the team-major layout.
+    pub per_robot: bool,
 }
 
 impl CriticFeatures {
-    /// The features for `n_agents` robots observing with `model`.
-    pub fn new(n_agents: usize, model: ObservationModel) -> Self {
+    /// The features for `n_agents` robots observing with `model`, laid out for `critic`.
+    pub fn new(n_agents: usize, model: ObservationModel, critic: CriticArchitecture) -> Self {
         Self {
             n_agents,
             slots: Layout::of(model).slot().is_some(),
+            per_robot: critic == CriticArchitecture::Pooled,
         }
     }
 
     /// Floats per tick.
     pub fn dim(&self) -> usize {
         let n = self.n_agents;
+        if self.per_robot {
+            return n * self.token_dim();
+        }
         4 * n + 2 + NEIGHBOURS * n + if self.slots { 2 * n } else { 0 }
+    }
+
+    /// Floats of one robot's token: its position relative to the centroid and heading (4),
+    /// the displacement to each of its two observed neighbours (4), its desired edges (2), the
+    /// goal relative to the centroid (2) and, with slots, its slot offset (2).
+    pub fn token_dim(&self) -> usize {
+        4 + 2 * NEIGHBOURS + NEIGHBOURS + 2 + if self.slots { 2 } else { 0 }
     }
 
     /// Writes one tick into `out` (length [`CriticFeatures::dim`]), rotated by `-frame`.
     pub fn write(&self, out: &mut [f32], tick: &TickState, frame: f32) {
-        let n = self.n_agents;
         debug_assert_eq!(out.len(), self.dim());
+        if self.per_robot {
+            self.write_tokens(out, tick, frame);
+        } else {
+            self.write_team(out, tick, frame);
+        }
+    }
+
+    fn write_tokens(&self, out: &mut [f32], tick: &TickState, frame: f32) {
+        let n = self.n_agents;
+        let c = centroid(tick.poses);
+        let (s, co) = frame.sin_cos();
+        let rotate = |dx: f32, dy: f32| [co * dx + s * dy, -s * dx + co * dy];
+        let goal = rotate(tick.goal[0] - c[0], tick.goal[1] - c[1]);
+        for (i, token) in out.chunks_exact_mut(self.token_dim()).enumerate() {
+            let p = tick.poses[i];
+            let (hs, hc) = (p[2] - frame).sin_cos();
+            let [a, b] = neighbours(i, n).map(|j| rotate(tick.poses[j][0] - p[0], tick.poses[j][1] - p[1]));
+            let r = rotate(p[0] - c[0], p[1] - c[1]);
+            let [d1, d2] = tick.desired[i];
+            token[..12].copy_from_slice(&[r[0], r[1], hc, hs, a[0], a[1], b[0], b[1], d1, d2, goal[0], goal[1]]);
+            if self.slots {
+                token[12..14].copy_from_slice(&rotate(tick.slots[i][0], tick.slots[i][1]));
+            }
+        }
+    }
+
+    fn write_team(&self, out: &mut [f32], tick: &TickState, frame: f32) {
+        let n = self.n_agents;
         let c = centroid(tick.poses);
         let (s, co) = frame.sin_cos();
         let rotate = |dx: f32, dy: f32| [co * dx + s * dy, -s * dx + co * dy];
@@ -151,7 +195,7 @@ mod tests {
             slots: &slots,
             goal: [1.0, 3.0],
         };
-        let features = CriticFeatures::new(3, ObservationModel::Slot);
+        let features = CriticFeatures::new(3, ObservationModel::Slot, CriticArchitecture::Mlp);
         assert_eq!(features.dim(), 12 + 2 + 6 + 6);
         let mut out = vec![0.0; features.dim()];
         features.write(&mut out, &tick, std::f32::consts::FRAC_PI_2);
@@ -168,6 +212,43 @@ mod tests {
             &out[20..26]
         );
         // The paper's observation has no slots in the critic state.
-        assert_eq!(CriticFeatures::new(3, ObservationModel::Paper).dim(), 20);
+        assert_eq!(
+            CriticFeatures::new(3, ObservationModel::Paper, CriticArchitecture::Mlp).dim(),
+            20
+        );
+    }
+
+    #[test]
+    fn pooled_tokens_hold_each_robot_its_neighbours_and_the_goal_in_one_frame() {
+        let poses = [
+            [1.0, 0.0, std::f32::consts::FRAC_PI_2],
+            [2.0, 2.0, 0.0],
+            [0.0, 1.0, std::f32::consts::PI],
+        ];
+        let desired = [[1.0, 1.5], [1.2, 1.3], [1.4, 1.6]];
+        let slots = [[0.0, -1.0], [1.0, 1.0], [-1.0, 0.0]];
+        let tick = TickState {
+            poses: &poses,
+            desired: &desired,
+            slots: &slots,
+            goal: [1.0, 3.0],
+        };
+        let features = CriticFeatures::new(3, ObservationModel::SlotProximity, CriticArchitecture::Pooled);
+        assert_eq!(features.token_dim(), 14);
+        assert_eq!(features.dim(), 3 * 14);
+        let mut out = vec![0.0; features.dim()];
+        features.write(&mut out, &tick, std::f32::consts::FRAC_PI_2);
+        let close = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-5);
+        // In the frame, world +y is +x and world +x is -y: (dx, dy) -> (dy, -dx).
+        let robot0 = [-1.0, 0.0, 1.0, 0.0, 2.0, -1.0, 1.0, 1.0, 1.0, 1.5, 2.0, 0.0, -1.0, 0.0];
+        assert!(close(&out[..14], &robot0), "robot 0: {:?}", &out[..14]);
+        // Robot 2 observes robots 0 and 1.
+        let robot2 = [0.0, 1.0, 0.0, 1.0, -1.0, -1.0, 1.0, -2.0, 1.4, 1.6, 2.0, 0.0, 0.0, 1.0];
+        assert!(close(&out[28..], &robot2), "robot 2: {:?}", &out[28..]);
+        // A token does not depend on N: the paper's observation drops only the slot.
+        assert_eq!(
+            CriticFeatures::new(64, ObservationModel::Paper, CriticArchitecture::Pooled).token_dim(),
+            12
+        );
     }
 }

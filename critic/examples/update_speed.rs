@@ -1,13 +1,13 @@
 //! Times the critic's two costs per gradient update, sampling a batch and the update itself,
 //! on a replay filled with random-action episodes (no IPC):
-//! `cargo run --release -p formation-critic --example update_speed -- [BATCH] [UPDATES] [HISTORY] [ROBOTS]`.
+//! `cargo run --release -p formation-critic --example update_speed -- [BATCH] [UPDATES] [HISTORY] [ROBOTS] [mlp|pooled]`.
 
 use std::time::Instant;
 
 use formation_core::formation::random_episode;
 use formation_core::world::World;
 use formation_critic::learner::Learner;
-use formation_protocol::config::{EnvConfig, LearnConfig};
+use formation_protocol::config::{CriticArchitecture, EnvConfig, LearnConfig};
 use formation_replay::buffer::ReplayBuffer;
 use formation_replay::record::record_episode;
 use formation_replay::sample::Sampler;
@@ -21,12 +21,18 @@ fn main() -> anyhow::Result<()> {
     let updates: usize = args.next().map_or(Ok(200), |a| a.parse())?;
     let history: usize = args.next().map_or(Ok(15), |a| a.parse())?;
     let n: usize = args.next().map_or(Ok(3), |a| a.parse())?;
+    let critic = match args.next().as_deref() {
+        None | Some("mlp") => CriticArchitecture::Mlp,
+        Some("pooled") => CriticArchitecture::Pooled,
+        Some(other) => anyhow::bail!("critic must be mlp or pooled, got {other}"),
+    };
     let env = EnvConfig {
         history,
         ..EnvConfig::default()
     };
     let learn = LearnConfig {
         batch_size,
+        critic,
         ..LearnConfig::default()
     };
     let mut rng = StdRng::seed_from_u64(1);
@@ -43,6 +49,7 @@ fn main() -> anyhow::Result<()> {
         history: env.history,
         her_probability: learn.her_probability,
         env: env.clone(),
+        critic: learn.critic,
     };
     let mut learner = Learner::new(n, &env, &learn, 1)?;
     let (mut sampling, mut updating) = (0.0, 0.0);
@@ -55,7 +62,7 @@ fn main() -> anyhow::Result<()> {
         updating += t1.elapsed().as_secs_f64();
     }
     println!(
-        "N = {n}, H = {history}, B = {batch_size}: sample {:.2} ms, update {:.2} ms, {:.0} updates/s",
+        "N = {n}, H = {history}, B = {batch_size}, {critic:?} critic: sample {:.2} ms, update {:.2} ms, {:.0} updates/s",
         1e3 * sampling / updates as f64,
         1e3 * updating / updates as f64,
         updates as f64 / (sampling + updating)

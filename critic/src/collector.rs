@@ -118,6 +118,11 @@ where
         services::wait_for_event(&self.wake, timeout)
     }
 
+    /// The event the sim raises when it has published a tick (to wait on several sims at once).
+    pub fn wake_listener(&self) -> &Listener<S> {
+        &self.wake
+    }
+
     /// Takes in everything waiting; returns the episodes that ended.
     pub fn drain(&mut self) -> Result<Vec<FinishedEpisode>> {
         let mut finished = Vec::new();

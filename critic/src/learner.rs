@@ -18,7 +18,7 @@ use formation_core::observation::Layout;
 use formation_model::actor::{Actor, ActorShape, flatten_parameters};
 use formation_model::checkpoint::{self, CheckpointMeta, actor_prefix};
 use formation_protocol::ACTION_DIM;
-use formation_protocol::config::{Algorithm, EnvConfig, LearnConfig, ObservationModel};
+use formation_protocol::config::{Algorithm, CriticArchitecture, EnvConfig, LearnConfig, ObservationModel};
 use formation_replay::sample::Batch;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -35,33 +35,76 @@ pub struct Losses {
     pub action_magnitude: Option<f64>,
 }
 
-/// An MLP with ReLU hidden layers and a linear output of width 1: Q(s, u).
+/// Linear layers with ReLU between them (and after the last with `relu_last`).
 #[derive(Debug, Clone)]
-pub struct CriticNet {
+pub struct Mlp {
     layers: Vec<Linear>,
+    relu_last: bool,
 }
 
-impl CriticNet {
-    fn new(vb: VarBuilder, input: usize, hidden: &[usize]) -> candle_core::Result<Self> {
-        let mut layers = Vec::with_capacity(hidden.len() + 1);
+impl Mlp {
+    fn new(vb: VarBuilder, input: usize, widths: &[usize], relu_last: bool) -> candle_core::Result<Self> {
+        let mut layers = Vec::with_capacity(widths.len());
         let mut width = input;
-        for (i, &h) in hidden.iter().chain(std::iter::once(&1)).enumerate() {
-            layers.push(candle_nn::linear(width, h, vb.pp(format!("layer{i}")))?);
-            width = h;
+        for (i, &w) in widths.iter().enumerate() {
+            layers.push(candle_nn::linear(width, w, vb.pp(format!("layer{i}")))?);
+            width = w;
         }
-        Ok(Self { layers })
+        Ok(Self { layers, relu_last })
     }
 
-    /// Q values, shape [B, 1].
-    pub fn forward(&self, input: &Tensor) -> candle_core::Result<Tensor> {
+    fn forward(&self, input: &Tensor) -> candle_core::Result<Tensor> {
         let mut x = input.clone();
         for (i, layer) in self.layers.iter().enumerate() {
             x = layer.forward(&x)?;
-            if i + 1 < self.layers.len() {
+            if self.relu_last || i + 1 < self.layers.len() {
                 x = x.relu()?;
             }
         }
         Ok(x)
+    }
+}
+
+/// Q(s, u) of the whole team, shape [B, 1].
+#[derive(Debug, Clone)]
+pub enum CriticNet {
+    /// An MLP over the flat state and joint-action windows, [B, H (state_dim + 2N)].
+    Mlp(Mlp),
+    /// Deep sets over robot tokens [B, N, H (token_dim + 2)]: `head(mean_i encoder(token_i))`.
+    Pooled {
+        /// Applied to each robot's token alone.
+        encoder: Mlp,
+        /// Applied to the mean of the encodings.
+        head: Mlp,
+    },
+}
+
+impl CriticNet {
+    fn new(vb: VarBuilder, config: &LearnConfig, input: usize) -> candle_core::Result<Self> {
+        let head_widths: Vec<usize> = config.critic_hidden.iter().copied().chain([1]).collect();
+        Ok(match config.critic {
+            CriticArchitecture::Mlp => Self::Mlp(Mlp::new(vb, input, &head_widths, false)?),
+            CriticArchitecture::Pooled => {
+                let encoded = *config.critic_encoder.last().expect("validated: not empty");
+                Self::Pooled {
+                    encoder: Mlp::new(vb.pp("encoder"), input, &config.critic_encoder, true)?,
+                    head: Mlp::new(vb.pp("head"), encoded, &head_widths, false)?,
+                }
+            }
+        })
+    }
+
+    /// Q values, shape [B, 1].
+    pub fn forward(&self, input: &Tensor) -> candle_core::Result<Tensor> {
+        match self {
+            Self::Mlp(mlp) => mlp.forward(input),
+            Self::Pooled { encoder, head } => {
+                let (batch, robots, width) = input.dims3()?;
+                let encoded = encoder.forward(&input.reshape((batch * robots, width))?)?;
+                let pooled = encoded.reshape((batch, robots, encoded.dim(1)?))?.mean(1)?;
+                head.forward(&pooled)
+            }
+        }
     }
 }
 
@@ -177,7 +220,11 @@ impl Learner {
             Algorithm::Ddpg => 1,
             Algorithm::Td3 => 2,
         };
-        let critic_input = history * (CriticFeatures::new(n_agents, env.observation).dim() + n_agents * ACTION_DIM);
+        let features = CriticFeatures::new(n_agents, env.observation, config.critic);
+        let critic_input = match config.critic {
+            CriticArchitecture::Mlp => history * (features.dim() + n_agents * ACTION_DIM),
+            CriticArchitecture::Pooled => history * (features.token_dim() + ACTION_DIM),
+        };
         let build_actors = |vars: &VarMap| -> Result<Vec<Actor>> {
             let vb = VarBuilder::from_varmap(vars, DType::F32, &device);
             (0..n_actors)
@@ -187,13 +234,7 @@ impl Learner {
         let build_critics = |vars: &VarMap| -> Result<Vec<CriticNet>> {
             let vb = VarBuilder::from_varmap(vars, DType::F32, &device);
             (0..n_critics)
-                .map(|j| {
-                    Ok(CriticNet::new(
-                        vb.pp(format!("critic{j}")),
-                        critic_input,
-                        &config.critic_hidden,
-                    )?)
-                })
+                .map(|j| Ok(CriticNet::new(vb.pp(format!("critic{j}")), config, critic_input)?))
                 .collect()
         };
         let actor_vars = VarMap::new();
@@ -295,11 +336,25 @@ impl Learner {
         Ok(Some(f64::from(error)))
     }
 
+    /// What the critics read, from a state window [B, H * state_dim] and a joint-action window
+    /// [B, H * N * 2] (both tick-major): the two side by side for the `mlp` critic, one token
+    /// per robot [B, N, H * (token_dim + 2)] (its own ticks' features and actions) for `pooled`.
+    fn critic_input(&self, batch: &Batch, states: Tensor, actions: Tensor) -> Result<Tensor> {
+        if self.config.critic == CriticArchitecture::Mlp {
+            return Ok(Tensor::cat(&[states, actions], 1)?);
+        }
+        let (b, h, n) = (batch.batch_size, batch.history, batch.n_agents);
+        let token = batch.state_dim / n;
+        let states = states.reshape((b, h, n, token))?.transpose(1, 2)?;
+        let actions = actions.reshape((b, h, n, ACTION_DIM))?.transpose(1, 2)?;
+        Ok(Tensor::cat(&[states, actions], 3)?.reshape((b, n, h * (token + ACTION_DIM)))?)
+    }
+
     /// The TD target y for a batch (no gradient flows through it).
     pub fn td_target(&mut self, batch: &Batch) -> Result<Tensor> {
         let device = Device::Cpu;
         let b = batch.batch_size;
-        let n = self.n_agents;
+        let n = batch.n_agents;
         let h = self.history;
         let next_obs = Tensor::from_slice(&batch.next_observations, (b, n, batch.window_dim()), &device)?;
         let next_states = Tensor::from_slice(&batch.next_states, (b, batch.state_window_dim()), &device)?;
@@ -318,7 +373,7 @@ impl Learner {
         }
         let joint = n * ACTION_DIM;
         let next_window = Tensor::cat(&[actions.narrow(1, joint, (h - 1) * joint)?, next_actions], 1)?;
-        let next_input = Tensor::cat(&[next_states, next_window], 1)?;
+        let next_input = self.critic_input(batch, next_states, next_window)?;
         let mut q_next = self.critic_targets[0].forward(&next_input)?;
         for target in &self.critic_targets[1..] {
             q_next = q_next.minimum(&target.forward(&next_input)?)?;
@@ -334,7 +389,7 @@ impl Learner {
         let b = batch.batch_size;
         let states = Tensor::from_slice(&batch.states, (b, batch.state_window_dim()), &device)?;
         let actions = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?;
-        let input = Tensor::cat(&[states, actions], 1)?;
+        let input = self.critic_input(batch, states, actions)?;
         let mut loss: Option<Tensor> = None;
         for critic in &self.critics {
             let l = candle_nn::loss::mse(&critic.forward(&input)?, target)?;
@@ -351,13 +406,13 @@ impl Learner {
     fn policy_q(&self, batch: &Batch) -> Result<(Tensor, Tensor)> {
         let device = Device::Cpu;
         let b = batch.batch_size;
-        let joint = self.n_agents * ACTION_DIM;
-        let obs = Tensor::from_slice(&batch.observations, (b, self.n_agents, batch.window_dim()), &device)?;
+        let joint = batch.n_agents * ACTION_DIM;
+        let obs = Tensor::from_slice(&batch.observations, (b, batch.n_agents, batch.window_dim()), &device)?;
         let states = Tensor::from_slice(&batch.states, (b, batch.state_window_dim()), &device)?;
         let actions = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?;
         let current = Self::joint_actions(&self.actors, &obs)?;
         let window = Tensor::cat(&[actions.narrow(1, 0, (self.history - 1) * joint)?, current.clone()], 1)?;
-        let q = self.critics[0].forward(&Tensor::cat(&[states, window], 1)?)?;
+        let q = self.critics[0].forward(&self.critic_input(batch, states, window)?)?;
         Ok((q, current))
     }
 
@@ -392,7 +447,8 @@ impl Learner {
 
     /// One gradient update of the critic(s), and of the actor(s) and targets when due.
     pub fn update(&mut self, batch: &Batch) -> Result<Losses> {
-        if batch.n_agents != self.n_agents || batch.history != self.history {
+        let sized_by_n = self.config.critic == CriticArchitecture::Mlp;
+        if (sized_by_n && batch.n_agents != self.n_agents) || batch.history != self.history {
             bail!(
                 "batch for {} robots and H = {} given to a learner for {} robots and H = {}",
                 batch.n_agents,
@@ -458,6 +514,18 @@ impl Learner {
         Ok(out)
     }
 
+    /// Whether `tensors` hold this learner's critics, every variable at its shape.
+    fn critic_matches(&self, tensors: &HashMap<String, Tensor>) -> Result<bool> {
+        let data = self
+            .critic_vars
+            .data()
+            .lock()
+            .map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+        Ok(data
+            .iter()
+            .all(|(name, var)| tensors.get(name).is_some_and(|t| t.dims() == var.as_tensor().dims())))
+    }
+
     /// Writes every network (online and target) to a checkpoint.
     pub fn save(&self, path: &Path, extra: HashMap<String, String>) -> Result<()> {
         let meta = CheckpointMeta {
@@ -470,26 +538,28 @@ impl Learner {
         checkpoint::save(path, &self.all_tensors()?, &meta)
     }
 
-    /// Resumes from a checkpoint written by [`Learner::save`] for the same shapes. A shared
-    /// actor trained on another number of robots is carried over alone (the critic, sized by
-    /// N, starts fresh): that is how training moves on to larger swarms.
+    /// Resumes from a checkpoint written by [`Learner::save`]. A shared actor trained with
+    /// another critic (an `mlp` critic for another N, or another architecture or width) is
+    /// carried over alone and the critic starts fresh: that is how training moves on to other
+    /// swarm sizes. A `pooled` critic carries over to any N.
     pub fn load(&mut self, path: &Path) -> Result<()> {
         let loaded = checkpoint::load(path)?;
         loaded
             .meta
             .check_observation(path, self.observation, self.actor_shape.obs_dim)?;
-        let other_swarm = loaded.meta.n_agents != self.n_agents;
-        let actor_only = other_swarm && loaded.meta.n_actors == 1 && self.n_actors() == 1;
-        if (other_swarm && !actor_only)
+        let same_critic = self.critic_matches(&loaded.tensors)?;
+        let actor_only = !same_critic && loaded.meta.n_actors == 1 && self.n_actors() == 1;
+        if (!same_critic && !actor_only)
             || loaded.meta.n_actors != self.n_actors()
             || loaded.meta.actor != self.actor_shape
         {
             bail!(
-                "checkpoint {} is for {} robots, {} actors of shape {:?}; this run trains {} robots, {} actors of shape {:?}",
+                "checkpoint {} is for {} robots, {} actors of shape {:?}{}; this run trains {} robots, {} actors of shape {:?}",
                 path.display(),
                 loaded.meta.n_agents,
                 loaded.meta.n_actors,
                 loaded.meta.actor,
+                if same_critic { "" } else { " and another critic" },
                 self.n_agents,
                 self.n_actors(),
                 self.actor_shape
@@ -523,10 +593,9 @@ impl Learner {
         }
         if actor_only {
             eprintln!(
-                "critic: {} was trained on {} robots; its shared actor carries over, the critic for {} starts fresh",
+                "critic: {} was trained with another critic ({} robots); its shared actor carries over, the critic starts fresh",
                 path.display(),
                 loaded.meta.n_agents,
-                self.n_agents
             );
         } else if let Some(updates) = loaded.meta.extra.get("updates").and_then(|u| u.parse().ok()) {
             self.updates = updates;

@@ -4,12 +4,14 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::Result;
+use anyhow::{Context, Result, bail};
 use clap::Parser;
 use formation_critic::run::{CriticOptions, run};
 use formation_model::checkpoint;
 use formation_protocol::cli::{Mode, RunArgs, prepare_run_dir};
+use formation_protocol::config::{CriticArchitecture, validate_agent_count};
 use formation_protocol::placement::Role;
+use formation_protocol::services::RunIdentity;
 use formation_view::ViewerMode;
 use iceoryx2::prelude::*;
 
@@ -30,9 +32,27 @@ struct Cli {
     /// Training curves: spawn|connect=URL (join the run's viewer), save (training.rrd), off.
     #[arg(long, default_value = "off")]
     viewer: String,
+    /// Another swarm to train on as well, `RUN_ID:N`: a sim and N robots started under that run
+    /// id (repeatable). Needs `learn.critic = "pooled"`, whose one critic serves every size.
+    #[arg(long, value_name = "RUN_ID:N", value_parser = parse_swarm)]
+    extra_swarm: Vec<(RunIdentity, usize)>,
+    /// The run's length as given to the sim (`--minutes`): shows the time left.
+    #[arg(long)]
+    minutes: Option<f64>,
     /// Only validate the flags, the configuration and the checkpoint to resume, then exit.
     #[arg(long)]
     check: bool,
+}
+
+fn parse_swarm(text: &str) -> Result<(RunIdentity, usize)> {
+    let (run_id, n) = text
+        .split_once(':')
+        .with_context(|| format!("--extra-swarm takes RUN_ID:N, got {text:?}"))?;
+    let n: usize = n
+        .parse()
+        .with_context(|| format!("--extra-swarm {text:?}: N must be a whole number"))?;
+    validate_agent_count(n)?;
+    Ok((RunIdentity::new(run_id)?, n))
 }
 
 fn main() -> ExitCode {
@@ -56,6 +76,16 @@ fn try_main(cli: Cli) -> Result<()> {
         _ => None,
     };
     let viewer = ViewerMode::parse(&cli.viewer)?;
+    if !cli.extra_swarm.is_empty() {
+        if cli.run.mode != Mode::Train {
+            bail!("--extra-swarm is for training: evaluate each swarm size on its own");
+        }
+        if config.learn.critic != CriticArchitecture::Pooled {
+            bail!(
+                "--extra-swarm needs learn.critic = \"pooled\" (an mlp critic is sized by N), e.g. --config configs/any-n.toml"
+            );
+        }
+    }
     if cli.check {
         if let Some(path) = &resume {
             let mut learner =
@@ -78,6 +108,8 @@ fn try_main(cli: Cli) -> Result<()> {
         progress: !cli.quiet,
         viewer,
         run_id: identity.run_id.clone(),
+        minutes: cli.minutes,
+        extra_swarms: cli.extra_swarm,
     };
     let summary = run::<ipc::Service>(&identity, &options)?;
     println!("\nRun summary ({}):", options.run_dir.join("summary.json").display());

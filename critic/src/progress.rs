@@ -81,6 +81,8 @@ pub struct TrainingStatus {
     pub weights_version: u32,
     /// Transitions held by the replay.
     pub replay_transitions: usize,
+    /// Rolling noise-free success when `best.safetensors` was last written, if it was.
+    pub best_eval: Option<f64>,
 }
 
 /// One row of `training.csv`.
@@ -108,6 +110,8 @@ pub struct Progress {
     training_log: csv::Writer<std::fs::File>,
     curves: Option<CurveView>,
     started: Instant,
+    /// When the run is due to end (`--minutes`), for the time left on the display.
+    ends: Option<Instant>,
     last_bar: Instant,
     last_report: Instant,
 }
@@ -122,6 +126,7 @@ impl Progress {
             training_log: open_training_log(&options.run_dir.join("training.csv"), options.resume.is_some())?,
             curves: CurveView::open(&options.viewer, &options.run_id, &options.run_dir)?,
             started: now,
+            ends: options.minutes.map(|m| now + Duration::from_secs_f64(m * 60.0)),
             last_bar: now,
             last_report: now,
         })
@@ -213,6 +218,13 @@ impl Progress {
                 status.losses.actor.map_or("-".into(), |a| format!("{a:.2}")),
                 status.weights_version,
             );
+            if let Some(best) = status.best_eval {
+                line += &format!(" | best {best:.2}");
+            }
+        }
+        if let Some(ends) = self.ends {
+            let left = ends.saturating_duration_since(Instant::now()).as_secs();
+            line += &format!(" | {}:{:02} left", left / 60, left % 60);
         }
         line
     }

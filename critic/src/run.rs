@@ -1,6 +1,7 @@
 //! The critic's loop: drain the streams into the replay, acknowledge progress (the sim's flow
 //! control), train at the configured update-to-data ratio, report; at the end, save the
-//! checkpoint and add the learner's figures to `summary.json`.
+//! checkpoint and add the learner's figures to `summary.json`. One critic may serve several
+//! swarms (sizes) at once, each its own sim and robots under its own run id: one link each.
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -47,87 +48,149 @@ pub struct CriticOptions {
     pub viewer: ViewerMode,
     /// The run id (names the recording).
     pub run_id: String,
+    /// How long the run lasts (`--minutes`), for the time left on the progress display.
+    pub minutes: Option<f64>,
+    /// Other swarms (run id, robots) whose sims and robots this critic also trains on.
+    pub extra_swarms: Vec<(RunIdentity, usize)>,
 }
 
-/// Runs until the sim ends the run (or falls silent); extends `summary.json`.
+/// One swarm the critic serves: its sim's streams and the flow control towards it.
+struct SwarmLink<S: Service> {
+    identity: RunIdentity,
+    sizing: Sizing,
+    collector: Collector<S>,
+    progress: ProgressLink<S>,
+    sim_watch: services::SimWatch,
+    paid_ticks: u64,
+    last_acknowledged: u64,
+    last_progress: Instant,
+    /// Last: the ports above live in it.
+    node: Node<S>,
+}
+
+impl<S: Service> SwarmLink<S>
+where
+    Listener<S>: FileDescriptorBased,
+{
+    fn open(identity: &RunIdentity, n_agents: usize, config: &RunConfig) -> Result<Self> {
+        let node = services::create_node::<S>(identity, "critic")?;
+        let sizing = Sizing::new(n_agents, config.ticks.critic_window);
+        Ok(Self {
+            identity: identity.clone(),
+            collector: Collector::new(&node, &sizing, &config.env)?,
+            progress: ProgressLink::new(&node, &sizing)?,
+            sim_watch: services::SimWatch::new(
+                Duration::from_millis(config.ticks.sim_silence_ms),
+                Duration::from_secs(config.ticks.startup_timeout_s),
+            ),
+            sizing,
+            paid_ticks: u64::MAX,
+            last_acknowledged: 0,
+            last_progress: Instant::now(),
+            node,
+        })
+    }
+
+    fn ended(&self) -> bool {
+        self.collector.stats.run_ended
+    }
+
+    /// Acknowledges only the ticks the updates have paid for: the sim stays at most
+    /// `critic_window` ticks ahead, which holds the update-to-data ratio. Progress also goes
+    /// out as a heartbeat: the sim takes a critic silent for a while as gone and runs on
+    /// without flow control. Before the first tick this repeats the greeting until the sim
+    /// has connected.
+    fn acknowledge(&mut self, training: Option<TrainingStatus>) -> Result<()> {
+        let acknowledged = self.collector.stats.acknowledgeable(self.paid_ticks);
+        if acknowledged != self.last_acknowledged
+            || self.collector.stats.ticks_received == 0
+            || self.last_progress.elapsed() >= HEARTBEAT_EVERY
+        {
+            self.last_acknowledged = acknowledged;
+            self.last_progress = Instant::now();
+            self.progress.publish(acknowledged, training)?;
+        }
+        Ok(())
+    }
+}
+
+/// Runs until every sim it serves ends its run (or one falls silent); extends `summary.json`.
 pub fn run<S: Service>(identity: &RunIdentity, options: &CriticOptions) -> Result<Summary>
 where
     Listener<S>: FileDescriptorBased,
 {
     let config = &options.config;
-    let node = services::create_node::<S>(identity, "critic")?;
-    let sizing = Sizing::new(options.n_agents, config.ticks.critic_window);
-    let mut collector = Collector::new(&node, &sizing, &config.env)?;
-    let progress_link = ProgressLink::new(&node, &sizing)?;
+    let mut links = vec![SwarmLink::<S>::open(identity, options.n_agents, config)?];
+    for (other, n_agents) in &options.extra_swarms {
+        links.push(SwarmLink::open(other, *n_agents, config)?);
+    }
     let mut trainer = match options.mode {
-        Mode::Train => Some(Trainer::new(&node, &sizing, options)?),
+        Mode::Train => {
+            let ports: Vec<_> = links.iter().map(|l| (&l.node, l.sizing)).collect();
+            Some(Trainer::new(&ports, options)?)
+        }
         Mode::Eval => None,
     };
     let mut progress = Progress::open(options)?;
-    let mut sim_watch = services::SimWatch::new(
-        Duration::from_millis(config.ticks.sim_silence_ms),
-        Duration::from_secs(config.ticks.startup_timeout_s),
-    );
-    let mut paid_ticks = u64::MAX;
-    let mut last_acknowledged = 0;
-    let mut last_progress = Instant::now();
-    progress_link.publish(0, trainer.as_ref().map(Trainer::status))?;
+    for link in &links {
+        link.progress.publish(0, trainer.as_ref().map(Trainer::status))?;
+    }
 
     loop {
-        let owed = trainer
+        let ticks: Vec<u64> = links.iter().map(|l| l.collector.stats.ticks_received).collect();
+        let owed: u64 = trainer
             .as_ref()
-            .map_or(0, |t| t.updates_owed(collector.stats.ticks_received));
+            .map_or(0, |t| (0..links.len()).map(|k| t.updates_owed(k, ticks[k])).sum());
         if owed == 0 {
-            collector.wait(Duration::from_millis(100))?;
+            let listeners: Vec<_> = links.iter().map(|l| l.collector.wake_listener()).collect();
+            services::wait_for_any_event(&listeners, Duration::from_millis(100))?;
         }
-        let before = collector.stats.ticks_received;
-        for finished in collector.drain()? {
-            progress.episode(&finished)?;
-            // Eval mode only records figures: keeping episodes would grow memory for nothing.
-            if let Some(trainer) = &mut trainer {
-                trainer.keep(finished, &progress.rolling)?;
+        for (k, link) in links.iter_mut().enumerate() {
+            let before = link.collector.stats.ticks_received;
+            for finished in link.collector.drain()? {
+                progress.episode(&finished)?;
+                // Eval mode only records figures: keeping episodes would grow memory for nothing.
+                if let Some(trainer) = &mut trainer {
+                    trainer.keep(k, finished, &progress.rolling)?;
+                }
             }
-        }
-        if collector.stats.ticks_received > before {
-            sim_watch.heard();
+            if link.collector.stats.ticks_received > before {
+                link.sim_watch.heard();
+            }
         }
         if let Some(trainer) = &trainer {
             trainer.update_connections()?;
         }
-        if collector.stats.run_ended {
+        if links.iter().all(SwarmLink::ended) {
             break;
         }
         // A sim silent for `silence` is given up on once its process is gone (at once when it
         // was killed); a live one that stalls (a loaded machine) is waited for up to the
         // start-up limit, since a critic restart loses the replay.
-        if let Some(quiet) = sim_watch.gone::<S>(identity, "critic")? {
-            if let Some(trainer) = &trainer {
-                trainer.save_checkpoint(&progress.rolling)?;
+        for link in links.iter_mut().filter(|l| !l.ended()) {
+            if let Some(quiet) = link.sim_watch.gone::<S>(&link.identity, "critic")? {
+                if let Some(trainer) = &trainer {
+                    trainer.save_checkpoint(&progress.rolling)?;
+                }
+                bail!(
+                    "critic: no state from the sim of run {} for {:.1} s; is it alive? (checkpoint saved)",
+                    link.identity.run_id,
+                    quiet.as_secs_f64()
+                );
             }
-            bail!(
-                "critic: no state from the sim for {:.1} s; is it alive? (checkpoint saved)",
-                quiet.as_secs_f64()
-            );
         }
         if let Some(trainer) = &mut trainer {
-            paid_ticks = trainer.train(collector.stats.ticks_received, &progress.rolling)?;
+            let ticks: Vec<u64> = links.iter().map(|l| l.collector.stats.ticks_received).collect();
+            for (link, paid) in links.iter_mut().zip(trainer.train(&ticks, &progress.rolling)?) {
+                link.paid_ticks = paid;
+            }
         }
-
-        // Acknowledge only the ticks the updates have paid for: the sim stays at most
-        // `critic_window` ticks ahead, which holds the update-to-data ratio.
-        // Progress also goes out as a heartbeat: the sim takes a critic silent for a while
-        // as gone and runs on without flow control.
-        let acknowledged = collector.stats.acknowledgeable(paid_ticks);
-        if acknowledged != last_acknowledged
-            || collector.stats.ticks_received == 0
-            || last_progress.elapsed() >= HEARTBEAT_EVERY
-        {
-            // Before the first tick this repeats the greeting until the sim has connected.
-            last_acknowledged = acknowledged;
-            last_progress = Instant::now();
-            progress_link.publish(acknowledged, trainer.as_ref().map(Trainer::status))?;
+        let status = trainer.as_ref().map(Trainer::status);
+        for link in links.iter_mut().filter(|l| !l.ended()) {
+            link.acknowledge(status)?;
         }
-        progress.report(collector.stats.ticks_received, trainer.as_ref().map(Trainer::status))?;
+        let received = links.iter().map(|l| l.collector.stats.ticks_received).sum();
+        progress.report(received, status)?;
     }
 
     let elapsed = progress.elapsed_s();
@@ -136,7 +199,7 @@ where
         trainer.save_checkpoint(&progress.rolling)?;
     }
     progress.finish();
-    merge_summary(options, &collector.stats, status, elapsed)
+    merge_summary(options, &links[0].collector.stats, status, elapsed)
 }
 
 /// Adds the critic's figures to the sim's `summary.json` (or starts one if the sim wrote none).

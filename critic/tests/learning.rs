@@ -6,7 +6,7 @@ use formation_core::features::CriticFeatures;
 use formation_core::observation::Layout;
 use formation_critic::learner::{Learner, soft_update};
 use formation_protocol::ACTION_DIM;
-use formation_protocol::config::{Algorithm, EnvConfig, LearnConfig};
+use formation_protocol::config::{Algorithm, CriticArchitecture, EnvConfig, LearnConfig};
 use formation_replay::sample::Batch;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -22,17 +22,22 @@ fn small_config(algorithm: Algorithm) -> (EnvConfig, LearnConfig) {
         critic_hidden: vec![32, 32],
         batch_size: 32,
         target_noise: 0.0,
+        imitation_alpha: 0.0,
         ..LearnConfig::default()
     };
     (env, learn)
 }
 
 fn random_batch(env: &EnvConfig, n: usize, b: usize, seed: u64) -> Batch {
+    random_batch_for(env, CriticArchitecture::Mlp, n, b, seed)
+}
+
+fn random_batch_for(env: &EnvConfig, critic: CriticArchitecture, n: usize, b: usize, seed: u64) -> Batch {
     let mut rng = StdRng::seed_from_u64(seed);
     let mut fill = |len: usize| (0..len).map(|_| rng.random_range(-1.0f32..1.0)).collect::<Vec<_>>();
     let h = env.history;
     let od = Layout::of(env.observation).dim();
-    let sd = CriticFeatures::new(n, env.observation).dim();
+    let sd = CriticFeatures::new(n, env.observation, critic).dim();
     Batch {
         batch_size: b,
         n_agents: n,
@@ -271,4 +276,69 @@ fn an_actor_step_raises_q_and_leaves_the_critic_alone() {
     let q_after = learner.policy_value(&batch).expect("q");
     assert!(q_after > q_before, "Q of the policy {q_before} -> {q_after}");
     assert_eq!(critic_loss(&learner), loss_before, "the critic moved");
+}
+
+/// Reverses the order of the `n` robots in every tick of a robot-major array.
+fn reverse_robots(values: &[f32], n: usize, width: usize) -> Vec<f32> {
+    values
+        .chunks_exact(n * width)
+        .flat_map(|tick| tick.chunks_exact(width).rev().flatten().copied())
+        .collect()
+}
+
+#[test]
+fn one_pooled_critic_fits_two_swarm_sizes_ignores_robot_order_and_carries_over() {
+    let (env, learn) = small_config(Algorithm::Td3);
+    let learn = LearnConfig {
+        critic: CriticArchitecture::Pooled,
+        critic_encoder: vec![32, 32],
+        ..learn
+    };
+    let mut learner = Learner::new(3, &env, &learn, 11).expect("learner");
+    let mut batches = [3, 5].map(|n| random_batch_for(&env, CriticArchitecture::Pooled, n, 32, n as u64));
+    for batch in &mut batches {
+        batch.terminals = vec![1.0; 32]; // y = r: a fixed regression target per size
+    }
+    let loss = |learner: &Learner, batch: &Batch| {
+        let target = Tensor::from_slice(&batch.rewards, (32, 1), &Device::Cpu).expect("target");
+        learner
+            .critic_loss(batch, &target)
+            .expect("loss")
+            .to_scalar::<f32>()
+            .expect("scalar")
+    };
+    let before = batches.each_ref().map(|b| loss(&learner, b));
+    for step in 0..400 {
+        learner.update(&batches[step % 2]).expect("update");
+    }
+    let after = batches.each_ref().map(|b| loss(&learner, b));
+    for k in 0..2 {
+        assert!(
+            after[k] < 0.3 * before[k],
+            "N = {}: loss {} -> {}",
+            batches[k].n_agents,
+            before[k],
+            after[k]
+        );
+    }
+    // A set function: the robots' order does not change Q.
+    let token = batches[1].state_dim / 5;
+    let reversed = Batch {
+        states: reverse_robots(&batches[1].states, 5, token),
+        actions: reverse_robots(&batches[1].actions, 5, ACTION_DIM),
+        ..batches[1].clone()
+    };
+    assert_ne!(reversed.states, batches[1].states);
+    assert!((loss(&learner, &reversed) - after[1]).abs() < 1e-4 * after[1].max(1.0));
+    // The whole learner, critic included, loads into a run of another N.
+    let dir = std::env::temp_dir().join(format!("formation-pooled-ckpt-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("dir");
+    let path = dir.join("checkpoint.safetensors");
+    learner.save(&path, Default::default()).expect("save");
+    let mut five = Learner::new(5, &env, &learn, 12).expect("learner");
+    assert_ne!(loss(&five, &batches[1]), after[1]);
+    five.load(&path).expect("load");
+    assert_eq!(loss(&five, &batches[1]), after[1], "the critic carried over");
+    assert_eq!(five.updates(), 0, "no `updates` in the metadata given");
+    std::fs::remove_dir_all(&dir).expect("cleanup");
 }

@@ -264,6 +264,17 @@ pub enum Algorithm {
     Td3,
 }
 
+/// How the central critic reads the team.
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum CriticArchitecture {
+    /// An MLP over the whole team's state and joint action, flattened: sized by N.
+    Mlp,
+    /// Deep sets: one encoder applied to each robot's own features and actions, averaged over
+    /// the robots, then an MLP head. The same weights serve any N.
+    Pooled,
+}
+
 /// Central training hyper-parameters.
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
 #[serde(deny_unknown_fields, default)]
@@ -296,8 +307,12 @@ pub struct LearnConfig {
     pub warmup_transitions: usize,
     /// Hidden layer widths of the actor.
     pub actor_hidden: Vec<usize>,
-    /// Hidden layer widths of the critic.
+    /// The critic's architecture: `mlp` (sized by N, the paper's) or `pooled` (any N).
+    pub critic: CriticArchitecture,
+    /// Hidden layer widths of the critic (of its head, for `pooled`).
     pub critic_hidden: Vec<usize>,
+    /// `pooled` only: widths of the per-robot encoder; the last is what is averaged.
+    pub critic_encoder: Vec<usize>,
     /// TD3: actor and target updates every this many critic updates.
     pub policy_delay: u32,
     /// TD3: std of the target policy smoothing noise.
@@ -310,7 +325,8 @@ pub struct LearnConfig {
     pub action_l2: f64,
     /// The scripted baseline as a teacher (TD3+BC, Fujimoto & Gu 2021): the actor loss becomes
     /// -alpha Q / max(mean|Q|, 1) plus the squared distance between the actor's action and the
-    /// baseline's on the same replayed observation. 0 = off (plain TD3 or DDPG, the paper).
+    /// baseline's on the same replayed observation. 0 = off (plain TD3 or DDPG, the paper);
+    /// the default 2.5 is TD3+BC's own.
     pub imitation_alpha: f64,
     /// Replay capacity in ticks.
     pub replay_capacity: usize,
@@ -341,13 +357,15 @@ impl Default for LearnConfig {
             updates_per_transition: 0.5,
             warmup_transitions: 5000,
             actor_hidden: vec![128, 128],
+            critic: CriticArchitecture::Mlp,
             critic_hidden: vec![256, 256],
+            critic_encoder: vec![64, 64],
             policy_delay: 2,
             target_noise: 0.2,
             target_noise_clip: 0.5,
             reward_scale: 1.0,
             action_l2: 0.0,
-            imitation_alpha: 0.0,
+            imitation_alpha: 2.5,
             replay_capacity: 1_000_000,
             publish_every_updates: 50,
             checkpoint_every_s: 120,
@@ -631,6 +649,12 @@ impl LearnConfig {
             !l.critic_hidden.is_empty() && l.critic_hidden.iter().all(|&w| (1..=4096).contains(&w)),
             "learn.critic_hidden",
             format!("{:?}", l.critic_hidden),
+            "needs 1 or more widths in 1..=4096",
+        )?;
+        check(
+            !l.critic_encoder.is_empty() && l.critic_encoder.iter().all(|&w| (1..=4096).contains(&w)),
+            "learn.critic_encoder",
+            format!("{:?}", l.critic_encoder),
             "needs 1 or more widths in 1..=4096",
         )?;
         check(

@@ -348,24 +348,62 @@ pub fn wait_for_events<S: Service>(
 where
     Listener<S>: FileDescriptorBased,
 {
-    let mut socket = libc::pollfd {
+    let mut socket = [libc::pollfd {
         // SAFETY: only polled; the listener keeps owning the descriptor.
         fd: unsafe { listener.file_descriptor().native_handle() },
         events: libc::POLLIN,
         revents: 0,
-    };
+    }];
+    poll(&mut socket, timeout)?;
+    take_events(listener, &mut seen)
+}
+
+/// Blocks until any of `listeners` is notified or `timeout` passes, and takes every event
+/// waiting (a critic serving several swarms waits on all their sims at once).
+pub fn wait_for_any_event<S: Service>(listeners: &[&Listener<S>], timeout: std::time::Duration) -> Result<()>
+where
+    Listener<S>: FileDescriptorBased,
+{
+    let mut sockets: Vec<libc::pollfd> = listeners
+        .iter()
+        .map(|listener| libc::pollfd {
+            // SAFETY: only polled; the listener keeps owning the descriptor.
+            fd: unsafe { listener.file_descriptor().native_handle() },
+            events: libc::POLLIN,
+            revents: 0,
+        })
+        .collect();
+    poll(&mut sockets, timeout)?;
+    for listener in listeners {
+        take_events(listener, &mut |_| {})?;
+    }
+    Ok(())
+}
+
+fn poll(sockets: &mut [libc::pollfd], timeout: std::time::Duration) -> Result<()> {
     let timeout = libc::timespec {
         tv_sec: timeout.as_secs().min(i64::MAX as u64) as libc::time_t,
         tv_nsec: timeout.subsec_nanos() as libc::c_long,
     };
-    // SAFETY: one valid pollfd, a valid timespec, no signal mask.
-    let ready = unsafe { libc::ppoll(&mut socket, 1, &timeout, std::ptr::null()) };
+    // SAFETY: valid pollfds, a valid timespec, no signal mask.
+    let ready = unsafe {
+        libc::ppoll(
+            sockets.as_mut_ptr(),
+            sockets.len() as libc::nfds_t,
+            &timeout,
+            std::ptr::null(),
+        )
+    };
     if ready < 0 {
         let err = std::io::Error::last_os_error();
         if err.kind() != std::io::ErrorKind::Interrupted {
             bail!("waiting on an iceoryx2 event failed: {err}");
         }
     }
+    Ok(())
+}
+
+fn take_events<S: Service>(listener: &Listener<S>, seen: &mut impl FnMut(usize)) -> Result<()> {
     match listener.try_wait(|activation| seen(activation.id.as_value())) {
         Ok(_) | Err(ListenerWaitError::InterruptSignal) => Ok(()),
         Err(err) => Err(anyhow::anyhow!("taking iceoryx2 events failed: {err:?}")),

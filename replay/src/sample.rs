@@ -7,7 +7,7 @@
 use formation_core::features::{CriticFeatures, centroid, observation, transition_reward};
 use formation_core::observation::Observer;
 use formation_protocol::ACTION_DIM;
-use formation_protocol::config::EnvConfig;
+use formation_protocol::config::{CriticArchitecture, EnvConfig};
 use rand::Rng;
 
 use crate::buffer::{Episode, ReplayBuffer};
@@ -73,6 +73,8 @@ pub struct Sampler {
     pub her_probability: f64,
     /// The environment (for rewards of relabelled samples).
     pub env: EnvConfig,
+    /// The critic the batches are for (it decides the state's layout).
+    pub critic: CriticArchitecture,
 }
 
 impl Sampler {
@@ -83,7 +85,7 @@ impl Sampler {
 
     /// The critic state of `n_agents` robots.
     pub fn features(&self, n_agents: usize) -> CriticFeatures {
-        CriticFeatures::new(n_agents, self.env.observation)
+        CriticFeatures::new(n_agents, self.env.observation, self.critic)
     }
 
     /// B samples, transitions drawn uniformly over the buffer; `None` when it is empty.

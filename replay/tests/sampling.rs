@@ -6,7 +6,7 @@ use formation_core::formation::random_episode;
 use formation_core::observation::Observer;
 use formation_core::world::World;
 use formation_protocol::ACTION_DIM;
-use formation_protocol::config::{EnvConfig, ObservationModel};
+use formation_protocol::config::{CriticArchitecture, EnvConfig, ObservationModel};
 use formation_replay::buffer::{Episode, ReplayBuffer};
 use formation_replay::record::record_episode;
 use formation_replay::sample::Sampler;
@@ -48,6 +48,7 @@ fn sequences_never_cross_episodes_and_share_ticks() {
         history: h,
         her_probability: 0.0,
         env: env.clone(),
+        critic: CriticArchitecture::Mlp,
     };
     let od = batch_obs_dim(&env);
     let mut rng = StdRng::seed_from_u64(2);
@@ -110,6 +111,7 @@ fn her_relabelling_matches(env: &EnvConfig) {
         history: h,
         her_probability: 1.0,
         env: env.clone(),
+        critic: CriticArchitecture::Mlp,
     };
     let mut rng = StdRng::seed_from_u64(6);
     let batch = sampler.sample(&buffer, 128, &mut rng).expect("batch");
