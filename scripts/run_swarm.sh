@@ -253,6 +253,7 @@ cat >"$RUN_DIR/run.json.tmp" <<JSON
   "n_agents": $N,
   "shm_prefix": "fc_${RUN_ID}_",
   "root_path": "${TMP_ROOT%/}/formation-iox2/$RUN_ID/",
+  "iceoryx2_config": "iceoryx2.toml",
   "protocol_version": ${PROTOCOL_VERSION:-0},
   "observation": "$OBSERVATION",
   "observation_dim": $OBS_DIM,

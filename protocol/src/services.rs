@@ -25,6 +25,9 @@ use crate::wire::{CommandMsg, CriticProgressMsg, ObservationMsg, StateMsg, Weigh
 /// observers such as a viewer (or a Python `Observer`).
 pub const SPARE_PORTS: usize = 4;
 
+/// The run's iceoryx2 configuration, in its run directory.
+pub const ICEORYX_CONFIG_FILE: &str = "iceoryx2.toml";
+
 /// Where a run's iceoryx2 files live and what their shared-memory names start with.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct RunIdentity {
@@ -68,6 +71,16 @@ impl RunIdentity {
             .global
             .set_root_path(&Path::new(root.as_bytes()).with_context(|| format!("bad root path {root}"))?);
         Ok(config)
+    }
+
+    /// Writes the run's iceoryx2 configuration to `run_dir/iceoryx2.toml`, so that a client in
+    /// any language attaches with the same prefix and root path (iceoryx2's `Config::from_file`,
+    /// or `iox2_config_from_file` in C). Returns the file.
+    pub fn write_iceoryx_config(&self, run_dir: &std::path::Path) -> Result<PathBuf> {
+        let path = run_dir.join(ICEORYX_CONFIG_FILE);
+        let text = toml::to_string(&self.iceoryx_config()?).context("cannot serialise the iceoryx2 config")?;
+        crate::cli::write_atomically(&path, text.as_bytes())?;
+        Ok(path)
     }
 
     /// Removes what a finished run leaves behind: its `/dev/shm` files and its root path.
@@ -491,4 +504,22 @@ impl SimWatch {
 /// Converts an agent index into its event id.
 pub fn agent_event_id(agent: usize) -> EventId {
     EventId::new(agent)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_iceoryx_config_file_reads_back_as_the_runs_config() {
+        let identity = RunIdentity::new("cfgfile-test").expect("id");
+        let dir = std::env::temp_dir().join(format!("formation-iox2-config-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let path = identity.write_iceoryx_config(&dir).expect("write");
+        let file = FilePath::new(path.to_str().expect("utf8").as_bytes()).expect("file path");
+        let read = Config::from_file(&file).expect("iceoryx2 reads the file");
+        assert_eq!(read, identity.iceoryx_config().expect("config"));
+        assert_eq!(read.global.prefix.as_bytes(), b"fc_cfgfile-test_");
+        std::fs::remove_dir_all(&dir).expect("cleanup");
+    }
 }

@@ -2,6 +2,7 @@
 
     import formation_swarm as fs
     fs.run_robot("runs/demo", 2, fs.Baseline())       # robot 2 of the run in runs/demo
+    env = fs.FormationEnv(n=3, seed=1)                # a whole swarm as a PettingZoo ParallelEnv
 
 Built on the ``iceoryx2`` PyPI bindings (same release as the Rust crate); the payload mirrors
 in ``formation_swarm.wire`` are checked against the Rust layout (``layout.json``).
@@ -9,7 +10,7 @@ in ``formation_swarm.wire`` are checked against the Rust layout (``layout.json``
 
 from .baseline import Baseline
 from .observer import Observer, WorldState
-from .robot import Robot, RobotStats, run_robot
+from .robot import Robot, RobotStats, Tick, run_robot
 from .run import FormationError, RunInfo, SimGone, connect
 from .wire import (
     FLAG_EPISODE_END,
@@ -45,9 +46,21 @@ __all__ = [
     "RunInfo",
     "SimGone",
     "State",
+    "Tick",
     "WeightsHeader",
     "WorldState",
     "connect",
     "run_robot",
 ]
 __version__ = "0.1.0"
+
+
+def __getattr__(name):
+    # FormationEnv needs the optional pettingzoo extra: imported on first use only, so that
+    # the rest of the package works without pettingzoo and gymnasium (and it is left out of
+    # __all__, so that `from formation_swarm import *` does too).
+    if name == "FormationEnv":
+        from .env import FormationEnv
+
+        return FormationEnv
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

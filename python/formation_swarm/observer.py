@@ -109,6 +109,33 @@ class Observer:
                 self.run_ended = True
             out.append(state)
 
+    def receive_raw(self) -> List[wire.State]:
+        """Like :meth:`receive`, as copies of the raw payloads (``wire.State``, all 64 robots'
+        room; nothing else is built: the cheap way to keep up every tick)."""
+        out = []
+        while True:
+            sample = self._states.receive()
+            if sample is None:
+                return out
+            raw = wire.State.from_buffer_copy(sample.payload().contents)
+            sample.delete()
+            if raw.header.flags & wire.FLAG_RUN_END:
+                self.run_ended = True
+            out.append(raw)
+
+    @property
+    def listener(self) -> Any:
+        """The ``formation/critic/wake`` listener (raised every half critic window and at
+        every episode's end), to attach to an ``iceoryx2.WaitSet``; see :meth:`take_wakeups`."""
+        return self._wake
+
+    def take_wakeups(self) -> None:
+        """Consumes the pending wake-ups without waiting."""
+        try:
+            self._wake.try_wait()
+        except iox2.ListenerWaitError:
+            pass
+
     def wait(self, timeout: float) -> List[WorldState]:
         """Waits up to ``timeout`` seconds for states; returns what arrived (maybe nothing)."""
         deadline = time.monotonic() + timeout

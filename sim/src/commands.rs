@@ -2,7 +2,7 @@
 //! deadline passes, keeping each robot's valid answer, rejecting malformed ones, dropping late
 //! ones, and holding the last command of a robot that missed the tick.
 
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use anyhow::Result;
 use formation_protocol::services::{self, FileDescriptorBased};
@@ -140,6 +140,18 @@ impl CommandRound {
         self.received.iter_mut().for_each(|r| *r = false);
         loop {
             if self.presence.all_present_answered(&self.received) {
+                // Absent robots are not waited for, but what they sent is taken in: an answer
+                // makes a robot present again, even when every robot was absent.
+                if (0..n).any(|agent| self.presence.is_absent(agent)) {
+                    self.notified.clear();
+                    let notified = &mut self.notified;
+                    services::wait_for_events(&ports.command_ready, Duration::ZERO, |id| {
+                        if id < n {
+                            notified.push(id);
+                        }
+                    })?;
+                    self.drain(ports, header);
+                }
                 return Ok(());
             }
             let now = Instant::now();
@@ -348,6 +360,33 @@ mod tests {
             "a new session of a known robot is a rejoin"
         );
         assert!(!round.presence.is_absent(2));
+    }
+
+    #[test]
+    fn robots_that_were_all_absent_are_heard_again_when_they_answer() {
+        let (_node, ports, robots) = sim_and_robots(2, "cmdallabsent");
+        let mut round = CommandRound::new(2);
+        for tick in 0..ABSENT_AFTER {
+            round
+                .collect(
+                    &ports,
+                    Header::new(0, tick, 0),
+                    Instant::now() + Duration::from_millis(10),
+                )
+                .expect("collect");
+            round.settle();
+        }
+        assert!(round.presence.is_absent(0) && round.presence.is_absent(1));
+        // Nobody is waited for, yet the answers that came in count.
+        let tick = ABSENT_AFTER;
+        robots.answer(0, command(0, 0, tick, 0.4));
+        robots.answer(1, command(1, 0, tick, 0.2));
+        round
+            .collect(&ports, Header::new(0, tick, 0), Instant::now() + Duration::from_secs(5))
+            .expect("collect");
+        assert_eq!(round.settle(), 0, "both answers were read");
+        assert!(!round.presence.is_absent(0) && !round.presence.is_absent(1));
+        assert_eq!(round.commands()[0].0, 0.4f32 as f64);
     }
 
     #[test]

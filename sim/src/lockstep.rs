@@ -294,14 +294,6 @@ where
                 self.critic.wait(&self.ports, self.published, window, give_up)?;
             }
             if termination_requested() {
-                // Close the episode: an outcome reached on this last tick stands (a success
-                // or collision stays terminal for the critic); otherwise it is aborted, a
-                // truncation.
-                let outcome = if outcome == Outcome::Running {
-                    Outcome::Aborted
-                } else {
-                    outcome
-                };
                 let header = Header::new(episode, tick + 1, FLAG_EPISODE_END);
                 let transition = Transition {
                     outcome,
@@ -309,16 +301,33 @@ where
                     missed,
                     applied: &applied,
                 };
-                self.ports.publish_observations(&world, header)?;
-                self.published += 1;
-                self.ports
-                    .publish_state(&world, header, &transition, self.published, false)?;
-                self.log
-                    .push(tally.record(episode, outcome, world.steps, self.started))?;
+                self.close_on_signal(&world, header, transition, &tally)?;
                 return Ok(Some(Stop::Signal));
             }
         }
         unreachable!("the tick counter is unbounded")
+    }
+
+    /// Closes an episode stopped by a signal: an outcome reached on its last tick stands (a
+    /// success or collision stays terminal for the critic); otherwise it is aborted, a
+    /// truncation.
+    fn close_on_signal(
+        &mut self,
+        world: &World,
+        header: Header,
+        mut transition: Transition,
+        tally: &EpisodeTally,
+    ) -> Result<()> {
+        if transition.outcome == Outcome::Running {
+            transition.outcome = Outcome::Aborted;
+        }
+        self.ports.publish_observations(world, header)?;
+        self.published += 1;
+        self.ports
+            .publish_state(world, header, &transition, self.published, false)?;
+        self.log
+            .push(tally.record(header.episode, transition.outcome, world.steps, self.started))?;
+        Ok(())
     }
 
     /// Publishes a tick (observations, then the state), traces it, offers it to the view and

@@ -93,6 +93,7 @@ fn try_main(cli: Cli) -> Result<()> {
         (_, e, m) => (e, m),
     };
     prepare_run_dir(&cli.run.run_dir, &config)?;
+    identity.write_iceoryx_config(&cli.run.run_dir)?;
     set_log_level_from_env_or(LogLevel::Warn);
     let options = SimOptions {
         n_agents: cli.run.agents,

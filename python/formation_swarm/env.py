@@ -1,0 +1,801 @@
+"""A PettingZoo ``ParallelEnv`` over a real multi-process swarm.
+
+``FormationEnv`` starts ``scripts/run_swarm.sh N --external all --mode eval`` (the sim and the
+critic as their own processes, no robot process) and plays all N robot slots from this Python
+process over iceoryx2 shared memory, one ``Robot`` per slot, exactly as ``formation-agent``
+would: every ``step`` answers the sim's current tick for every robot and waits for the next.
+
+    import formation_swarm as fs
+    env = fs.FormationEnv(n=3, seed=1)
+    obs, infos = env.reset()
+    while env.agents:
+        obs, rewards, terminations, truncations, infos = env.step(
+            {agent: env.action_space(agent).sample() for agent in env.agents})
+    env.close()
+
+Needs the ``pettingzoo`` extra (``pip install './python[pettingzoo]'``) and this repository's
+``scripts/run_swarm.sh`` with its binaries (``FORMATION_BIN_DIR``, or a release build).
+"""
+
+from __future__ import annotations
+
+import atexit
+import collections
+import json
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+import weakref
+from pathlib import Path
+from typing import Any, Deque, Dict, List, Optional, Tuple, Union
+
+import gymnasium
+import iceoryx2 as iox2
+import numpy as np
+from pettingzoo import ParallelEnv
+
+from . import wire
+from .observer import Observer, WorldState
+from .robot import Robot, Tick
+from .run import FormationError, RunInfo, SimGone, connect
+
+#: Agent names: ``robot_0`` .. ``robot_{N-1}`` (robot i of the swarm).
+AGENT_PREFIX = "robot_"
+#: The episode budget the env gives the sim: it never ends a run by itself.
+RUN_EPISODES = 1_000_000_000
+#: One wait for the sim, between two looks at its health.
+WAIT_SLICE_S = 0.1
+#: Outcome name in ``infos`` when the env's ``max_cycles`` cut the episode (not a sim outcome).
+OUTCOME_MAX_CYCLES = "max_cycles"
+#: Outcome name in ``infos`` when the end of the episode went unseen (stream overflow).
+OUTCOME_LOST = "lost"
+#: How long the watcher gives an orphaned launcher to end the run before killing its group
+#: (the sim cannot finish an episode whose robots are gone: it waits for their commands).
+ORPHAN_GRACE_S = 5.0
+
+_TERMINAL = (wire.OUTCOME_SUCCESS, wire.OUTCOME_COLLISION)
+
+# Watches the env's process from outside: started with a pipe on its stdin, it reads until EOF.
+# "done" first: close() finished the run itself. Anything else (the env's process was killed,
+# or exited without close() and its atexit hook did not run): SIGTERM to the launcher (it asks
+# the sim to end the run), a grace period, then SIGKILL to the launcher's process group and the
+# run's shared memory and root path removed.
+_REAPER = r"""
+import os, json, shutil, signal, sys, time
+pid, run_dir, grace = int(sys.argv[1]), sys.argv[2], float(sys.argv[3])
+signal.signal(signal.SIGINT, signal.SIG_IGN)
+if sys.stdin.read().startswith("done"):
+    sys.exit(0)
+def alive():
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+try:
+    os.kill(pid, signal.SIGTERM)
+except ProcessLookupError:
+    pass
+deadline = time.monotonic() + grace
+while alive() and time.monotonic() < deadline:
+    time.sleep(0.2)
+if alive():
+    try:
+        os.killpg(pid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass
+try:
+    info = json.load(open(os.path.join(run_dir, "run.json")))
+except (OSError, ValueError):
+    sys.exit(0)
+prefix = "fc_%s_" % info["run_id"]
+for name in os.listdir("/dev/shm"):
+    if name.startswith(prefix):
+        try:
+            os.remove(os.path.join("/dev/shm", name))
+        except OSError:
+            pass
+shutil.rmtree(info["root_path"], ignore_errors=True)
+"""
+
+
+def find_repo(repo: Union[str, Path, None] = None) -> Path:
+    """The checkout holding ``scripts/run_swarm.sh``: ``repo``, else ``$FORMATION_REPO``, else
+    the checkout this package sits in (``python/formation_swarm``), else the working directory
+    or one of its parents."""
+    if repo is not None or os.environ.get("FORMATION_REPO"):
+        chosen = Path(repo if repo is not None else os.environ["FORMATION_REPO"]).expanduser()
+        if not (chosen / "scripts" / "run_swarm.sh").is_file():
+            raise FormationError(f"{chosen} has no scripts/run_swarm.sh (repo= / FORMATION_REPO)")
+        return chosen.resolve()
+    cwd = Path.cwd().resolve()
+    for candidate in (Path(__file__).resolve().parents[2], cwd, *cwd.parents):
+        if (candidate / "scripts" / "run_swarm.sh").is_file():
+            return candidate
+    raise FormationError(
+        "cannot find scripts/run_swarm.sh: pass FormationEnv(repo=...) or set FORMATION_REPO to the "
+        "formation-swarm checkout"
+    )
+
+
+# --- the run's configuration: the user's --config plus the env's tick deadline --------------
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "nan"
+        if math.isinf(value):
+            return "inf" if value > 0 else "-inf"
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise FormationError(f"cannot write {value!r} into a TOML configuration")
+
+
+def _toml_dumps(data: Dict[str, Any], prefix: str = "") -> str:
+    """Tables of plain values, as config.toml has them (the launcher's run.json reader reads
+    ``key = value`` lines under ``[section]`` headers)."""
+    lines = [f"{key} = {_toml_value(value)}" for key, value in data.items() if not isinstance(value, dict)]
+    out = "".join(line + "\n" for line in lines)
+    for key, value in data.items():
+        if isinstance(value, dict):
+            out += f"\n[{prefix}{key}]\n" + _toml_dumps(value, f"{prefix}{key}.")
+    return out
+
+
+def swarm_config(config: Union[str, Path, None], step_timeout_s: Optional[float]) -> str:
+    """The TOML the env runs the swarm with: ``config`` (a file, or None for the defaults) with
+    ``ticks.command_timeout_ms`` set to ``step_timeout_s`` and ``ticks.startup_timeout_s``
+    raised past it (the critic waits that long for a sim that waits for the env)."""
+    text = Path(config).read_text() if config is not None else ""
+    if step_timeout_s is None:
+        return text
+    command_timeout_ms = max(1, int(round(step_timeout_s * 1000)))
+    startup_floor = int(math.ceil(step_timeout_s)) + 60
+    try:
+        import tomllib  # Python 3.11+
+    except ImportError:  # pragma: no cover - Python 3.9 and 3.10
+        try:
+            import tomli as tomllib
+        except ImportError:
+            tomllib = None
+    if tomllib is None:  # pragma: no cover
+        if "[ticks]" in text or "ticks." in text:
+            raise FormationError("a --config with a [ticks] table needs Python 3.11 or `pip install tomli`")
+        return (f"{text}\n[ticks]\ncommand_timeout_ms = {command_timeout_ms}\n"
+                f"startup_timeout_s = {startup_floor}\n")
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise FormationError(f"{config} is not valid TOML: {err}") from err
+    ticks = data.setdefault("ticks", {})
+    ticks["command_timeout_ms"] = command_timeout_ms
+    ticks["startup_timeout_s"] = max(int(ticks.get("startup_timeout_s", 60)), startup_floor)
+    return _toml_dumps(data)
+
+
+def _closer(ref: "weakref.ref[FormationEnv]") -> Any:
+    def close_at_exit() -> None:
+        env = ref()
+        if env is not None:
+            env.close()
+
+    return close_at_exit
+
+
+class FormationEnv(ParallelEnv):
+    """N robots of a real formation-swarm run as a PettingZoo ``ParallelEnv``.
+
+    Agents are ``robot_0`` .. ``robot_{N-1}``. Spaces (gymnasium ``Box``, float32):
+
+    * observation: ``(observation_dim,)`` from run.json (16 for the default ``slot_proximity``
+      model, 12 ``paper``, 14 ``slot``), the robot's own observation, unbounded; laid out as
+      docs/PROTOCOL.md says;
+    * action: ``[-1, 1]^2``, **normalised** as the learned actor's tanh output:
+      ``v = (a0 + 1) / 2 * v_max`` (0 .. v_max, forward only), ``w = a1 * w_max``; values
+      outside are clipped. :meth:`action_from_command` maps a physical (v, w) back;
+    * state (:meth:`state`, :attr:`state_space`): ``8 N + 2`` floats of the true world, see
+      :meth:`state`.
+
+    ``reset()`` returns the observations at tick 0 of the next episode the sim starts (an
+    unfinished episode is played out first with every robot holding still). ``reset(seed=S)``
+    with S other than the running swarm's seed (or ``options={"restart": True}``) restarts the
+    whole swarm with seed S: a new launcher, sim and critic, about 1-3 s on a loaded 2-CPU
+    machine with prebuilt binaries; the same seed continues the run's sequence of episodes.
+
+    ``step(actions)`` answers the current tick for every robot and returns the next tick:
+    ``rewards`` the team's shared reward of that transition (the sim's ``State.reward``, the
+    same for every robot), ``terminations`` True on a ``success`` or ``collision`` outcome,
+    ``truncations`` True on the sim's time limit (``timeout``, ``env.max_steps`` ticks),
+    ``aborted`` or after ``max_cycles`` steps; ``infos[agent]["outcome"]`` names it
+    (``running`` while it goes on, ``max_cycles`` for the env's own cut). An episode that ends
+    empties :attr:`agents`.
+
+    Lockstep: the sim waits for every robot's command, so by default the env sets the run's
+    ``ticks.command_timeout_ms`` to ``step_timeout_s`` (600 s): the swarm pauses while the caller
+    thinks between steps. ``step_timeout_s=None`` keeps the configuration's deadline (200 ms by
+    default); a caller slower than that then has its robots' last commands held, and after 3
+    missed ticks in a row the sim stops waiting for them.
+
+    Keyword arguments: ``n`` robots (3 to 64); ``seed``; ``shape`` (``random``, ``ring``,
+    ``line``, ``wedge``, ``grid``, ``mixed``: run_swarm.sh ``--shape``); ``config`` (a TOML file of
+    overrides, run_swarm.sh ``--config``); ``max_cycles`` (steps per episode, None: the sim's
+    ``env.max_steps``); ``render_mode`` None or ``"rerun"`` (the sim records every tick to
+    ``<run_dir>/recording.rrd``, ``--viewer save``); ``viewer`` (``spawn``, ``save``,
+    ``connect=URL`` or ``off``: run_swarm.sh ``--viewer``, overrides the one render_mode picks);
+    ``run_dir`` (where the runs go: ``swarm-<k>`` per launch; default a temporary directory,
+    removed by :meth:`close` unless render_mode is ``"rerun"``); ``repo`` (the checkout, see
+    :func:`find_repo`); ``bin_dir`` (prebuilt binaries, ``FORMATION_BIN_DIR``; without either the
+    launcher builds a release); ``placement`` (run_swarm.sh ``--placement``); ``step_timeout_s``;
+    ``launch_timeout_s`` (how long to wait for run.json); ``close_timeout_s``.
+
+    Use :meth:`close` (or ``with FormationEnv(...) as env``): it stops the swarm and leaves
+    nothing in /dev/shm. An env still open at interpreter exit is closed by an ``atexit`` hook;
+    for a process that is killed, a small watcher process (started with the swarm) stops the
+    swarm within seconds and removes its shared memory.
+    """
+
+    metadata = {"name": "formation_swarm_v0", "render_modes": ["rerun"], "is_parallelizable": True}
+
+    def __init__(
+        self,
+        n: int = 3,
+        seed: int = 1,
+        shape: Optional[str] = None,
+        config: Union[str, Path, None] = None,
+        max_cycles: Optional[int] = None,
+        render_mode: Optional[str] = None,
+        *,
+        viewer: Optional[str] = None,
+        run_dir: Union[str, Path, None] = None,
+        repo: Union[str, Path, None] = None,
+        bin_dir: Union[str, Path, None] = None,
+        placement: str = "auto",
+        step_timeout_s: Optional[float] = 600.0,
+        launch_timeout_s: float = 900.0,
+        close_timeout_s: float = 60.0,
+    ) -> None:
+        if render_mode not in (None, "rerun"):
+            raise FormationError(f"render_mode must be None or 'rerun', got {render_mode!r}")
+        if not (wire.MIN_AGENTS <= int(n) <= wire.MAX_AGENTS):
+            raise FormationError(f"n must be {wire.MIN_AGENTS} to {wire.MAX_AGENTS}, got {n}")
+        if int(seed) < 0:
+            raise FormationError(f"seed must be a whole number >= 0, got {seed}")
+        self.n = int(n)
+        self.render_mode = render_mode
+        self.max_cycles = max_cycles
+        self.shape = shape
+        self.config = None if config is None else Path(config).resolve()
+        if self.config is not None and not self.config.is_file():
+            raise FormationError(f"config file {self.config} does not exist")
+        self.viewer = viewer or ("save" if render_mode == "rerun" else "off")
+        self.placement = placement
+        self.step_timeout_s = step_timeout_s
+        self.launch_timeout_s = launch_timeout_s
+        self.close_timeout_s = close_timeout_s
+        self.repo = find_repo(repo)
+        self.bin_dir = None if bin_dir is None else Path(bin_dir).resolve()
+        self._own_base = run_dir is None
+        if run_dir is None:
+            self.base_dir = Path(tempfile.mkdtemp(prefix="formation-env-"))
+        else:
+            self.base_dir = Path(run_dir).resolve()
+            self.base_dir.mkdir(parents=True, exist_ok=True)
+        self.keep_runs = not self._own_base or render_mode == "rerun"
+
+        self.possible_agents: List[str] = [f"{AGENT_PREFIX}{i}" for i in range(self.n)]
+        self.agents: List[str] = []
+        self._index = {agent: i for i, agent in enumerate(self.possible_agents)}
+        self._launches = 0
+        self._proc: Optional[subprocess.Popen] = None
+        self._reaper: Optional[subprocess.Popen] = None
+        self._robots: List[Robot] = []
+        self._observer: Optional[Observer] = None
+        self._waitset = None
+        self._guards: List[Any] = []
+        self._closed = False
+        # An env left open at interpreter exit is closed then (a weak reference: the hook does
+        # not keep the env alive).
+        self._atexit = _closer(weakref.ref(self))
+        atexit.register(self._atexit)
+        #: The RunInfo (run.json) of the running swarm.
+        self.run: Optional[RunInfo] = None
+        #: The run directory of the running swarm (``<base>/swarm-<k>``).
+        self.run_dir: Optional[Path] = None
+        try:
+            self._launch(int(seed))
+        except BaseException:
+            self.close()
+            raise
+        run = self.run
+        obs_space = gymnasium.spaces.Box(-np.inf, np.inf, shape=(run.observation_dim,), dtype=np.float32)
+        self.observation_spaces = {agent: obs_space for agent in self.possible_agents}
+        act_space = gymnasium.spaces.Box(-1.0, 1.0, shape=(wire.ACTION_DIM,), dtype=np.float32)
+        self.action_spaces = {agent: act_space for agent in self.possible_agents}
+        #: ``Box`` of :meth:`state`.
+        self.state_space = gymnasium.spaces.Box(-np.inf, np.inf, shape=(8 * self.n + 2,), dtype=np.float32)
+
+    # --- PettingZoo --------------------------------------------------------------------------
+
+    def observation_space(self, agent: str) -> gymnasium.spaces.Box:
+        return self.observation_spaces[agent]
+
+    def action_space(self, agent: str) -> gymnasium.spaces.Box:
+        return self.action_spaces[agent]
+
+    @property
+    def swarm_seed(self) -> int:
+        """The running swarm's seed (``reset(seed=...)`` with another one restarts the swarm)."""
+        return self._seed
+
+    @property
+    def recording(self) -> Optional[Path]:
+        """``<run_dir>/recording.rrd`` when the sim records (``--viewer save``), else None."""
+        return self.run_dir / "recording.rrd" if self.viewer == "save" and self.run_dir else None
+
+    def reset(
+        self, seed: Optional[int] = None, options: Optional[Dict[str, Any]] = None
+    ) -> Tuple[Dict[str, np.ndarray], Dict[str, Dict[str, Any]]]:
+        """Observations and infos at tick 0 of the next episode the sim starts.
+
+        ``seed`` other than the running swarm's, or ``options={"restart": True}``: the swarm is
+        restarted with that seed first (a new run: about 1-3 s)."""
+        self._check_open()
+        options = options or {}
+        if seed is not None and int(seed) < 0:
+            raise FormationError(f"seed must be a whole number >= 0, got {seed}")
+        if (seed is not None and int(seed) != self._seed) or options.get("restart"):
+            self._shutdown()
+            self._launch(self._seed if seed is None else int(seed))
+        if self._owed:
+            # The episode is still running (max_cycles, or reset before its end): play it out
+            # with every robot holding still; the sim ends it (at the latest on its time limit).
+            for robot, tick in zip(self._robots, self._current):
+                robot.answer(tick, 0.0, 0.0)
+            self._owed = False
+        self.agents = []
+        heads = self._next_episode()
+        episode = heads[0].episode
+        self._current = heads
+        self._owed = True
+        self._key = (episode, 0)
+        self._last_episode = episode
+        self._cycles = 0
+        self._return = 0.0
+        self.agents = list(self.possible_agents)
+        info = {"episode": episode, "tick": 0, "outcome": "running", "seed": self._seed, "run_id": self.run.run_id}
+        observations = {agent: np.array(heads[i].obs, dtype=np.float32) for i, agent in enumerate(self.possible_agents)}
+        return observations, {agent: dict(info) for agent in self.possible_agents}
+
+    def step(self, actions: Dict[str, Any]):
+        """Answers the current tick with ``actions`` (normalised, see the class) for every
+        robot, waits for the sim's next tick and returns (observations, rewards, terminations,
+        truncations, infos). After the episode's end (``agents`` empty): empty dicts."""
+        self._check_open()
+        if not self.agents:
+            return {}, {}, {}, {}, {}
+        missing = [agent for agent in self.agents if agent not in actions]
+        if missing:
+            raise FormationError(f"step() needs an action for every live agent; missing {missing}")
+        for i, agent in enumerate(self.possible_agents):
+            v, w = self.command_from_action(actions[agent])
+            self._robots[i].answer(self._current[i], v, w)
+        self._owed = False
+        self._cycles += 1
+        heads, reward, state, skipped = self._next_tick(self._key)
+        if heads is None:  # the episode's end went unseen (a stream overflowed): cut it here
+            outcome, terminated, truncated = OUTCOME_LOST, False, True
+            heads = self._current
+        else:
+            self._last_state = state
+            self._key = heads[0].key
+            self._current = heads
+            outcome_code = int(state.outcome)
+            outcome = wire.OUTCOME_NAMES.get(outcome_code, str(outcome_code))
+            terminated = outcome_code in _TERMINAL
+            truncated = heads[0].episode_end and not terminated
+            if not heads[0].episode_end:
+                self._owed = True
+                if self.max_cycles is not None and self._cycles >= self.max_cycles:
+                    outcome, truncated = OUTCOME_MAX_CYCLES, True
+        self._return += reward
+        info = {
+            "episode": self._key[0],
+            "tick": self._key[1],
+            "outcome": outcome,
+            "skipped_ticks": skipped,
+            "missed": 0 if state is None else int(state.missed),
+        }
+        if terminated or truncated:
+            info["episode_return"] = self._return
+        agents = self.agents
+        observations = {a: np.array(heads[self._index[a]].obs, dtype=np.float32) for a in agents}
+        rewards = {a: reward for a in agents}
+        terminations = {a: terminated for a in agents}
+        truncations = {a: truncated for a in agents}
+        infos = {a: dict(info) for a in agents}
+        if terminated or truncated:
+            self.agents = []
+        return observations, rewards, terminations, truncations, infos
+
+    def state(self) -> np.ndarray:
+        """The true state at the current tick (float32, ``8 N + 2``), team-major in the world's
+        axes, relative to the robots' centroid (c): for every robot ``x - cx, y - cy, cos
+        theta, sin theta`` (4 N), then ``goal - c`` (2), every robot's two desired edge lengths
+        (2 N) and every robot's slot offset from the goal in the goal formation (2 N). The
+        ``mlp`` critic's tick features without its rotation (core/src/features.rs)."""
+        self._check_open()
+        if self._last_state is None:
+            raise FormationError("state() before reset()")
+        raw, n = self._last_state, self.n
+        poses = np.ctypeslib.as_array(raw.poses)[:n].astype(np.float64)
+        centroid = poses[:, :2].mean(axis=0)
+        out = np.empty(8 * n + 2, dtype=np.float32)
+        team = np.empty((n, 4))
+        team[:, :2] = poses[:, :2] - centroid
+        team[:, 2] = np.cos(poses[:, 2])
+        team[:, 3] = np.sin(poses[:, 2])
+        out[: 4 * n] = team.reshape(-1)
+        out[4 * n: 4 * n + 2] = np.asarray(raw.goal, dtype=np.float64) - centroid
+        out[4 * n + 2: 6 * n + 2] = np.ctypeslib.as_array(raw.desired)[:n].reshape(-1)
+        out[6 * n + 2:] = np.ctypeslib.as_array(raw.slots)[:n].reshape(-1)
+        return out
+
+    def world(self) -> WorldState:
+        """The true state at the current tick as a ``WorldState`` (poses, goal, slots, ...)."""
+        self._check_open()
+        if self._last_state is None:
+            raise FormationError("world() before reset()")
+        return WorldState.from_payload(self._last_state)
+
+    def render(self) -> None:
+        """The sim renders through Rerun by itself: with ``render_mode="rerun"`` every tick is
+        recorded to :attr:`recording` (``<run_dir>/recording.rrd``; open it with ``rerun``),
+        or shown live with ``viewer="spawn"`` / ``"connect=URL"``. Nothing to do here."""
+        if self.render_mode is None:
+            gymnasium.logger.warn(
+                "render() without a render_mode: FormationEnv(render_mode='rerun') records the run to "
+                "<run_dir>/recording.rrd"
+            )
+        return None
+
+    def close(self) -> None:
+        """Stops the swarm (the sim ends the run cleanly; the robots hold still meanwhile),
+        waits for its processes and checks that nothing of the run is left in /dev/shm (removes
+        what a killed run left). Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        atexit.unregister(self._atexit)
+        try:
+            self._shutdown()
+        finally:
+            if self._own_base and not self.keep_runs:
+                shutil.rmtree(self.base_dir, ignore_errors=True)
+
+    def __enter__(self) -> "FormationEnv":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # --- units -------------------------------------------------------------------------------
+
+    def command_from_action(self, action: Any) -> Tuple[float, float]:
+        """(v, w) in m/s and rad/s for a normalised action (clipped to [-1, 1]^2)."""
+        a = np.asarray(action, dtype=np.float64).reshape(-1)
+        if a.shape != (wire.ACTION_DIM,):
+            raise FormationError(f"an action is 2 numbers (normalised v, w), got shape {np.shape(action)}")
+        a0 = min(max(a[0], -1.0), 1.0) if math.isfinite(a[0]) else a[0]
+        a1 = min(max(a[1], -1.0), 1.0) if math.isfinite(a[1]) else a[1]
+        return (a0 + 1.0) * 0.5 * self.run.v_max, a1 * self.run.w_max
+
+    def action_from_command(self, v: float, w: float) -> np.ndarray:
+        """The normalised action for a physical (v, w) (clipped to the robot's limits)."""
+        a0 = min(max(2.0 * v / self.run.v_max - 1.0, -1.0), 1.0)
+        a1 = min(max(w / self.run.w_max, -1.0), 1.0)
+        return np.array([a0, a1], dtype=np.float32)
+
+    # --- the swarm ---------------------------------------------------------------------------
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise FormationError("the env is closed")
+
+    def _log_tail(self, lines: int = 15) -> str:
+        log = self.base_dir / f"swarm-{self._launches}.log"
+        try:
+            text = log.read_text(errors="replace").splitlines()
+        except OSError:
+            return ""
+        return f"\n{log} (last lines):\n" + "\n".join(text[-lines:])
+
+    def _launch(self, seed: int) -> None:
+        """Starts run_swarm.sh for ``seed``, waits for run.json, attaches every robot slot."""
+        self._launches += 1
+        k = self._launches
+        run_dir = self.base_dir / f"swarm-{k}"
+        config = self.base_dir / f"config-{k}.toml"
+        config.write_text(
+            f"# FormationEnv: {self.config or 'the defaults'}, with the env's tick deadline\n"
+            + swarm_config(self.config, self.step_timeout_s)
+        )
+        args = [
+            str(self.repo / "scripts" / "run_swarm.sh"), str(self.n),
+            "--external", "all", "--mode", "eval", "--episodes", str(RUN_EPISODES),
+            "--seed", str(seed), "--viewer", self.viewer, "--placement", self.placement,
+            "--config", str(config), "--run-dir", str(run_dir),
+        ]
+        if self.shape:
+            args += ["--shape", self.shape]
+        environ = dict(os.environ)
+        if self.bin_dir is not None:
+            environ["FORMATION_BIN_DIR"] = str(self.bin_dir)
+        with open(self.base_dir / f"swarm-{k}.log", "wb") as log:
+            self._proc = subprocess.Popen(
+                args, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, env=environ,
+                start_new_session=True,
+            )
+        self._seed = seed
+        self.run_dir = run_dir
+        self._reaper = subprocess.Popen(
+            [sys.executable, "-c", _REAPER, str(self._proc.pid), str(run_dir), str(ORPHAN_GRACE_S)],
+            stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+        )
+        deadline = time.monotonic() + self.launch_timeout_s
+        while not (run_dir / "run.json").is_file():
+            if self._proc.poll() is not None:
+                raise FormationError(f"run_swarm.sh exited with status {self._proc.returncode}{self._log_tail()}")
+            if time.monotonic() > deadline:
+                raise FormationError(f"no {run_dir / 'run.json'} after {self.launch_timeout_s} s{self._log_tail()}")
+            time.sleep(0.05)
+        self.run = connect(run_dir, timeout=10)
+        if self.run.n_agents != self.n:
+            raise FormationError(f"run.json says {self.run.n_agents} robots, the env asked for {self.n}")
+        self._observer = Observer(self.run, name="env")
+        self._robots = [Robot(self.run, i, None) for i in range(self.n)]
+        self._waitset = (
+            iox2.WaitSetBuilder.new()
+            .signal_handling_mode(iox2.SignalHandlingMode.Disabled)
+            .create(iox2.ServiceType.Ipc)
+        )
+        self._guards = [self._waitset.attach_notification(r.listener) for r in self._robots]
+        self._guards.append(self._waitset.attach_notification(self._observer.listener))
+        self._slice = iox2.Duration.from_secs_f64(WAIT_SLICE_S)
+        self._queues: List[Deque[Tick]] = [collections.deque() for _ in range(self.n)]
+        self._states: Deque[wire.State] = collections.deque()
+        self._current: List[Tick] = []
+        self._owed = False
+        self._key = (0, 0)
+        self._last_episode = -1
+        self._last_state: Optional[wire.State] = None
+        self._cycles = 0
+        self._return = 0.0
+        self._run_ended = False
+        for robot in self._robots:
+            robot.greet()
+
+    def _drain(self) -> bool:
+        """Moves everything the sim sent into the queues; True when anything came."""
+        came = False
+        for robot, queue in zip(self._robots, self._queues):
+            messages = robot.receive()
+            if messages:
+                came = True
+                queue.extend(messages)
+                if messages[-1].run_end:
+                    self._run_ended = True
+        states = self._observer.receive_raw()
+        if states:
+            came = True
+            self._states.extend(s for s in states if not s.header.flags & wire.FLAG_RUN_END)
+        return came
+
+    def _wait(self) -> None:
+        """Sleeps until any robot's ``observation_ready`` or the critic wake-up (raised at every
+        episode's end, whose observations wake no robot) fires, or a slice passes."""
+        self._waitset.wait_and_process_with_timeout(self._slice)
+        for robot in self._robots:
+            robot.take_wakeups()
+        self._observer.take_wakeups()
+
+    def _idle(self) -> None:
+        """Nothing new arrived for a slice: greets while unheard, raises when the swarm is gone."""
+        if self._run_ended:
+            raise SimGone(f"the sim ended run {self.run.run_id}{self._log_tail()}")
+        if self._proc is not None and self._proc.poll() is not None:
+            raise SimGone(f"run_swarm.sh exited with status {self._proc.returncode}{self._log_tail()}")
+        for robot in self._robots:
+            try:
+                robot.check_sim()
+            except SimGone as err:
+                raise SimGone(f"{err}{self._log_tail()}") from err
+
+    def _take_state(self, key: Tuple[int, int], after: Tuple[int, int]) -> Tuple[Optional[wire.State], float]:
+        """The state of tick ``key`` and the summed reward of the states after ``after`` up to
+        it (None while it has not arrived); consumes the states up to ``key``."""
+        for state in self._states:
+            skey = (state.header.episode, state.header.tick)
+            if skey == key:
+                break
+            if skey > key:
+                return None, 0.0
+        else:
+            return None, 0.0
+        reward = 0.0
+        while True:
+            state = self._states.popleft()
+            skey = (state.header.episode, state.header.tick)
+            if after < skey <= key and skey[0] == key[0]:
+                reward += float(state.reward)
+            if skey == key:
+                return state, reward
+
+    def _next_tick(self, key: Tuple[int, int]):
+        """Waits for every robot's next tick of episode ``key[0]`` after ``key`` and its state.
+
+        Returns (heads, reward, state, skipped ticks); heads None when the episode's end was
+        lost (a later episode showed up first)."""
+        episode = key[0]
+        came = True
+        while True:
+            if not came:
+                self._idle()
+            heads = []
+            for queue in self._queues:
+                while queue and queue[0].key <= key:
+                    queue.popleft()  # already answered (or stale)
+                heads.append(queue[0] if queue else None)
+            if all(h is not None for h in heads):
+                if any(h.run_end or h.episode != episode for h in heads):
+                    if any(h.run_end for h in heads):
+                        raise SimGone(f"the sim ended run {self.run.run_id} mid-episode{self._log_tail()}")
+                    return None, 0.0, None, 0
+                newest = max(h.tick for h in heads)
+                for queue in self._queues:
+                    while queue and queue[0].episode == episode and queue[0].tick < newest:
+                        queue.popleft()
+                heads = [queue[0] if queue else None for queue in self._queues]
+                if all(h is not None and h.key == (episode, newest) for h in heads):
+                    state, reward = self._take_state((episode, newest), key)
+                    if state is not None:
+                        for queue in self._queues:
+                            queue.popleft()
+                        return heads, reward, state, newest - key[1] - 1
+            self._wait()
+            came = self._drain()
+
+    def _next_episode(self) -> List[Tick]:
+        """Waits for tick 0 of the next episode (after ``_last_episode``) at every robot and
+        its state, answering (0, 0) to any tick of an episode still running meanwhile."""
+        came = self._drain()
+        while True:
+            if not came:
+                self._idle()
+            heads = []
+            for robot, queue in zip(self._robots, self._queues):
+                while queue:
+                    m = queue[0]
+                    if m.run_end:
+                        raise SimGone(f"the sim ended run {self.run.run_id}{self._log_tail()}")
+                    if m.episode_start and not m.episode_end and m.episode > self._last_episode:
+                        break
+                    if len(queue) == 1 and not m.episode_end:
+                        robot.answer(m, 0.0, 0.0)  # a tick of an episode played out: hold still
+                    queue.popleft()
+                heads.append(queue[0] if queue else None)
+            if all(h is not None for h in heads):
+                episode = max(h.episode for h in heads)
+                if any(h.episode != episode for h in heads):
+                    for queue in self._queues:
+                        if queue[0].episode != episode:
+                            queue.popleft()  # the sim is past that episode
+                    continue
+                state, _ = self._take_state((episode, 0), (episode, -1))
+                if state is not None:
+                    self._last_state = state
+                    return [queue.popleft() for queue in self._queues]
+            self._wait()
+            came = self._drain()
+
+    def _shutdown(self) -> None:
+        """Ends the running swarm: SIGINT to the launcher (it asks the sim to end the run),
+        robots answering (0, 0) until the sim announces the end, ports released, the launcher
+        waited for; past ``close_timeout_s`` its process group is killed and the run's shared
+        memory removed."""
+        proc = self._proc
+        deadline = time.monotonic() + self.close_timeout_s
+        if proc is not None and proc.poll() is None:
+            try:
+                os.kill(proc.pid, signal.SIGINT)
+            except ProcessLookupError:
+                pass
+            if self._robots and self._waitset is not None:
+                try:
+                    self._play_out(proc, deadline)
+                except FormationError:
+                    pass
+        self._release_ports()
+        if proc is not None:
+            try:
+                proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                try:
+                    os.killpg(proc.pid, signal.SIGKILL)
+                except (ProcessLookupError, PermissionError):
+                    pass
+                proc.wait()
+            self._proc = None
+        if self._reaper is not None:
+            try:
+                self._reaper.communicate(b"done\n", timeout=5)
+            except (subprocess.TimeoutExpired, OSError, ValueError):
+                self._reaper.kill()
+                self._reaper.wait()
+            self._reaper = None
+        run = self.run
+        if run is None and self.run_dir is not None and (self.run_dir / "run.json").is_file():
+            try:
+                run = RunInfo.from_dict(self.run_dir, json.loads((self.run_dir / "run.json").read_text()))
+            except (FormationError, ValueError, OSError):
+                run = None
+        if run is not None:
+            self._remove_leftovers(run)
+        self.agents = []
+
+    def _play_out(self, proc: subprocess.Popen, deadline: float) -> None:
+        """While the sim winds the run down: answer every live tick with (0, 0)."""
+        if self._owed:
+            for robot, tick in zip(self._robots, self._current):
+                robot.answer(tick, 0.0, 0.0)
+            self._owed = False
+        while not self._run_ended and proc.poll() is None and time.monotonic() < deadline:
+            self._wait()
+            self._drain()
+            for robot, queue in zip(self._robots, self._queues):
+                if queue and not queue[-1].episode_end and not queue[-1].run_end:
+                    robot.answer(queue[-1], 0.0, 0.0)
+                queue.clear()
+
+    def _release_ports(self) -> None:
+        for guard in self._guards:
+            guard.delete()
+        self._guards = []
+        if self._waitset is not None:
+            self._waitset.delete()
+            self._waitset = None
+        for robot in self._robots:
+            robot.close()
+        self._robots = []
+        if self._observer is not None:
+            self._observer.close()
+            self._observer = None
+
+    @staticmethod
+    def _remove_leftovers(run: RunInfo) -> None:
+        """What a killed launcher could not remove: the run's /dev/shm files and root path."""
+        try:
+            names = os.listdir("/dev/shm")
+        except OSError:
+            return
+        for name in names:
+            if name.startswith(run.shm_prefix):
+                try:
+                    os.remove(os.path.join("/dev/shm", name))
+                except OSError:
+                    pass
+        shutil.rmtree(run.root_path, ignore_errors=True)

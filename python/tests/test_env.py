@@ -1,0 +1,272 @@
+"""FormationEnv, the PettingZoo ParallelEnv over a real swarm: every test starts
+scripts/run_swarm.sh N --external all (the sim and the critic as processes) with the prebuilt
+binaries, plays all robots from this process, and checks that close() leaves no process,
+shared memory or iceoryx2 root path of the run. Each test runs under a watchdog."""
+
+import csv
+import os
+import json
+import signal
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pettingzoo")
+pytest.importorskip("gymnasium")
+
+from pettingzoo.test import parallel_api_test  # noqa: E402
+
+import formation_swarm as fs  # noqa: E402
+from formation_swarm.env import swarm_config  # noqa: E402
+
+from conftest import bin_dir, processes_mentioning, remove_leftovers, root_path, shm_leftovers  # noqa: E402
+
+WATCHDOG_S = 180
+
+
+class Watchdog(Exception):
+    """A test ran past WATCHDOG_S."""
+
+
+@pytest.fixture
+def watchdog():
+    """SIGALRM after WATCHDOG_S raises in the test, whose finally closes the env."""
+
+    def expire(signum, frame):
+        raise Watchdog(f"test ran past {WATCHDOG_S} s")
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.alarm(WATCHDOG_S)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+@pytest.fixture
+def make_env(tmp_path, watchdog):
+    """FormationEnv(...) in a run-unique directory under tmp_path with the tests' binaries;
+    closed at teardown (and, should close fail, its launcher's group killed), then checked for
+    leftovers of every run it started."""
+    envs = []
+
+    def make(**kwargs):
+        kwargs.setdefault("run_dir", tmp_path / f"env{len(envs)}")
+        kwargs.setdefault("bin_dir", bin_dir())
+        env = fs.FormationEnv(**kwargs)
+        envs.append(env)
+        return env
+
+    yield make
+    for env in envs:
+        proc = env._proc
+        try:
+            env.close()
+        finally:
+            if proc is not None and proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+    for env in envs:
+        assert not processes_mentioning(str(env.base_dir)), "no launcher or watcher left"
+        for run_id in run_ids(env):
+            assert_clean(run_id)
+
+
+def run_ids(env):
+    """The run id of every swarm the env launched (from each swarm-<k>/run.json)."""
+    ids = []
+    for path in sorted(env.base_dir.glob("swarm-*/run.json")):
+        ids.append(json.loads(path.read_text())["run_id"])
+    return ids
+
+
+def assert_clean(run_id):
+    leftovers = shm_leftovers(run_id)
+    remove_leftovers(run_id)
+    assert not leftovers, f"shared memory left by run {run_id}: {leftovers}"
+    assert not processes_mentioning(run_id), f"processes of run {run_id} left: {processes_mentioning(run_id)}"
+    assert not root_path(run_id).exists(), f"iceoryx2 root path of run {run_id} left"
+
+
+def play_episode(env, choose):
+    """One episode from reset; returns (summed team reward, final infos of robot_0, steps)."""
+    obs, infos = env.reset()
+    assert infos["robot_0"]["tick"] == 0 and infos["robot_0"]["outcome"] == "running"
+    total, steps = 0.0, 0
+    while env.agents:
+        obs, rewards, terminations, truncations, infos = env.step({a: choose(obs[a]) for a in env.agents})
+        steps += 1
+        assert len(set(rewards.values())) == 1, "one shared team reward"
+        total += rewards["robot_0"]
+        done = terminations["robot_0"] or truncations["robot_0"]
+        assert all((terminations[a] or truncations[a]) == done for a in rewards)
+    return total, infos["robot_0"], steps
+
+
+def test_parallel_api_test_passes(make_env):
+    env = make_env(n=3, seed=0)  # parallel_api_test resets with seed 0: no restart
+    assert env.possible_agents == ["robot_0", "robot_1", "robot_2"]
+    assert env.observation_space("robot_1").shape == (env.run.observation_dim,) == (16,)
+    space = env.action_space("robot_2")
+    assert space.shape == (2,) and np.all(space.low == -1.0) and np.all(space.high == 1.0)
+    parallel_api_test(env, num_cycles=150)
+    env.reset()
+    state = env.state()
+    assert state.shape == env.state_space.shape == (8 * 3 + 2,) and state.dtype == np.float32
+    world = env.world()
+    assert world.tick == 0 and world.n_agents == 3
+    # Positions relative to the centroid sum to zero; headings are unit vectors.
+    team = state[:12].reshape(3, 4)
+    assert np.allclose(team[:, :2].sum(axis=0), 0.0, atol=1e-5)
+    assert np.allclose(np.hypot(team[:, 2], team[:, 3]), 1.0, atol=1e-5)
+    assert np.allclose(state[14:20], np.asarray(world.desired).reshape(-1), atol=1e-6)
+    run_id = env.run.run_id
+    env.close()
+    assert_clean(run_id)
+    with pytest.raises(fs.FormationError):
+        env.reset()
+
+
+def test_baseline_reaches_success_and_beats_random(make_env):
+    env = make_env(n=3, seed=1)
+    baseline = fs.Baseline.for_run(env.run)
+    base = [play_episode(env, lambda obs: env.action_from_command(*baseline(obs))) for _ in range(8)]
+    rng = np.random.default_rng(0)
+    rand = [play_episode(env, lambda obs: rng.uniform(-1.0, 1.0, 2)) for _ in range(4)]
+    outcomes = [info["outcome"] for _, info, _ in base]
+    print("baseline", [(round(r, 2), info["outcome"], steps) for r, info, steps in base])
+    print("random", [(round(r, 2), info["outcome"], steps) for r, info, steps in rand])
+    assert outcomes.count("success") >= 6, outcomes
+    assert all(info["outcome"] in ("success", "collision", "timeout") for _, info, _ in base + rand)
+    assert np.mean([r for r, _, _ in rand]) < np.mean([r for r, _, _ in base])
+    run_dir = env.run_dir
+    env.close()
+    # The sim's own record of the same episodes: the env's summed rewards are its returns.
+    with open(run_dir / "episodes.csv") as f:
+        rows = list(csv.DictReader(f))
+    played = base + rand
+    assert len(rows) >= len(played)
+    for (total, info, steps), row in zip(played, rows):
+        assert row["outcome"] == info["outcome"] and int(row["steps"]) == steps
+        assert abs(float(row["episode_return"]) - total) < 1e-3 * max(1.0, abs(total)), (row, total)
+
+
+def test_max_cycles_truncates_and_reset_plays_the_episode_out(make_env):
+    env = make_env(n=3, seed=2, max_cycles=5)
+    obs, infos = env.reset()
+    first = infos["robot_0"]["episode"]
+    for step in range(5):
+        obs, rewards, terminations, truncations, infos = env.step({a: np.zeros(2) for a in env.agents})
+    assert all(truncations.values()) and not any(terminations.values())
+    assert infos["robot_1"]["outcome"] == "max_cycles" and infos["robot_1"]["tick"] == 5
+    assert env.agents == []
+    assert env.step({}) == ({}, {}, {}, {}, {})
+    obs, infos = env.reset()
+    assert infos["robot_2"]["episode"] == first + 1 and infos["robot_2"]["tick"] == 0
+    assert set(obs) == set(env.agents) == set(env.possible_agents)
+    # reset() in the middle of an episode plays it out too.
+    env.step({a: env.action_space(a).sample() for a in env.agents})
+    _, infos = env.reset()
+    assert infos["robot_0"]["episode"] == first + 2
+
+
+def test_reset_with_another_seed_restarts_the_swarm(make_env):
+    env = make_env(n=3, seed=3)
+    obs, _ = env.reset()
+    old = env.run.run_id
+    obs_same, infos = env.reset(seed=3)  # the same seed: the run goes on, next episode
+    assert env.run.run_id == old and infos["robot_0"]["episode"] == 1
+    obs4, infos = env.reset(seed=4)
+    assert env.run.run_id != old and env.swarm_seed == 4 and infos["robot_0"]["episode"] == 0
+    assert_clean(old)  # the old swarm is gone, with its shared memory
+    again, _ = env.reset(seed=4, options={"restart": True})
+    for agent in env.possible_agents:
+        np.testing.assert_array_equal(obs4[agent], again[agent])  # a seed's episodes repeat
+    assert any(not np.array_equal(obs[a], obs4[a]) for a in env.possible_agents)
+    assert len(run_ids(env)) == 3
+
+
+def test_paper_observation_config_and_slow_caller(make_env, tmp_path):
+    """A --config run (12-float paper observation): the spaces follow run.json; the env's
+    deadline lets a caller pause between steps without the sim holding its commands."""
+    config = tmp_path / "paper.toml"
+    config.write_text('[env]\nobservation = "paper"\n\n[ticks]\nsim_silence_ms = 3000\n')
+    env = make_env(n=4, seed=5, config=config, shape="ring", step_timeout_s=30)
+    assert env.run.observation == "paper" and env.observation_space("robot_3").shape == (12,)
+    assert env.run.command_timeout_ms == 30_000 and env.run.startup_timeout_s >= 90
+    assert env.run.sim_silence_ms == 3000
+    obs, _ = env.reset()
+    assert obs["robot_0"].shape == (12,) and obs["robot_0"].dtype == np.float32
+    baseline = fs.Baseline.for_run(env.run)
+    for _ in range(3):
+        time.sleep(0.5)  # past the 200 ms default deadline
+        obs, _, _, _, infos = env.step({a: env.action_from_command(*baseline(obs[a])) for a in env.agents})
+        assert infos["robot_0"]["missed"] == 0 and infos["robot_0"]["skipped_ticks"] == 0
+
+
+def test_swarm_config_keeps_the_users_settings(tmp_path):
+    tomllib = pytest.importorskip("tomllib")
+    config = tmp_path / "user.toml"
+    config.write_text('# mine\n[env]\nobservation = "slot"\nmax_steps = 80\n\n[learn]\nactor_hidden = [64, 64]\n'
+                      '\n[ticks]\nstartup_timeout_s = 2000\n')
+    merged = tomllib.loads(swarm_config(config, 12.5))
+    assert merged["env"] == {"observation": "slot", "max_steps": 80}
+    assert merged["learn"]["actor_hidden"] == [64, 64]
+    assert merged["ticks"] == {"startup_timeout_s": 2000, "command_timeout_ms": 12500}
+    assert tomllib.loads(swarm_config(None, 600))["ticks"] == {"command_timeout_ms": 600_000, "startup_timeout_s": 660}
+    assert swarm_config(config, None) == config.read_text()
+
+
+def test_action_units(make_env):
+    env = make_env(n=3, seed=6)
+    assert env.command_from_action([-1, 0]) == (0.0, 0.0)
+    assert env.command_from_action(np.array([1.0, -1.0], dtype=np.float32)) == (env.run.v_max, -env.run.w_max)
+    assert env.command_from_action([5.0, 0.5]) == (env.run.v_max, 0.5 * env.run.w_max)  # clipped
+    np.testing.assert_allclose(env.action_from_command(0.25 * env.run.v_max, 0.2), [-0.5, 0.2 / env.run.w_max])
+    env.reset()
+    _, _, _, _, infos = env.step({a: [1.0, 0.0] for a in env.agents})
+    assert np.allclose(env.world().applied, [(env.run.v_max, 0.0)] * 3)
+    with pytest.raises(fs.FormationError, match="missing"):
+        env.step({"robot_0": [0.0, 0.0]})
+
+
+def test_render_mode_rerun_records_to_the_run_dir(make_env):
+    env = make_env(n=3, seed=7, render_mode="rerun", max_cycles=20)
+    assert env.viewer == "save" and env.recording == env.run_dir / "recording.rrd"
+    obs, _ = env.reset()
+    while env.agents:
+        obs, *_ = env.step({a: [0.5, 0.0] for a in env.agents})
+    assert env.render() is None
+    recording = env.recording
+    env.close()
+    assert recording.is_file() and recording.stat().st_size > 0
+
+
+def test_a_killed_process_leaves_nothing(tmp_path, watchdog):
+    """SIGKILL to the process that holds the env: its watcher stops the swarm and removes the
+    run's shared memory within seconds."""
+    import subprocess
+    import sys
+
+    script = (
+        "import os, signal, sys\n"
+        "import formation_swarm as fs\n"
+        f"env = fs.FormationEnv(n=3, seed=8, run_dir={str(tmp_path / 'env')!r}, bin_dir={str(bin_dir())!r})\n"
+        "env.reset()\n"
+        "env.step({a: [0.0, 0.0] for a in env.agents})\n"
+        "print(env.run.run_id, flush=True)\n"
+        "os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                          env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
+    assert done.returncode == -signal.SIGKILL, done.stderr
+    run_id = done.stdout.split()[0]
+    base = str(tmp_path / "env")
+    deadline = time.monotonic() + 30
+    while (shm_leftovers(run_id) or processes_mentioning(run_id) or processes_mentioning(base)) \
+            and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not processes_mentioning(base), "the launcher and the watcher have ended"
+    assert_clean(run_id)
