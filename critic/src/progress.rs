@@ -153,19 +153,20 @@ impl Progress {
 
     /// Refreshes the display twice a second and writes a `training.csv` row every 10 s.
     pub fn report(&mut self, env_steps: u64, training: Option<TrainingStatus>) -> Result<()> {
-        if self.last_bar.elapsed() >= BAR_EVERY {
+        if let Some(bar) = &self.bar
+            && self.last_bar.elapsed() >= BAR_EVERY
+        {
             self.last_bar = Instant::now();
-            let line = self.line(env_steps, training);
-            match &self.bar {
-                Some(bar) => bar.set_message(line),
-                None if self.last_report.elapsed() >= REPORT_EVERY => eprintln!("critic: {line}"),
-                None => {}
-            }
+            bar.set_message(self.line(env_steps, training));
         }
         if self.last_report.elapsed() < REPORT_EVERY {
             return Ok(());
         }
         self.last_report = Instant::now();
+        if self.bar.is_none() {
+            // Not a terminal (a log file): a line every report instead of a live bar.
+            eprintln!("critic: {}", self.line(env_steps, training));
+        }
         let status = training.as_ref();
         let losses = status.map(|s| s.losses).unwrap_or_default();
         if let (Some(curves), Some(_)) = (&self.curves, status) {

@@ -2,7 +2,9 @@
 sim, the other robots and the critic; the Python robot is its own process, as a user would run
 it. Every process has a watchdog; nothing may be left in /dev/shm."""
 
+import csv
 import json
+import math
 import os
 import re
 import subprocess
@@ -13,7 +15,7 @@ import time
 from formation_swarm import Observer, connect
 from formation_swarm.run import OBSERVATION_DIMS
 
-from conftest import assert_clean, launch, python_robot, remove_leftovers, wait_or_kill
+from conftest import assert_clean, kill_group, launch, python_robot, remove_leftovers, wait_or_kill
 
 WATCHDOG_S = 240
 
@@ -42,6 +44,45 @@ def check_run_json(run_dir, external):
                          ("ticks", "command_timeout_ms"), ("env", "v_max"), ("env", "w_max"),
                          ("env", "proximity_range_m")]:
         assert float(info[key]) == float(_config_value(config, section, key)), key
+
+
+def unicycle(pose, v, w, dt):
+    """``formation_core::physics::integrate``: exact integration of the unicycle over ``dt`` with
+    constant (v, w), a circular arc whose chord is v dt sinc(w dt / 2) at the mean heading (sinc
+    by its series near 0); the heading wrapped to (-pi, pi]. Before the arena's clamp."""
+    x, y, theta = pose
+    half_turn = 0.5 * w * dt
+    sinc = 1.0 - half_turn * half_turn / 6.0 if abs(half_turn) < 1e-6 else math.sin(half_turn) / half_turn
+    chord = v * dt * sinc
+    heading = math.remainder(theta + w * dt, 2 * math.pi)
+    return x + chord * math.cos(theta + half_turn), y + chord * math.sin(theta + half_turn), heading
+
+
+def check_unicycle_steps(world, dt, arena_m, v_max, w_max, tolerance=1e-4):
+    """Every robot's pose at tick t+1 of an episode is the exact unicycle integration of its pose
+    at tick t under the command the state of tick t+1 says was applied in that transition (the
+    command of tick t, clamped to the limits), kept in the arena (x, y clamped to [0, side], the
+    side at least ``arena_m``). Returns how many robot-steps were checked."""
+    checked = 0
+    for before, after in zip(world, world[1:]):
+        if after.episode != before.episode or after.tick != before.tick + 1:
+            continue
+        for robot, (pose, (v, w), got) in enumerate(zip(before.poses, after.applied, after.poses)):
+            where = f"episode {after.episode} tick {before.tick} -> {after.tick}, robot {robot}"
+            assert 0.0 <= v <= v_max and -w_max <= w <= w_max, f"{where}: applied ({v}, {w}) past the limits"
+            x, y, theta = unicycle(pose, v, w, dt)
+            for axis, want, value in (("x", x, got[0]), ("y", y, got[1])):
+                if want < 0.0:
+                    assert value == 0.0, f"{where}: {axis} {value} is not clamped to 0 ({want})"
+                elif want > arena_m:
+                    # The arena may grow past arena_m for larger swarms: the side is in [arena_m, want].
+                    assert arena_m - tolerance <= value <= want + tolerance, f"{where}: {axis} {value}, wanted {want}"
+                else:
+                    assert abs(value - want) <= tolerance, f"{where}: {axis} {value}, unicycle gives {want}"
+            turn = math.remainder(got[2] - theta, 2 * math.pi)
+            assert abs(turn) <= tolerance, f"{where}: theta {got[2]}, unicycle gives {theta}"
+            checked += 1
+    return checked
 
 
 def run_with_python_robot(tmp_path, extra_args, episodes):
@@ -91,7 +132,8 @@ def test_python_baseline_on_the_papers_observation(tmp_path):
 
 def test_observer_reads_consecutive_states(tmp_path):
     """An Observer beside a run whose robot 2 is external reads consecutive ticks of the true
-    state, then the end of the run."""
+    state, then the end of the run; the poses of consecutive ticks obey the unicycle model under
+    the applied commands the states carry."""
     run_dir = tmp_path / "run"
     swarm = launch(["3", "--mode", "eval", "--scripted", "0,1", "--external", "2", "--episodes", "3",
                     "--seed", "2", "--viewer", "off"], run_dir)
@@ -117,6 +159,13 @@ def test_observer_reads_consecutive_states(tmp_path):
         assert all(s.n_agents == 3 and len(s.poses) == 3 for s in world)
         ends = [s for s in world if s.outcome != 0]
         assert len(ends) == 3 and all(s.outcome_name == "success" for s in ends)
+        # The true states follow the sim's kinematics exactly: consecutive ticks of an episode
+        # are one unicycle step apart under the applied commands (dt and limits of this run).
+        config = (run_dir / "config.toml").read_text()
+        checked = check_unicycle_steps(world, float(_config_value(config, "env", "dt_s")),
+                                       float(_config_value(config, "env", "arena_m")), run.v_max, run.w_max)
+        assert checked == 3 * (len(world) - 3), "every robot-step of the three episodes was checked"
+        assert any(v > 0.0 for s in world for v, _ in s.applied), "the robots moved"
         status = swarm.wait(WATCHDOG_S)
         assert status == 0, swarm.output
         assert wait_or_kill(robot, 30) == 0
@@ -125,6 +174,98 @@ def test_observer_reads_consecutive_states(tmp_path):
             wait_or_kill(robot, 0)
         if swarm.proc.poll() is None:
             swarm.wait(0)
+    assert_clean(swarm)
+
+
+def _rejoin_of(sim_log, agent):
+    """(episode, tick) of the sim's ``agent A rejoined at episode E tick T`` lines."""
+    return [(int(e), int(t)) for e, t in re.findall(rf"sim: agent {agent} rejoined at episode (\d+) tick (\d+)", sim_log)]
+
+
+def test_a_killed_python_robot_is_replaced_and_the_run_goes_on(tmp_path):
+    """Robot 2 played from Python is SIGKILLed early in an episode a few episodes into an eval
+    run; a new ``python3 -m formation_swarm robot RUN_DIR 2`` takes its slot, and the run
+    finishes every episode with the launcher's status 0.
+
+    The sim holds a dead robot's last command and waits ``ticks.command_timeout_ms`` per tick
+    for it, then after 3 missed ticks stops waiting and races through the episodes with it
+    standing still (about 200 episodes/s). With the default 200 ms that leaves 0.6 s for a fresh
+    Python process to greet, which a busy machine does not always manage: this run waits 1.5 s
+    per tick (4.5 s in all) so that the replacement reliably finds the run where the old robot
+    left it."""
+    episodes = 100
+    config = tmp_path / "patient.toml"
+    config.write_text("[ticks]\ncommand_timeout_ms = 1500  # a replacement robot has 4.5 s to greet\n")
+    run_dir = tmp_path / "run"
+    swarm = launch(["3", "--mode", "eval", "--scripted", "0,1", "--external", "2", "--episodes", str(episodes),
+                    "--seed", "3", "--viewer", "off", "--config", str(config)], run_dir)
+    first = replacement = None
+    try:
+        run = connect(run_dir, timeout=30)
+        observer = Observer(run, poll_s=0.002)
+        first = python_robot(run_dir, 2, tmp_path / "robot-1.log")
+        world, killed_at = [], None
+        deadline = time.monotonic() + 60
+        while killed_at is None:
+            assert time.monotonic() < deadline, f"no fourth episode within 60 s:\n{swarm.output}"
+            assert swarm.proc.poll() is None and first.poll() is None, swarm.output
+            world.extend(observer.wait(0.05))
+            newest = world[-1] if world else None
+            # A few episodes played; the newest tick of the episode is early, so the robot dies
+            # with the episode under way.
+            if newest is not None and newest.episode >= 3 and 1 <= newest.tick <= 10 and newest.outcome == 0:
+                kill_group(first)
+                killed_at = newest
+        replacement = python_robot(run_dir, 2, tmp_path / "robot-2.log")
+        world.extend(observer.states(timeout=60))
+        observer.close()
+        assert observer.run_ended, "the observer saw the end of the run (or the sim leave)"
+        status = swarm.wait(WATCHDOG_S)
+        replacement_status = wait_or_kill(replacement, 30)
+    finally:
+        for robot in (first, replacement):
+            if robot is not None and robot.poll() is None:
+                wait_or_kill(robot, 0)
+        if swarm.proc.poll() is None:
+            swarm.wait(0)  # kills the launcher's group and removes the run's shared memory
+    logs = "\n".join(f"{f.name}:\n{f.read_text(errors='replace')}" for f in sorted(tmp_path.glob("robot-*.log")))
+    sim_log = (run_dir / "logs" / "sim.log").read_text(errors="replace")
+    assert status == 0, f"launcher status {status}:\n{swarm.output}\n{logs}\n{sim_log}"
+    assert first.returncode == -9, "the first robot died of the SIGKILL"
+    assert replacement_status == 0, f"replacement robot status {replacement_status}:\n{logs}"
+    assert "run ended after" in (tmp_path / "robot-2.log").read_text(errors="replace")
+
+    summary = swarm.summary()
+    print(json.dumps({k: summary[k] for k in ("episodes", "success_rate", "missed_ticks", "rejoined_agents",
+                                              "rejected_commands", "wall_s")}))
+    assert summary["episodes"] == episodes
+    assert summary["rejoined_agents"] == 1, summary
+    assert summary["rejected_commands"] == 0, summary
+    rejoins = _rejoin_of(sim_log, 2)
+    assert len(rejoins) == 1, sim_log
+    rejoined = rejoins[0]
+
+    # The robot died mid-episode: the first tick whose command was missing (the state after it
+    # counts it) comes after the ticks it had answered in that episode.
+    missing = [s for s in world if s.missed > 0]
+    assert missing, "the states counted the dead robot's missing commands"
+    first_miss = (missing[0].episode, missing[0].tick - 1)
+    assert first_miss > (killed_at.episode, killed_at.tick - 1) and first_miss[1] >= 1, (killed_at, first_miss)
+    assert rejoined >= first_miss, (first_miss, rejoined)
+
+    rows = list(csv.DictReader((run_dir / "episodes.csv").open()))
+    assert [int(r["episode"]) for r in rows] == list(range(episodes))
+    missed = {int(r["episode"]): int(r["missed_ticks"]) for r in rows if int(r["missed_ticks"]) > 0}
+    # Every missed tick is robot 2's while it was dead: between its death and the replacement's
+    # greeting (robots 0 and 1 answered every tick).
+    assert missed and all(first_miss[0] <= e <= rejoined[0] for e in missed), (first_miss, rejoined, missed)
+    assert sum(missed.values()) == summary["missed_ticks"] >= 1
+    # The episodes that started after the replacement greeted are played as well as ever.
+    after = [r for r in rows if int(r["episode"]) > rejoined[0]]
+    assert len(after) >= 10, f"only {len(after)} episodes after the rejoin at {rejoined}"
+    success = sum(r["outcome"] == "success" for r in after) / len(after)
+    assert success >= 0.9, [(r["episode"], r["outcome"]) for r in after]
+    assert all(int(r["missed_ticks"]) == 0 for r in after)
     assert_clean(swarm)
 
 
