@@ -296,6 +296,7 @@ start_critic() { # [checkpoint to resume from]
   # tee ignores Ctrl-C so the critic can still report while the run winds down.
   "$BIN/formation-critic" "${args[@]}" 2> >(trap '' INT; tee -a "$RUN_DIR/logs/critic.log" >&2) &
   CRITIC_PID=$!
+  CRITIC_STARTED=$(date +%s)
   PIDS+=("$CRITIC_PID")
 }
 
@@ -381,6 +382,7 @@ for ((k = 1; k <= ${#EXTRA_N[@]}; k++)); do
 done
 # Watch the run: the sim's end ends it; a dead agent or critic is restarted (--restart on).
 status=0
+QUICK_DEATHS=0
 while kill -0 "$SIM_PID" 2>/dev/null; do
   sleep 0.5 || true # Ctrl-C interrupts the sleep; the trap has already told the sim
   [[ "$RESTART" == on ]] || continue
@@ -405,6 +407,15 @@ while kill -0 "$SIM_PID" 2>/dev/null; do
     rc=0; wait "$CRITIC_PID" 2>/dev/null || rc=$?
     CRITIC_PID=""
     (( rc != 0 )) || continue
+    # A critic that dies within seconds of every start (a bad binary, a broken checkpoint)
+    # is not restarted forever.
+    if (( $(date +%s) - CRITIC_STARTED < 5 )); then QUICK_DEATHS=$((QUICK_DEATHS + 1)); else QUICK_DEATHS=0; fi
+    if (( QUICK_DEATHS >= 3 )); then
+      echo "run_swarm.sh: the critic died at start three times in a row (see $RUN_DIR/logs/critic.log); stopping the run" >&2
+      kill -INT "$SIM_PID" "${EXTRA_SIM_PIDS[@]}" 2>/dev/null || true
+      status=1
+      break
+    fi
     resume=""
     [[ -f "$RUN_DIR/checkpoint.safetensors" ]] && resume="$RUN_DIR/checkpoint.safetensors"
     echo "the critic died (status $rc); restarting it${resume:+ from $resume}"
