@@ -639,24 +639,9 @@ impl LearnConfig {
             l.updates_per_transition,
             "must be in (0, 64]",
         )?;
-        check(
-            !l.actor_hidden.is_empty() && l.actor_hidden.iter().all(|&w| (1..=4096).contains(&w)),
-            "learn.actor_hidden",
-            format!("{:?}", l.actor_hidden),
-            "needs 1 or more widths in 1..=4096",
-        )?;
-        check(
-            !l.critic_hidden.is_empty() && l.critic_hidden.iter().all(|&w| (1..=4096).contains(&w)),
-            "learn.critic_hidden",
-            format!("{:?}", l.critic_hidden),
-            "needs 1 or more widths in 1..=4096",
-        )?;
-        check(
-            !l.critic_encoder.is_empty() && l.critic_encoder.iter().all(|&w| (1..=4096).contains(&w)),
-            "learn.critic_encoder",
-            format!("{:?}", l.critic_encoder),
-            "needs 1 or more widths in 1..=4096",
-        )?;
+        check_widths(&l.actor_hidden, "learn.actor_hidden")?;
+        check_widths(&l.critic_hidden, "learn.critic_hidden")?;
+        check_widths(&l.critic_encoder, "learn.critic_encoder")?;
         check(
             l.policy_delay >= 1,
             "learn.policy_delay",
@@ -709,6 +694,16 @@ impl LearnConfig {
     }
 }
 
+/// Layer widths of a network: at least one, each in 1..=4096.
+fn check_widths(widths: &[usize], field: &'static str) -> Result<(), ConfigError> {
+    check(
+        !widths.is_empty() && widths.iter().all(|&w| (1..=4096).contains(&w)),
+        field,
+        format!("{widths:?}"),
+        "needs 1 or more widths in 1..=4096",
+    )
+}
+
 /// Checks a swarm size against what the wire types support.
 pub fn validate_agent_count(n_agents: usize) -> Result<(), ConfigError> {
     check(
@@ -745,6 +740,8 @@ mod tests {
             ("[env]\neps_goal_m = 0.0\n", "env.eps_goal_m"),
             ("[env]\nedge_min_m = 0.1\n", "env.edge_min_m"),
             ("[learn]\ngamma = 1.5\n", "learn.gamma"),
+            ("[learn]\ncritic_encoder = []\n", "learn.critic_encoder"),
+            ("[learn]\ncritic = \"attention\"\n", "critic"),
         ] {
             let err = RunConfig::from_toml_str(text).expect_err(text);
             assert!(err.to_string().contains(field), "{err} should name {field}");
