@@ -351,6 +351,7 @@ SIM_ARGS=("${COMMON[@]}" --viewer "$VIEWER")
 [[ -n "$EPISODES" ]] && SIM_ARGS+=(--episodes "$EPISODES")
 [[ -n "$MINUTES" ]] && SIM_ARGS+=(--minutes "$MINUTES")
 [[ -n "$REALTIME" ]] && SIM_ARGS+=(--realtime)
+[[ -n "$EXTERNAL_LIST" ]] && SIM_ARGS+=(--external "$EXTERNAL_LIST")
 if [[ -n "$SCRIPTED" && -n "$EXTERNAL" ]]; then
   SIM_SCRIPTED=""
   for ((i = 0; i < N; i++)); do (( IS_SCRIPTED[i] )) && SIM_SCRIPTED+="${SIM_SCRIPTED:+,}$i"; done

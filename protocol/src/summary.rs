@@ -14,6 +14,9 @@ pub struct Summary {
     pub seed: u64,
     /// Which robots ran the scripted baseline.
     pub scripted_agents: Vec<usize>,
+    /// Which robots were played by outside processes (`--external`).
+    #[serde(default)]
+    pub external_agents: Vec<usize>,
     /// Episodes finished.
     pub episodes: u64,
     /// Fraction of episodes that reached C3.
@@ -79,6 +82,7 @@ impl Summary {
             ("mode", self.mode.clone()),
             ("robots", self.n_agents.to_string()),
             ("scripted robots", format!("{:?}", self.scripted_agents)),
+            ("outside robots", format!("{:?}", self.external_agents)),
             ("episodes", self.episodes.to_string()),
             ("success rate", format!("{:.3}", self.success_rate)),
             ("collision rate", format!("{:.3}", self.collision_rate)),

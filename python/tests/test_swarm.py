@@ -116,6 +116,7 @@ def test_python_baseline_plays_robot_2_of_an_eval_run(tmp_path):
     assert summary["success_rate"] >= 0.9, summary
     assert summary["rejected_commands"] == 0
     assert summary["scripted_agents"] == [0, 1]
+    assert summary["external_agents"] == [2], "the summary says which robots were outside"
     assert "run ended after" in robot_log
     check_run_json(swarm.run_dir, [2])
 

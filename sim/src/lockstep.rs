@@ -53,6 +53,8 @@ pub struct SimOptions {
     pub expect_critic: bool,
     /// Robots that run the scripted baseline (recorded in the summary).
     pub scripted: Vec<usize>,
+    /// Robots played by outside processes (recorded in the summary).
+    pub external: Vec<usize>,
     /// Where results go.
     pub run_dir: PathBuf,
     /// The configuration as run.
@@ -388,6 +390,7 @@ where
             n_agents: options.n_agents,
             seed: options.seed,
             scripted_agents: options.scripted.clone(),
+            external_agents: options.external.clone(),
             env_steps: self.env_steps,
             env_steps_per_s: self.env_steps as f64 / self.stepping_time.as_secs_f64().max(1e-9),
             tick_p50_us: self.histogram.value_at_quantile(0.5) as f64,

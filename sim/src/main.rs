@@ -33,6 +33,10 @@ struct Cli {
     /// Which agents run the scripted baseline, as recorded in the summary: `all` or `0,2`.
     #[arg(long, default_value = "")]
     scripted: String,
+    /// Which robots were left to outside processes (`--external` of the launcher), as
+    /// recorded in the summary: `all` or `0,2`.
+    #[arg(long, default_value = "")]
+    external: String,
     /// Live view: spawn (start the `rerun` viewer), save (a .rrd in the run directory),
     /// off, or connect=URL (a running viewer).
     #[arg(long, default_value = "off")]
@@ -42,7 +46,8 @@ struct Cli {
     check_config: bool,
 }
 
-fn parse_scripted(text: &str, n_agents: usize) -> Result<Vec<usize>> {
+/// A robot list flag (`flag` names it in errors): empty or `none`, `all`, or `0,2`.
+fn parse_agents(flag: &str, text: &str, n_agents: usize) -> Result<Vec<usize>> {
     match text.trim() {
         "" | "none" => Ok(Vec::new()),
         "all" => Ok((0..n_agents).collect()),
@@ -52,10 +57,10 @@ fn parse_scripted(text: &str, n_agents: usize) -> Result<Vec<usize>> {
                 let agent: usize = part
                     .trim()
                     .parse()
-                    .map_err(|_| anyhow::anyhow!("--scripted: {part:?} is not an agent index"))?;
+                    .map_err(|_| anyhow::anyhow!("{flag}: {part:?} is not an agent index"))?;
                 anyhow::ensure!(
                     agent < n_agents,
-                    "--scripted: agent {agent} does not exist (robots are 0..{n_agents})"
+                    "{flag}: agent {agent} does not exist (robots are 0..{n_agents})"
                 );
                 Ok(agent)
             })
@@ -76,7 +81,8 @@ fn main() -> ExitCode {
 
 fn try_main(cli: Cli) -> Result<()> {
     let (identity, config) = cli.run.load()?;
-    let scripted = parse_scripted(&cli.scripted, cli.run.agents)?;
+    let scripted = parse_agents("--scripted", &cli.scripted, cli.run.agents)?;
+    let external = parse_agents("--external", &cli.external, cli.run.agents)?;
     if let Some(minutes) = cli.minutes {
         anyhow::ensure!(
             minutes.is_finite() && minutes > 0.0,
@@ -104,6 +110,7 @@ fn try_main(cli: Cli) -> Result<()> {
         realtime: cli.realtime,
         expect_critic: !cli.no_critic,
         scripted,
+        external,
         run_dir: cli.run.run_dir.clone(),
         plots: true,
         config,

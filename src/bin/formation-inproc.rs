@@ -82,6 +82,7 @@ where
             realtime: false,
             expect_critic: false,
             scripted: (0..cli.agents).collect(),
+            external: Vec::new(),
             run_dir: cli.run_dir.clone(),
             config: config.clone(),
             plots: false,
