@@ -205,11 +205,11 @@ config_value() { # section key default
 
 RUN_DIR=${RUN_DIR:-runs/$(date +%Y%m%d-%H%M%S)}
 RUN_ID="r$(date +%s | tail -c 7)p$$"
-COMMON=(--agents "$N" --mode "$MODE" --run-id "$RUN_ID" --run-dir "$RUN_DIR" --seed "$SEED" --placement "$PLACEMENT")
+# Flags every process of every swarm of the run takes; COMMON adds this swarm's own.
 SHARED=(--mode "$MODE" --placement "$PLACEMENT")
 [[ -n "$CONFIG" ]] && SHARED+=(--config "$CONFIG")
 [[ -n "$SHAPE" ]] && SHARED+=(--shape "$SHAPE")
-COMMON+=("${SHARED[@]:4}")
+COMMON=(--agents "$N" --run-id "$RUN_ID" --run-dir "$RUN_DIR" --seed "$SEED" "${SHARED[@]}")
 # Extra swarm K: its own run id (its own shared memory), run directory and episode seed.
 declare -a EXTRA_ID=() EXTRA_DIR=() EXTRA_ARGS=()
 for ((k = 1; k <= ${#EXTRA_N[@]}; k++)); do

@@ -179,22 +179,27 @@ pub fn transition_reward(tick: &TickState, steps: u32, env: &EnvConfig) -> (f32,
 mod tests {
     use super::*;
 
+    const POSES: [[f32; 3]; 3] = [
+        [1.0, 0.0, std::f32::consts::FRAC_PI_2],
+        [2.0, 2.0, 0.0],
+        [0.0, 1.0, std::f32::consts::PI],
+    ];
+    const DESIRED: [[f32; NEIGHBOURS]; 3] = [[1.0, 1.5], [1.2, 1.3], [1.4, 1.6]];
+    const SLOTS: [[f32; 2]; 3] = [[0.0, -1.0], [1.0, 1.0], [-1.0, 0.0]];
+
+    /// Robot 0 faces +y; the centroid is (1, 1); the goal is 2 m along +y from it.
+    fn three_robots() -> TickState<'static> {
+        TickState {
+            poses: &POSES,
+            desired: &DESIRED,
+            slots: &SLOTS,
+            goal: [1.0, 3.0],
+        }
+    }
+
     #[test]
     fn state_is_centroid_relative_and_rotated_into_robot_zeros_heading() {
-        // Robot 0 faces +y; the centroid is (1, 1); the goal is 2 m along +y from it.
-        let poses = [
-            [1.0, 0.0, std::f32::consts::FRAC_PI_2],
-            [2.0, 2.0, 0.0],
-            [0.0, 1.0, std::f32::consts::PI],
-        ];
-        let desired = [[1.0, 1.5], [1.2, 1.3], [1.4, 1.6]];
-        let slots = [[0.0, -1.0], [1.0, 1.0], [-1.0, 0.0]];
-        let tick = TickState {
-            poses: &poses,
-            desired: &desired,
-            slots: &slots,
-            goal: [1.0, 3.0],
-        };
+        let tick = three_robots();
         let features = CriticFeatures::new(3, ObservationModel::Slot, CriticArchitecture::Mlp);
         assert_eq!(features.dim(), 12 + 2 + 6 + 6);
         let mut out = vec![0.0; features.dim()];
@@ -220,19 +225,7 @@ mod tests {
 
     #[test]
     fn pooled_tokens_hold_each_robot_its_neighbours_and_the_goal_in_one_frame() {
-        let poses = [
-            [1.0, 0.0, std::f32::consts::FRAC_PI_2],
-            [2.0, 2.0, 0.0],
-            [0.0, 1.0, std::f32::consts::PI],
-        ];
-        let desired = [[1.0, 1.5], [1.2, 1.3], [1.4, 1.6]];
-        let slots = [[0.0, -1.0], [1.0, 1.0], [-1.0, 0.0]];
-        let tick = TickState {
-            poses: &poses,
-            desired: &desired,
-            slots: &slots,
-            goal: [1.0, 3.0],
-        };
+        let tick = three_robots();
         let features = CriticFeatures::new(3, ObservationModel::SlotProximity, CriticArchitecture::Pooled);
         assert_eq!(features.token_dim(), 14);
         assert_eq!(features.dim(), 3 * 14);

@@ -97,17 +97,7 @@ class Observer:
 
     def receive(self) -> List[WorldState]:
         """Every state that arrived since the last call (oldest first), without waiting."""
-        out = []
-        while True:
-            sample = self._states.receive()
-            if sample is None:
-                return out
-            raw = wire.State.from_buffer_copy(sample.payload().contents)
-            sample.delete()
-            state = WorldState.from_payload(raw)
-            if state.run_end:
-                self.run_ended = True
-            out.append(state)
+        return [WorldState.from_payload(raw) for raw in self.receive_raw()]
 
     def receive_raw(self) -> List[wire.State]:
         """Like :meth:`receive`, as copies of the raw payloads (``wire.State``, all 64 robots'
@@ -131,10 +121,7 @@ class Observer:
 
     def take_wakeups(self) -> None:
         """Consumes the pending wake-ups without waiting."""
-        try:
-            self._wake.try_wait()
-        except iox2.ListenerWaitError:
-            pass
+        runmod.take_wakeups(self._wake)
 
     def wait(self, timeout: float) -> List[WorldState]:
         """Waits up to ``timeout`` seconds for states; returns what arrived (maybe nothing)."""

@@ -191,10 +191,7 @@ class Robot:
 
     def take_wakeups(self) -> None:
         """Consumes the pending wake-ups without waiting (after a ``WaitSet`` woke up)."""
-        try:
-            self._wake.try_wait()
-        except iox2.ListenerWaitError:
-            pass
+        runmod.take_wakeups(self._wake)
 
     def receive(self) -> List[Tick]:
         """Every message the sim sent since the last call (oldest first), without waiting.

@@ -194,6 +194,14 @@ def critic_wake_event(node: Any, run: RunInfo) -> Any:
     return _event(node, run, "formation/critic/wake", 1)
 
 
+def take_wakeups(listener: Any) -> None:
+    """Consumes a listener's pending events without waiting (after a ``WaitSet`` woke up)."""
+    try:
+        listener.try_wait()
+    except iox2.ListenerWaitError:
+        pass
+
+
 def connect(run_dir: Union[str, Path], timeout: Optional[float] = 60.0) -> RunInfo:
     """Reads ``<run_dir>/run.json`` of a running swarm.
 
