@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # Benchmarks: lockstep tick rate and latency against N (scripted and learned robots, separate
 # processes and all in one process), the process-to-process floor (iceoryx2 events vs a Unix
-# socket), real-time deadline misses, training throughput and memory. Prints a table and
-# writes bench.json. Takes about 15 minutes (--quick: 4); run it on a quiet machine.
+# socket) and each lockstep cell's ratio to its N + 1 wake-up floor, the same tick shape in
+# Python (multiprocessing pipes) as a same-machine anchor, real-time deadline misses, training
+# throughput and memory. Prints a table and writes bench.json. Takes about 16 minutes
+# (--quick: 5); run it on a quiet machine.
 #
 #   scripts/bench.sh [--quick] [--skip-realtime] [--skip-training] [--out DIR]
 set -euo pipefail
@@ -37,12 +39,20 @@ summary_field() { # file key
   python3 -c "import json,sys; print(json.load(open(sys.argv[1]))[sys.argv[2]])" "$1" "$2"
 }
 
-# 1. Lockstep across processes: sim + N agents + critic (eval), scripted and learned robots,
+# 1. The floor: one round trip between two processes, on one CPU and placed by the OS.
+for placement in auto off; do
+  for transport in iceoryx2 uds; do
+    line=$("$FORMATION_BIN_DIR/formation-pingpong" --transport "$transport" --placement "$placement" --round-trips 20000)
+    record "$(python3 -c "import json,sys; d=json.loads(sys.argv[1]); d['kind']='round_trip'; print(json.dumps(d))" "$line")"
+  done
+done
+
+# 2. Lockstep across processes: sim + N agents + critic (eval), scripted and learned robots,
 #    placed as the launcher does by default; then a few sizes with placement left to the OS.
 lockstep() { # policy n placement
   local policy=$1 n=$2 placement=$3 dir
   dir=$OUT/lockstep-$policy-$n-$placement
-  local args=("$n" --mode eval --episodes 1000000 --minutes "$MINUTES" --seed 7 --viewer off --placement "$placement" --run-dir "$dir")
+  local args=("$n" --mode eval --episodes 1000000 --minutes "$MINUTES" --seed 7 --viewer off --placement "${placement%-nogate}" --run-dir "$dir")
   [[ $policy == scripted ]] && args+=(--scripted all)
   scripts/run_swarm.sh "${args[@]}" >"$dir.log" 2>&1 || { echo "run failed: $dir.log" >&2; exit 1; }
   record "$(python3 - "$dir/summary.json" "$policy" "$n" "$placement" <<'PY'
@@ -50,7 +60,8 @@ import json, sys
 s = json.load(open(sys.argv[1]))
 print(json.dumps({"kind": "lockstep", "processes": "separate", "placement": sys.argv[4], "policy": sys.argv[2],
                   "n": int(sys.argv[3]), "ticks_per_s": round(s["env_steps_per_s"]), "p50_us": s["tick_p50_us"],
-                  "p99_us": s["tick_p99_us"], "missed_ticks": s["missed_ticks"], "lost_transitions": s["lost_transitions"]}))
+                  "p99_us": s["tick_p99_us"], "missed_ticks": s["missed_ticks"], "lost_transitions": s["lost_transitions"],
+                  "sim_wakeups_per_tick": s["sim_wakeups_per_tick"], "machine_switches_per_tick": s["machine_switches_per_tick"]}))
 PY
 )"
 }
@@ -60,8 +71,15 @@ for policy in scripted learned; do
 done
 OFF_SIZES=(3 12 48); (( QUICK )) && OFF_SIZES=(3)
 for n in "${OFF_SIZES[@]}"; do lockstep scripted "$n" off; done
+# Without the tick gate (every robot's command wakes the sim), for the difference it makes.
+for n in 3 12; do FORMATION_TICK_GATE=off lockstep scripted "$n" auto-nogate; done
 
-# 2. The same loop in one process (threads on the lockstep CPU), local and ipc service types.
+# The same tick shape in Python (multiprocessing pipes), placed as the swarm and by the OS.
+for placement in auto off; do
+  record "$(python3 scripts/pipes_anchor.py --agents 3 --seconds "$(python3 -c "print($MINUTES * 60)")" --placement "$placement")"
+done
+
+# 3. The same loop in one process (threads on the lockstep CPU), local and ipc service types.
 for transport in local ipc; do
   for n in "${SIZES[@]}"; do
     dir=$OUT/inproc-$transport-$n
@@ -74,14 +92,6 @@ print(json.dumps({"kind": "lockstep", "processes": "one (" + sys.argv[2] + ")", 
                   "p99_us": s["tick_p99_us"], "missed_ticks": s["missed_ticks"], "lost_transitions": None}))
 PY
 )"
-  done
-done
-
-# 3. The floor: one round trip between two processes, on one CPU and placed by the OS.
-for placement in auto off; do
-  for transport in iceoryx2 uds; do
-    line=$("$FORMATION_BIN_DIR/formation-pingpong" --transport "$transport" --placement "$placement" --round-trips 20000)
-    record "$(python3 -c "import json,sys; d=json.loads(sys.argv[1]); d['kind']='round_trip'; print(json.dumps(d))" "$line")"
   done
 done
 
@@ -131,14 +141,27 @@ python3 - "$RESULTS" "$OUT/bench.json" <<'PY'
 import json, sys, platform, os
 rows = [json.loads(l) for l in open(sys.argv[1]) if l.strip()]
 cpu = next((l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name")), "?")
-json.dump({"machine": {"cpu": cpu, "cores": os.cpu_count()}, "results": rows}, open(sys.argv[2], "w"), indent=2)
 print(f"machine: {cpu}, {os.cpu_count()} cores")
-print(f"{'kind':<14} {'processes':<16} {'placement':<9} {'policy':<9} {'N':>3} {'ticks/s':>9} {'p50 us':>8} {'p99 us':>8}  other")
+# The N + 1 floor: one wake-up is half an iceoryx2 round trip on one CPU; a tick needs N + 1.
+wake_us = next((r["p50_us"] / 2 for r in rows if r["kind"] == "round_trip" and r["transport"].lower() == "iceoryx2" and r["placement"].lower() == "auto"), None)
+python = max((r["ticks_per_s"] for r in rows if r["kind"] == "python_pipes"), default=None)
+print(f"floor: one wake-up {wake_us} us (half the iceoryx2 round trip on one CPU); Python pipes, N = 3, best placement: {python} ticks/s")
+print(f"{'kind':<14} {'processes':<16} {'placement':<12} {'policy':<9} {'N':>3} {'ticks/s':>9} {'p50 us':>8} {'p99 us':>8} {'floor':>6} {'us/robot':>8}  other")
 for r in rows:
     if r["kind"] == "lockstep":
-        print(f"{'lockstep':<14} {r['processes']:<16} {r['placement']:<9} {r['policy']:<9} {r['n']:>3} {r['ticks_per_s']:>9} {r['p50_us']:>8.1f} {r['p99_us']:>8.1f}  missed {r['missed_ticks']} lost {r['lost_transitions']}")
+        floor = f"{wake_us * (r['n'] + 1) * r['ticks_per_s'] / 1e6:.2f}" if wake_us else "-"
+        r["of_floor"] = float(floor) if wake_us else None
+        per_robot = 1e6 / r["ticks_per_s"] / r["n"]
+        r["us_per_robot"] = round(per_robot, 2)
+        other = f"missed {r['missed_ticks']} lost {r['lost_transitions']}"
+        if r.get("sim_wakeups_per_tick") is not None:
+            other += f" sim wake-ups/tick {r['sim_wakeups_per_tick']:.2f} switches/tick {r['machine_switches_per_tick']:.1f}"
+        if python and r["n"] == 3:
+            other += f" {r['ticks_per_s'] / python:.1f}x Python"
+        print(f"{'lockstep':<14} {r['processes']:<16} {r['placement']:<12} {r['policy']:<9} {r['n']:>3} {r['ticks_per_s']:>9} {r['p50_us']:>8.1f} {r['p99_us']:>8.1f} {floor:>6} {per_robot:>8.2f}  {other}")
     else:
         rest = {k: v for k, v in r.items() if k != "kind"}
         print(f"{r['kind']:<14} {json.dumps(rest)}")
+json.dump({"machine": {"cpu": cpu, "cores": os.cpu_count()}, "results": rows}, open(sys.argv[2], "w"), indent=2)
 print(f"written: {sys.argv[2]}")
 PY

@@ -1,10 +1,12 @@
 //! The agent's ends of the services: its own observation stream and wake-up event, its command
-//! stream and the sim's command event, and (when learning) its actor's weights stream.
+//! stream and the sim's command event, the tick gate (so that only a tick's last robot wakes
+//! the sim), and (when learning) its actor's weights stream.
 
 use std::time::Duration;
 
 use anyhow::{Context, Result};
-use formation_protocol::services::{self, FileDescriptorBased, Sizing};
+use formation_protocol::services::{self, FileDescriptorBased, RunIdentity, Sizing};
+use formation_protocol::tick_gate::{ALL_ANSWERED_EVENT_ID, Answer, TickGate};
 use formation_protocol::wire::{CommandMsg, FLAG_HELLO, Header, ObservationMsg, WeightsHeader};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
@@ -21,6 +23,10 @@ pub struct AgentPorts<S: Service> {
     commands: Publisher<S, CommandMsg, ()>,
     command_ready: Notifier<S>,
     weights: Option<Subscriber<S, [f32], WeightsHeader>>,
+    identity: RunIdentity,
+    /// The sim's tick gate, once it is found (a sim on another host has none here).
+    gate: Option<TickGate>,
+    looked_for_gate: bool,
     /// Random per process start, so the sim tells a restarted robot from its predecessor.
     pub session: u32,
 }
@@ -30,7 +36,13 @@ where
     Listener<S>: FileDescriptorBased,
 {
     /// Opens robot `agent`'s ports; `weights_from` subscribes to that actor's weights.
-    pub fn open(node: &Node<S>, sizing: &Sizing, agent: usize, weights_from: Option<usize>) -> Result<Self> {
+    pub fn open(
+        node: &Node<S>,
+        identity: &RunIdentity,
+        sizing: &Sizing,
+        agent: usize,
+        weights_from: Option<usize>,
+    ) -> Result<Self> {
         let weights = match weights_from {
             Some(index) => Some(
                 services::weights_stream(node, sizing, index)?
@@ -57,10 +69,12 @@ where
                 .with_context(|| format!("agent {agent}: command publisher"))?,
             command_ready: services::command_event(node, sizing)?
                 .notifier_builder()
-                .default_event_id(services::agent_event_id(agent))
                 .create()
                 .with_context(|| format!("agent {agent}: notifier"))?,
             weights,
+            identity: identity.clone(),
+            gate: None,
+            looked_for_gate: false,
             session: rand::random_range(1..u32::MAX),
         })
     }
@@ -89,14 +103,36 @@ where
 
     /// Greets the sim (history 1 keeps the greeting for a sim that starts later).
     pub fn greet(&self) -> Result<()> {
-        self.send(CommandMsg {
+        self.publish(CommandMsg {
             header: Header::new(0, 0, FLAG_HELLO),
             ..CommandMsg::default()
-        })
+        })?;
+        self.notify(services::agent_event_id(self.agent))
     }
 
-    /// Sends a command (robot index and session filled in) and wakes the sim.
-    pub fn send(&self, command: CommandMsg) -> Result<()> {
+    /// Sends the command for a tick and counts it in the tick gate; wakes the sim only when
+    /// this is the tick's last answer the gate expects (or when there is no gate).
+    pub fn send(&mut self, command: CommandMsg) -> Result<()> {
+        self.publish(command)?;
+        if self.gate.is_none() && (command.header.tick == 0 || !self.looked_for_gate) {
+            // Looked for with the first answer and at each episode's start (a sim on another
+            // host, behind a bridge, has none here).
+            self.gate = TickGate::attach(&self.identity, self.agent, self.session)?;
+            self.looked_for_gate = true;
+        }
+        let answer = match &self.gate {
+            Some(gate) => gate.answer(command.header.episode, command.header.tick),
+            None => Answer::NotCounted,
+        };
+        match answer {
+            Answer::Quiet => Ok(()),
+            Answer::WakeSim => self.notify(EventId::new(ALL_ANSWERED_EVENT_ID)),
+            Answer::NotCounted => self.notify(services::agent_event_id(self.agent)),
+        }
+    }
+
+    /// Publishes `command` with this robot's index and session filled in.
+    fn publish(&self, command: CommandMsg) -> Result<()> {
         let agent = self.agent;
         let mut sample = self.commands.loan().with_context(|| format!("agent {agent}: loan"))?;
         *sample.payload_mut() = CommandMsg {
@@ -105,8 +141,13 @@ where
             ..command
         };
         sample.send().with_context(|| format!("agent {agent}: send"))?;
+        Ok(())
+    }
+
+    fn notify(&self, id: EventId) -> Result<()> {
+        let agent = self.agent;
         self.command_ready
-            .notify()
+            .notify_with_custom_event_id(id)
             .with_context(|| format!("agent {agent}: notify"))?;
         Ok(())
     }

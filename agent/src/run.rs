@@ -64,11 +64,11 @@ where
 {
     let agent = options.agent;
     let node = services::create_node::<S>(identity, &format!("agent{agent}"))?;
-    let sizing = Sizing::new(options.n_agents, options.config.ticks.critic_window);
-    let ports = AgentPorts::open(&node, &sizing, agent, options.weights_from)?;
+    let obs_dim = Layout::of(options.config.env.observation).dim();
+    let sizing = Sizing::new(options.n_agents, options.config.ticks.critic_window, obs_dim);
+    let mut ports = AgentPorts::open(&node, identity, &sizing, agent, options.weights_from)?;
     ports.greet()?;
 
-    let obs_dim = Layout::of(options.config.env.observation).dim();
     let mut history = ObservationHistory::new(options.config.env.history, obs_dim);
     let mut stats = AgentStats::default();
     let mut episode = None;

@@ -7,6 +7,7 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
+use formation_core::observation::Layout;
 use formation_model::checkpoint::FILE_NAME;
 use formation_protocol::cli::{Mode, write_atomically};
 use formation_protocol::config::RunConfig;
@@ -74,7 +75,11 @@ where
 {
     fn open(identity: &RunIdentity, n_agents: usize, config: &RunConfig) -> Result<Self> {
         let node = services::create_node::<S>(identity, "critic")?;
-        let sizing = Sizing::new(n_agents, config.ticks.critic_window);
+        let sizing = Sizing::new(
+            n_agents,
+            config.ticks.critic_window,
+            Layout::of(config.env.observation).dim(),
+        );
         Ok(Self {
             identity: identity.clone(),
             collector: Collector::new(&node, &sizing, &config.env)?,

@@ -56,6 +56,15 @@ fn size_of_field<T, F>(_: impl Fn(&T) -> &F) -> usize {
 pub fn layout_json() -> String {
     let mut out = String::from("{\n");
     let _ = writeln!(out, "  \"protocol_version\": {PROTOCOL_VERSION},");
+    write_constants(&mut out);
+    out.push_str(",\n  \"payloads\": [\n");
+    write_payloads(&mut out);
+    out.push_str("\n  ]\n}\n");
+    out
+}
+
+/// The `"constants"` object.
+fn write_constants(out: &mut String) {
     let constants: [(&str, u64); 17] = [
         ("PROTOCOL_VERSION", u64::from(PROTOCOL_VERSION)),
         ("FLAG_EPISODE_START", u64::from(FLAG_EPISODE_START)),
@@ -80,9 +89,13 @@ pub fn layout_json() -> String {
         let sep = if i == 0 { "" } else { "," };
         let _ = write!(out, "{sep}\n    \"{name}\": {value}");
     }
-    out.push_str("\n  },\n  \"payloads\": [\n");
+    out.push_str("\n  }");
+}
+
+/// The entries of the `"payloads"` array.
+fn write_payloads(out: &mut String) {
     payload::<Header>(
-        &mut out,
+        out,
         "Header",
         &[
             field!(Header, protocol_version, "u32"),
@@ -93,7 +106,7 @@ pub fn layout_json() -> String {
     );
     out.push_str(",\n");
     payload::<ObservationMsg>(
-        &mut out,
+        out,
         "ObservationMsg",
         &[
             field!(ObservationMsg, header, "formation::Header"),
@@ -105,7 +118,7 @@ pub fn layout_json() -> String {
     );
     out.push_str(",\n");
     payload::<CommandMsg>(
-        &mut out,
+        out,
         "CommandMsg",
         &[
             field!(CommandMsg, header, "formation::Header"),
@@ -118,7 +131,7 @@ pub fn layout_json() -> String {
     );
     out.push_str(",\n");
     payload::<StateMsg>(
-        &mut out,
+        out,
         "StateMsg",
         &[
             field!(StateMsg, header, "formation::Header"),
@@ -136,7 +149,7 @@ pub fn layout_json() -> String {
     );
     out.push_str(",\n");
     payload::<CriticProgressMsg>(
-        &mut out,
+        out,
         "CriticProgressMsg",
         &[
             field!(CriticProgressMsg, protocol_version, "u32"),
@@ -148,7 +161,7 @@ pub fn layout_json() -> String {
     );
     out.push_str(",\n");
     payload::<WeightsHeader>(
-        &mut out,
+        out,
         "WeightsHeader",
         &[
             field!(WeightsHeader, protocol_version, "u32"),
@@ -157,8 +170,6 @@ pub fn layout_json() -> String {
             field!(WeightsHeader, len, "u32"),
         ],
     );
-    out.push_str("\n  ]\n}\n");
-    out
 }
 
 #[cfg(test)]

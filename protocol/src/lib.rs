@@ -4,6 +4,8 @@
 //! * [`services`]: service names, the run-unique iceoryx2 configuration and port helpers;
 //! * [`config`]: the one serde configuration every process reads (environment, ticks, learning);
 //! * [`placement`]: which CPU each process works on;
+//! * [`tick_gate`]: the shared answer counter that lets only a tick's last robot wake the sim;
+//! * [`switches`]: context-switch counters (wake-ups per tick);
 //! * [`summary`]: the figures a run leaves behind in `summary.json`;
 //! * [`layout`]: the payloads' memory layout as JSON, for bindings in other languages.
 
@@ -13,6 +15,8 @@ pub mod layout;
 pub mod placement;
 pub mod services;
 pub mod summary;
+pub mod switches;
+pub mod tick_gate;
 pub mod wire;
 
 /// Largest swarm the wire types have room for.

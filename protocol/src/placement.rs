@@ -8,6 +8,12 @@
 //! split their robots into groups of at least [`ROBOTS_PER_CPU`], one group per CPU. Measured
 //! in `docs/BENCHMARKS.md`.
 //!
+//! Robots also run under `SCHED_BATCH`: a robot woken by the sim then waits for the sim to
+//! finish publishing the tick instead of preempting it after each observation, so the sim
+//! wakes every robot, sleeps once, and the robots answer one after another (with the tick
+//! gate, only the last one wakes the sim). Batch threads keep their fair share of the CPU;
+//! they give up only wake-up preemption.
+//!
 //! Every process computes its own place from the CPUs it may use, so processes started by
 //! hand from the same shell agree with those the launcher starts.
 
@@ -76,6 +82,11 @@ pub fn apply(placement: Placement, role: Role) -> Result<Option<Vec<usize>>> {
     if placement == Placement::Off {
         return Ok(None);
     }
+    if let Role::Agent { .. } = role
+        && std::env::var("FORMATION_BATCH").map_or(true, |v| v != "off")
+    {
+        wait_for_the_waker();
+    }
     let Some(cpus) = plan(process_cpus()?, role) else {
         return Ok(None);
     };
@@ -85,6 +96,19 @@ pub fn apply(placement: Placement, role: Role) -> Result<Option<Vec<usize>>> {
             eprintln!("cannot move {role:?} to CPUs {cpus:?} ({err:?}); leaving it to the operating system");
             Ok(None)
         }
+    }
+}
+
+/// Puts the calling thread (and those it starts) under `SCHED_BATCH`: woken, it does not
+/// preempt the thread that woke it. A refusal is reported and changes nothing else.
+fn wait_for_the_waker() {
+    let param = libc::sched_param { sched_priority: 0 };
+    // SAFETY: pid 0 is the calling thread; `param` is a valid sched_param for SCHED_BATCH.
+    if unsafe { libc::sched_setscheduler(0, libc::SCHED_BATCH, &param) } != 0 {
+        eprintln!(
+            "cannot run this robot under SCHED_BATCH ({}); it will preempt the sim when woken",
+            std::io::Error::last_os_error()
+        );
     }
 }
 
@@ -148,6 +172,21 @@ mod tests {
         assert_eq!(eight[0], 5);
         assert_eq!(eight[39], 7);
         assert!(eight.windows(2).all(|w| w[0] <= w[1]), "{eight:?}");
+    }
+
+    #[test]
+    fn robots_placed_automatically_run_as_batch_threads() {
+        let policy = |placement| {
+            std::thread::spawn(move || {
+                apply(placement, Role::Agent { index: 0, of: 3 }).expect("apply");
+                // SAFETY: pid 0 is the calling thread.
+                unsafe { libc::sched_getscheduler(0) }
+            })
+            .join()
+            .expect("thread")
+        };
+        assert_eq!(policy(Placement::Auto), libc::SCHED_BATCH);
+        assert_eq!(policy(Placement::Off), libc::SCHED_OTHER);
     }
 
     #[test]

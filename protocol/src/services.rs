@@ -10,6 +10,7 @@ use anyhow::{Context, Result, bail};
 use iceoryx2::node::NodeView;
 use iceoryx2::port::listener::{Listener, ListenerWaitError};
 use iceoryx2::prelude::*;
+use iceoryx2::service::attribute::{AttributeKey, AttributeValue, AttributeVerifier};
 use iceoryx2::service::builder::event::{EventOpenError, EventOpenOrCreateError};
 use iceoryx2::service::builder::publish_subscribe::{PublishSubscribeOpenError, PublishSubscribeOpenOrCreateError};
 use iceoryx2::service::port_factory::{event, publish_subscribe};
@@ -162,22 +163,64 @@ pub fn weights_service_name(actor_index: usize) -> String {
     format!("formation/actor/{actor_index}/weights")
 }
 
-/// Sizes of the run's services, derived from the swarm size.
+/// Sizes of the run's services, derived from the swarm size, and the contract every service
+/// carries as iceoryx2 attributes.
 #[derive(Debug, Clone, Copy)]
 pub struct Sizing {
     /// Robots in the swarm.
     pub n_agents: usize,
     /// Samples a subscriber may hold before the oldest is overwritten.
     pub stream_buffer: usize,
+    /// Floats per observation of the run's observation model.
+    pub observation_dim: usize,
 }
 
+/// Attribute keys of every service of a run: a process of another protocol version, swarm
+/// size or observation model fails when it opens a port, naming what differs.
+pub const CONTRACT_KEYS: [&str; 3] = [
+    "formation.protocol_version",
+    "formation.n_agents",
+    "formation.observation_dim",
+];
+
 impl Sizing {
-    /// Sizing for `n_agents` robots with the critic allowed `critic_window` ticks behind.
-    pub fn new(n_agents: usize, critic_window: u32) -> Self {
+    /// Sizing for `n_agents` robots with the critic allowed `critic_window` ticks behind and
+    /// observations of `observation_dim` floats.
+    pub fn new(n_agents: usize, critic_window: u32, observation_dim: usize) -> Self {
         Self {
             n_agents,
             stream_buffer: 2 * critic_window as usize + 16,
+            observation_dim,
         }
+    }
+
+    /// The attributes every service of the run is created with and checked against.
+    pub fn contract(&self) -> Result<AttributeVerifier> {
+        let values = [
+            crate::wire::PROTOCOL_VERSION.to_string(),
+            self.n_agents.to_string(),
+            self.observation_dim.to_string(),
+        ];
+        let mut verifier = AttributeVerifier::new();
+        for (key, value) in CONTRACT_KEYS.iter().zip(values) {
+            let key = AttributeKey::try_from(*key).map_err(|err| anyhow::anyhow!("attribute key {key}: {err:?}"))?;
+            let value = AttributeValue::try_from(value.as_str())
+                .map_err(|err| anyhow::anyhow!("attribute value {value}: {err:?}"))?;
+            verifier = verifier
+                .require(&key, &value)
+                .map_err(|err| anyhow::anyhow!("attribute {key:?}: {err:?}"))?;
+        }
+        Ok(verifier)
+    }
+
+    /// What a port that fails to open with incompatible attributes is told.
+    fn mismatch_hint(&self) -> String {
+        format!(
+            "this process speaks protocol {}, {} robots, observations of {} floats; every process of a run needs the same build, --agents and --config",
+            crate::wire::PROTOCOL_VERSION,
+            self.n_agents,
+            self.observation_dim
+        )
     }
 
     fn shared_nodes(&self) -> usize {
@@ -232,6 +275,7 @@ where
     T: std::fmt::Debug + ZeroCopySend + Copy + 'static,
 {
     let service = service_name(name)?;
+    let contract = sizing.contract()?;
     open_patiently(
         || {
             node.service_builder(&service)
@@ -241,15 +285,16 @@ where
                 .max_nodes(max_nodes)
                 .history_size(history)
                 .subscriber_max_buffer_size(sizing.stream_buffer.max(history))
-                .open_or_create()
+                .open_or_create_with_attributes(&contract)
         },
         publish_subscribe_in_creation,
     )
-    .with_context(|| format!("cannot open service {name}"))
+    .with_context(|| format!("cannot open service {name} ({})", sizing.mismatch_hint()))
 }
 
 fn event_service<S: Service>(node: &Node<S>, name: &str, sizing: &Sizing, notifiers: usize) -> Result<Event<S>> {
     let service = service_name(name)?;
+    let contract = sizing.contract()?;
     open_patiently(
         || {
             node.service_builder(&service)
@@ -258,7 +303,7 @@ fn event_service<S: Service>(node: &Node<S>, name: &str, sizing: &Sizing, notifi
                 .max_listeners(1 + SPARE_PORTS)
                 .max_nodes(sizing.shared_nodes())
                 .event_id_max_value(MAX_AGENTS)
-                .open_or_create()
+                .open_or_create_with_attributes(&contract)
         },
         |err| {
             matches!(
@@ -268,7 +313,7 @@ fn event_service<S: Service>(node: &Node<S>, name: &str, sizing: &Sizing, notifi
             )
         },
     )
-    .with_context(|| format!("cannot open event {name}"))
+    .with_context(|| format!("cannot open event {name} ({})", sizing.mismatch_hint()))
 }
 
 /// Observation stream of one agent.
@@ -320,6 +365,7 @@ pub fn critic_progress_event<S: Service>(node: &Node<S>, sizing: &Sizing) -> Res
 pub fn weights_stream<S: Service>(node: &Node<S>, sizing: &Sizing, actor_index: usize) -> Result<WeightsStream<S>> {
     let name = weights_service_name(actor_index);
     let service = service_name(&name)?;
+    let contract = sizing.contract()?;
     open_patiently(
         || {
             node.service_builder(&service)
@@ -330,11 +376,11 @@ pub fn weights_stream<S: Service>(node: &Node<S>, sizing: &Sizing, actor_index: 
                 .max_nodes(sizing.shared_nodes())
                 .history_size(1)
                 .subscriber_max_buffer_size(2)
-                .open_or_create()
+                .open_or_create_with_attributes(&contract)
         },
         publish_subscribe_in_creation,
     )
-    .with_context(|| format!("cannot open weights service {name}"))
+    .with_context(|| format!("cannot open weights service {name} ({})", sizing.mismatch_hint()))
 }
 
 /// Blocks until `listener` is notified or `timeout` passes. A signal arriving meanwhile counts
@@ -509,6 +555,28 @@ pub fn agent_event_id(agent: usize) -> EventId {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_process_of_another_swarm_size_or_observation_model_cannot_open_the_runs_services() {
+        let identity = RunIdentity::new(&format!("contract{}", std::process::id())).expect("id");
+        let node = create_node::<local::Service>(&identity, "sim").expect("node");
+        let run = Sizing::new(3, 8, 12);
+        let _state = state_stream(&node, &run).expect("created");
+        let _ready = command_event(&node, &run).expect("created");
+        let _same = state_stream(&node, &run).expect("the same contract opens");
+        for other in [Sizing::new(4, 8, 12), Sizing::new(3, 8, 16)] {
+            let err = state_stream(&node, &other).expect_err("another contract");
+            let text = format!("{err:#}");
+            assert!(text.contains("IncompatibleAttributes"), "{text}");
+            assert!(text.contains("same build, --agents and --config"), "{text}");
+            assert!(command_event(&node, &other).is_err());
+        }
+        let contract = run.contract().expect("contract");
+        assert_eq!(
+            contract.required_attributes().number_of_attributes(),
+            CONTRACT_KEYS.len()
+        );
+    }
 
     #[test]
     fn the_iceoryx_config_file_reads_back_as_the_runs_config() {

@@ -53,6 +53,17 @@ pub struct Summary {
     pub deadline_misses: u64,
     /// Wall-clock seconds of the run.
     pub wall_s: f64,
+    /// Times the sim's tick thread slept and was woken, per tick (1 is the floor: woken once
+    /// when the tick's last command is in).
+    #[serde(default)]
+    pub sim_wakeups_per_tick: Option<f64>,
+    /// The sim's tick thread's context switches (voluntary and involuntary) per tick.
+    #[serde(default)]
+    pub sim_switches_per_tick: Option<f64>,
+    /// Context switches of the whole machine per tick (every process of the swarm, and
+    /// anything else running).
+    #[serde(default)]
+    pub machine_switches_per_tick: Option<f64>,
     /// Ticks the critic took into its replay.
     pub transitions_received: Option<u64>,
     /// Ticks the critic should have seen but did not (gaps, missing observations).
@@ -105,6 +116,8 @@ impl Summary {
             ("rejected commands", self.rejected_commands.to_string()),
             ("deadline misses", self.deadline_misses.to_string()),
             ("rejoined robots", self.rejoined_agents.to_string()),
+            ("sim wake-ups / tick", opt(self.sim_wakeups_per_tick, 2)),
+            ("machine switches / tick", opt(self.machine_switches_per_tick, 1)),
             (
                 "transitions received",
                 self.transitions_received.map_or("-".into(), |v| v.to_string()),

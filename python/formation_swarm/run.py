@@ -137,6 +137,19 @@ class RunInfo:
         return False
 
 
+def run_contract(run: RunInfo) -> Any:
+    """The attributes every service of the run carries (``services::RunContract``): a process
+    of another protocol version, swarm size or observation model fails at open."""
+    verifier = iox2.AttributeVerifier.new()
+    for key, value in (
+        ("formation.protocol_version", wire.PROTOCOL_VERSION),
+        ("formation.n_agents", run.n_agents),
+        ("formation.observation_dim", run.observation_dim),
+    ):
+        verifier = verifier.require(iox2.AttributeKey.new(key), iox2.AttributeValue.new(str(value)))
+    return verifier
+
+
 def _stream(node: Any, run: RunInfo, name: str, payload: type, history: int, max_nodes: int) -> Any:
     return (
         node.service_builder(iox2.ServiceName.new(name))
@@ -146,7 +159,7 @@ def _stream(node: Any, run: RunInfo, name: str, payload: type, history: int, max
         .max_nodes(max_nodes)
         .history_size(history)
         .subscriber_max_buffer_size(max(run.stream_buffer, history))
-        .open_or_create()
+        .open_or_create_with_attributes(run_contract(run))
     )
 
 
@@ -158,7 +171,7 @@ def _event(node: Any, run: RunInfo, name: str, notifiers: int) -> Any:
         .max_listeners(1 + wire.SPARE_PORTS)
         .max_nodes(run.shared_nodes)
         .event_id_max_value(wire.MAX_AGENTS)
-        .open_or_create()
+        .open_or_create_with_attributes(run_contract(run))
     )
 
 

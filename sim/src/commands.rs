@@ -1,11 +1,13 @@
 //! One tick's commands: waiting (event-driven) until every present robot has answered or the
 //! deadline passes, keeping each robot's valid answer, rejecting malformed ones, dropping late
-//! ones, and holding the last command of a robot that missed the tick.
+//! ones, and holding the last command of a robot that missed the tick. With the tick gate the
+//! sim sleeps through the robots' answers until the last one it expects is in.
 
 use std::time::{Duration, Instant};
 
 use anyhow::Result;
 use formation_protocol::services::{self, FileDescriptorBased};
+use formation_protocol::tick_gate::TickGate;
 use formation_protocol::wire::{CommandMsg, FLAG_HELLO, Header, PROTOCOL_VERSION};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::prelude::*;
@@ -59,6 +61,11 @@ impl Presence {
         }
     }
 
+    /// The session robot `agent` last greeted with (0: none yet).
+    pub fn session(&self, agent: usize) -> u32 {
+        self.sessions[agent]
+    }
+
     /// Records a greeting; true when it comes from a new process of a robot already known.
     pub fn greeted(&mut self, agent: usize, session: u32) -> bool {
         let previous = std::mem::replace(&mut self.sessions[agent], session);
@@ -97,11 +104,13 @@ pub struct CommandCounters {
 }
 
 /// Collects the commands of one tick after another; allocation-free after construction.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub struct CommandRound {
     received: Vec<bool>,
     notified: Vec<usize>,
     last_commands: Vec<(f64, f64)>,
+    /// The shared answer counter, when the sim could create it.
+    gate: Option<TickGate>,
     /// Who is waited for.
     pub presence: Presence,
     /// Counted so far.
@@ -115,8 +124,29 @@ impl CommandRound {
             received: vec![false; n],
             notified: Vec::with_capacity(n),
             last_commands: vec![(0.0, 0.0); n],
+            gate: None,
             presence: Presence::new(n),
             counters: CommandCounters::default(),
+        }
+    }
+
+    /// Rounds that let only a tick's last robot wake the sim through `gate`.
+    pub fn with_gate(mut self, gate: TickGate) -> Self {
+        self.gate = Some(gate);
+        self
+    }
+
+    /// Before tick `header` is published: the gate expects an answer from every robot that is
+    /// waited for and counts itself in with the session it greeted with.
+    pub fn open_round(&self, header: Header) {
+        if let Some(gate) = &self.gate {
+            let counted = (0..self.received.len())
+                .filter(|&agent| {
+                    let session = self.presence.session(agent);
+                    !self.presence.is_absent(agent) && session != 0 && gate.member_session(agent) == session
+                })
+                .count();
+            gate.open_round(header.episode, header.tick, counted);
         }
     }
 
@@ -131,7 +161,8 @@ impl CommandRound {
     }
 
     /// Waits until every present robot has answered `header` or `deadline` passes, reading
-    /// only the robots whose event id arrived (every robot after an unknown id).
+    /// only the robots whose event id arrived (every robot after the gate's all-answered id,
+    /// or any id that is not a robot's).
     pub fn collect<S: Service>(&mut self, ports: &SimPorts<S>, header: Header, deadline: Instant) -> Result<()>
     where
         Listener<S>: FileDescriptorBased,
@@ -159,16 +190,16 @@ impl CommandRound {
                 return Ok(());
             }
             self.notified.clear();
-            let mut stranger = false;
+            let mut everyone = false;
             let notified = &mut self.notified;
             services::wait_for_events(&ports.command_ready, deadline - now, |id| {
                 if id < n {
                     notified.push(id);
                 } else {
-                    stranger = true;
+                    everyone = true;
                 }
             })?;
-            if stranger {
+            if everyone {
                 self.notified.clear();
                 self.notified.extend(0..n);
             }
@@ -253,10 +284,14 @@ mod tests {
         }
     }
 
+    fn test_identity(run: &str) -> RunIdentity {
+        RunIdentity::new(&format!("{run}{}", std::process::id())).expect("identity")
+    }
+
     fn sim_and_robots(n: usize, run: &str) -> (Node<local::Service>, SimPorts<local::Service>, FakeRobots) {
-        let identity = RunIdentity::new(&format!("{run}{}", std::process::id())).expect("identity");
+        let identity = test_identity(run);
         let node = services::create_node::<local::Service>(&identity, "sim").expect("node");
-        let sizing = Sizing::new(n, 8);
+        let sizing = Sizing::new(n, 8, 12);
         let ports = SimPorts::open(&node, &sizing).expect("ports");
         let robots = FakeRobots {
             commands: (0..n)
@@ -387,6 +422,77 @@ mod tests {
         assert_eq!(round.settle(), 0, "both answers were read");
         assert!(!round.presence.is_absent(0) && !round.presence.is_absent(1));
         assert_eq!(round.commands()[0].0, 0.4f32 as f64);
+    }
+
+    #[test]
+    fn with_the_gate_only_the_last_expected_answer_wakes_the_sim_and_every_answer_is_read() {
+        use formation_protocol::tick_gate::{ALL_ANSWERED_EVENT_ID, Answer, TickGate};
+        let (_node, ports, robots) = sim_and_robots(3, "cmdgate");
+        let identity = test_identity("cmdgate");
+        let mut round = CommandRound::new(3).with_gate(TickGate::create(&identity).expect("gate"));
+        // Robots 0 and 1 count themselves in; robot 2 has no gate (a Python robot, say).
+        let gates: Vec<TickGate> = (0..2)
+            .map(|agent| {
+                let session = 10 + agent as u32;
+                round.presence.greeted(agent, session);
+                TickGate::attach(&identity, agent, session)
+                    .expect("attach")
+                    .expect("gate")
+            })
+            .collect();
+        round.presence.greeted(2, 12);
+        let header = Header::new(1, 3, 0);
+        round.open_round(header);
+        let counted = |agent: usize| {
+            robots.commands[agent]
+                .send_copy(CommandMsg {
+                    session: 10 + agent as u32,
+                    ..command(agent as u32, 1, 3, 0.1 * (agent + 1) as f32)
+                })
+                .expect("send");
+            gates[agent].answer(1, 3)
+        };
+        assert_eq!(counted(0), Answer::Quiet, "robot 1 is still expected");
+        // The uncounted robot raises its own id, as without a gate.
+        robots.answer(2, command(2, 1, 3, 0.3));
+        assert_eq!(counted(1), Answer::WakeSim);
+        robots
+            .ready
+            .notify_with_custom_event_id(EventId::new(ALL_ANSWERED_EVENT_ID))
+            .expect("notify");
+        let started = Instant::now();
+        round
+            .collect(&ports, header, started + Duration::from_secs(5))
+            .expect("collect");
+        assert!(
+            started.elapsed() < Duration::from_secs(1),
+            "did not wait for the deadline"
+        );
+        assert_eq!(round.settle(), 0, "robot 0's silent answer was read too");
+        assert_eq!(round.commands()[0].0, 0.1f32 as f64);
+
+        // A robot that missed three ticks is absent: the gate stops expecting it.
+        for tick in 4..4 + ABSENT_AFTER {
+            round.open_round(Header::new(1, tick, 0));
+            robots.answer(1, command(1, 1, tick, 0.1));
+            robots.answer(2, command(2, 1, tick, 0.1));
+            round
+                .collect(
+                    &ports,
+                    Header::new(1, tick, 0),
+                    Instant::now() + Duration::from_millis(20),
+                )
+                .expect("collect");
+            round.settle();
+        }
+        assert!(round.presence.is_absent(0));
+        let tick = 4 + ABSENT_AFTER;
+        round.open_round(Header::new(1, tick, 0));
+        assert_eq!(
+            gates[1].answer(1, tick),
+            Answer::WakeSim,
+            "robot 1 is the only one counted"
+        );
     }
 
     #[test]

@@ -14,13 +14,16 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use formation_core::formation::{observed_edges, random_episode};
+use formation_core::observation::Layout;
 use formation_core::task::{Conditions, Outcome, edge_error};
 use formation_core::world::World;
 use formation_protocol::cli::{Mode, write_atomically};
 use formation_protocol::config::RunConfig;
 use formation_protocol::services::{self, FileDescriptorBased, RunIdentity, Sizing};
 use formation_protocol::summary::Summary;
+use formation_protocol::switches::{ThreadSwitches, machine_switches};
 use formation_protocol::termination_requested;
+use formation_protocol::tick_gate::TickGate;
 use formation_protocol::wire::*;
 use hdrhistogram::Histogram;
 use iceoryx2::port::listener::Listener;
@@ -106,13 +109,17 @@ where
     Listener<S>: FileDescriptorBased,
 {
     let node = services::create_node::<S>(identity, "sim")?;
-    let sizing = Sizing::new(options.n_agents, options.config.ticks.critic_window);
+    let sizing = Sizing::new(
+        options.n_agents,
+        options.config.ticks.critic_window,
+        Layout::of(options.config.env.observation).dim(),
+    );
     let mut sim = Lockstep {
         ports: SimPorts::open(&node, &sizing)?,
         options,
         tap,
         log: EpisodeLog::create(&options.run_dir)?,
-        round: CommandRound::new(options.n_agents),
+        round: command_round(identity, options.n_agents),
         critic: CriticLink::default(),
         published: 0,
         env_steps: 0,
@@ -120,6 +127,7 @@ where
         histogram: Histogram::<u64>::new_with_bounds(1, 60_000_000, 3).context("tick histogram")?,
         stepping_time: Duration::ZERO,
         started: Instant::now(),
+        switches_at_start: (ThreadSwitches::now(), machine_switches()),
         next_deadline: Instant::now(),
         traced: traced_edges(options.n_agents),
         trace: EpisodeTrace::default(),
@@ -127,6 +135,7 @@ where
     };
     sim.wait_for_peers()?;
     sim.started = Instant::now();
+    sim.switches_at_start = (ThreadSwitches::now(), machine_switches());
     sim.next_deadline = sim.started;
     sim.trace = EpisodeTrace {
         dt: options.config.env.dt_s,
@@ -169,6 +178,8 @@ struct Lockstep<'a, S: Service> {
     histogram: Histogram<u64>,
     stepping_time: Duration,
     started: Instant,
+    /// The tick thread's and the machine's context switches when ticking began.
+    switches_at_start: (ThreadSwitches, Option<u64>),
     next_deadline: Instant,
     /// The edges the trace follows (each undirected observed edge once, at most eight).
     traced: Vec<(usize, usize, usize)>,
@@ -254,6 +265,9 @@ where
                 missed,
                 applied: &applied,
             };
+            if !ends {
+                self.round.open_round(header);
+            }
             self.publish_tick(&world, header, &transition, &tally, log_world)?;
             if ends {
                 self.log
@@ -380,6 +394,22 @@ where
         }
     }
 
+    /// Context switches per tick since ticking began: the tick thread's sleeps are its
+    /// wake-ups (waiting for commands, the critic, the real-time clock).
+    fn fill_switch_figures(&self, summary: &mut Summary) {
+        if self.env_steps == 0 {
+            return;
+        }
+        let ticks = self.env_steps as f64;
+        let (thread_start, machine_start) = self.switches_at_start;
+        let thread = ThreadSwitches::now().since(thread_start);
+        summary.sim_wakeups_per_tick = Some(thread.voluntary as f64 / ticks);
+        summary.sim_switches_per_tick = Some((thread.voluntary + thread.involuntary) as f64 / ticks);
+        summary.machine_switches_per_tick = machine_start
+            .zip(machine_switches())
+            .map(|(start, end)| end.saturating_sub(start) as f64 / ticks);
+    }
+
     /// Writes the figures and `summary.json`, then tells everyone the run is over (after
     /// `summary.json` exists, so the critic can extend it).
     fn finish(self, stop: Stop) -> Result<Summary> {
@@ -403,6 +433,7 @@ where
             ..Summary::default()
         };
         fill_episode_figures(&mut summary, self.log.records());
+        self.fill_switch_figures(&mut summary);
         if options.plots {
             let curve = options.run_dir.join("learning_curve.png");
             if let Err(err) = learning_curve(&curve, self.log.records()) {
@@ -427,6 +458,22 @@ where
             eprintln!("sim: stopped by signal after {} episodes", self.log.records().len());
         }
         Ok(summary)
+    }
+}
+
+/// Command rounds with the run's tick gate; without one (no `/dev/shm`, or
+/// `FORMATION_TICK_GATE=off` to measure the difference) every answer wakes the sim, which is
+/// slower but the same ticks.
+fn command_round(identity: &RunIdentity, n: usize) -> CommandRound {
+    if std::env::var("FORMATION_TICK_GATE").is_ok_and(|v| v == "off") {
+        return CommandRound::new(n);
+    }
+    match TickGate::create(identity) {
+        Ok(gate) => CommandRound::new(n).with_gate(gate),
+        Err(err) => {
+            eprintln!("sim: no tick gate ({err:#}); every command will wake the sim");
+            CommandRound::new(n)
+        }
     }
 }
 

@@ -8,6 +8,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use clap::Parser;
+use formation_core::observation::Layout;
 use formation_protocol::services::{self, RunIdentity, Sizing};
 use formation_protocol::wire::{CommandMsg, FLAG_HELLO, Header, PROTOCOL_VERSION};
 use iceoryx2::prelude::*;
@@ -36,9 +37,11 @@ fn main() -> Result<()> {
     let cli = Cli::parse();
     let identity = RunIdentity::new(&cli.run_id)?;
     let node = services::create_node::<ipc::Service>(&identity, "fault-injector")?;
+    let config = formation_protocol::config::RunConfig::default();
     let sizing = Sizing::new(
         cli.agents,
-        formation_protocol::config::TickConfig::default().critic_window,
+        config.ticks.critic_window,
+        Layout::of(config.env.observation).dim(),
     );
     let publisher = services::command_stream(&node, &sizing, cli.agent)?
         .publisher_builder()
