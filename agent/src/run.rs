@@ -156,3 +156,139 @@ where
         stats.policy_version = version;
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use std::time::Instant;
+
+    use formation_model::history::ObservationHistory;
+    use formation_protocol::tick_gate::{ALL_ANSWERED_EVENT_ID, TickGate};
+    use formation_protocol::{MAX_OBS_DIM, services::Sizing};
+
+    use super::*;
+
+    /// Answers (0.3, the first float of the newest observation), as weights version 7.
+    struct Echo;
+
+    impl Policy for Echo {
+        fn command(&mut self, history: &ObservationHistory) -> Result<(f64, f64)> {
+            Ok((0.3, f64::from(history.latest()[0])))
+        }
+
+        fn version(&self) -> u32 {
+            7
+        }
+    }
+
+    /// The next command (not a greeting) robot 1 sends, waiting up to 5 s.
+    fn next_command(commands: &iceoryx2::port::subscriber::Subscriber<local::Service, CommandMsg, ()>) -> CommandMsg {
+        let deadline = Instant::now() + Duration::from_secs(5);
+        loop {
+            while let Some(sample) = commands.receive().expect("receive") {
+                if !sample.payload().header.has(FLAG_HELLO) {
+                    return *sample.payload();
+                }
+            }
+            assert!(Instant::now() < deadline, "no command from the agent");
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    }
+
+    /// The event ids raised on `ready` within `patience` (returns at the first).
+    fn raised(ready: &Listener<local::Service>, patience: Duration) -> Vec<usize> {
+        let mut ids = Vec::new();
+        services::wait_for_events(ready, patience, |id| ids.push(id)).expect("wait");
+        ids
+    }
+
+    #[test]
+    fn an_agent_answers_each_tick_counts_itself_in_the_gate_and_leaves_at_the_run_end() {
+        let identity = RunIdentity::new(&format!("agentloop{}", std::process::id())).expect("id");
+        let config = RunConfig::default();
+        let dim = Layout::of(config.env.observation).dim();
+        let sizing = Sizing::new(3, config.ticks.critic_window, dim);
+        let node = services::create_node::<local::Service>(&identity, "sim").expect("node");
+        let gate = TickGate::create(&identity).expect("gate");
+        let observations = services::observation_stream(&node, &sizing, 1)
+            .expect("stream")
+            .publisher_builder()
+            .create()
+            .expect("publisher");
+        let wake = services::observation_event(&node, &sizing, 1)
+            .expect("event")
+            .notifier_builder()
+            .create()
+            .expect("notifier");
+        let commands = services::command_stream(&node, &sizing, 1)
+            .expect("stream")
+            .subscriber_builder()
+            .create()
+            .expect("subscriber");
+        let ready = services::command_event(&node, &sizing)
+            .expect("event")
+            .listener_builder()
+            .create()
+            .expect("listener");
+        let options = AgentOptions {
+            agent: 1,
+            n_agents: 3,
+            weights_from: None,
+            config,
+        };
+        let agent = {
+            let identity = identity.clone();
+            std::thread::spawn(move || run::<local::Service>(&identity, &options, AgentPolicy::Fixed(Box::new(Echo))))
+        };
+        let send = |tick: u32, flags: u32, first: f32| {
+            let mut obs = [0.0; MAX_OBS_DIM];
+            obs[0] = first;
+            observations
+                .send_copy(ObservationMsg {
+                    header: Header::new(0, tick, flags),
+                    agent: 1,
+                    n_agents: 3,
+                    dim: dim as u32,
+                    obs,
+                })
+                .expect("observation");
+            wake.notify().expect("wake");
+        };
+
+        // As the sim does: wait for the greeting, so the robot's subscriber exists.
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while !commands
+            .receive()
+            .expect("receive")
+            .is_some_and(|sample| sample.payload().header.has(FLAG_HELLO))
+        {
+            assert!(Instant::now() < deadline, "no greeting");
+            std::thread::sleep(Duration::from_millis(10));
+        }
+
+        // Tick 0: the robot finds the gate with its first answer; the round expected nobody,
+        // so its answer wakes the sim with the all-answered id.
+        gate.open_round(0, 0, 0);
+        send(0, FLAG_EPISODE_START, 0.5);
+        let command = next_command(&commands);
+        assert_eq!((command.header.episode, command.header.tick, command.agent), (0, 0, 1));
+        assert_eq!((command.v, command.w, command.policy_version), (0.3, 0.5, 7));
+        assert_eq!(gate.member_session(1), command.session, "attached with its session");
+        let ids = raised(&ready, Duration::from_secs(5));
+        assert!(ids.contains(&ALL_ANSWERED_EVENT_ID), "{ids:?}");
+
+        // Tick 1: another robot's answer is still expected, so this one wakes nobody.
+        gate.open_round(0, 1, 2);
+        send(1, 0, -0.25);
+        let command = next_command(&commands);
+        assert_eq!((command.header.tick, command.w), (1, -0.25));
+        let ids = raised(&ready, Duration::from_millis(100));
+        assert!(ids.is_empty(), "a quiet answer raised {ids:?}");
+
+        // The episode's last state is not answered; the run's end ends the agent.
+        send(2, FLAG_EPISODE_END, 0.0);
+        send(0, FLAG_RUN_END | FLAG_EPISODE_END, 0.0);
+        let stats = agent.join().expect("thread").expect("agent");
+        assert_eq!(stats.commands, 2);
+        assert_eq!(stats.policy_version, 7);
+    }
+}

@@ -263,7 +263,10 @@ where
 
 #[cfg(test)]
 mod tests {
-    use super::CollectorStats;
+    use formation_protocol::services::{RunIdentity, Sizing};
+    use iceoryx2::port::publisher::Publisher;
+
+    use super::*;
 
     fn stats(last: u64, received: u64) -> CollectorStats {
         CollectorStats {
@@ -283,5 +286,127 @@ mod tests {
         // 100 of states 100..=299 lost in a gap: the 10 unpaid ones are the newest, not 110.
         assert_eq!(stats(299, 100).acknowledgeable(90), 290);
         assert_eq!(stats(299, 100).acknowledgeable(100), 299);
+    }
+
+    /// A fake sim over iceoryx2's in-process `local` service, facing a real collector.
+    struct FakeSim {
+        observations: Vec<Publisher<local::Service, ObservationMsg, ()>>,
+        state: Publisher<local::Service, StateMsg, ()>,
+        sequence: u64,
+    }
+
+    impl FakeSim {
+        /// Publishes tick `tick` as the sim does: observations (robot `skip` left out), then
+        /// the state carrying the outcome, reward and commands of the transition into it.
+        fn tick(&mut self, episode: u32, tick: u32, applied: f32, reward: f32, outcome: u32, skip: Option<usize>) {
+            let header = Header::new(episode, tick, 0);
+            for (agent, publisher) in self.observations.iter().enumerate() {
+                if skip != Some(agent) {
+                    let mut obs = [0.0; MAX_OBS_DIM];
+                    obs[0] = tick as f32 + agent as f32 / 10.0;
+                    publisher
+                        .send_copy(ObservationMsg {
+                            header,
+                            agent: agent as u32,
+                            n_agents: 3,
+                            dim: 12,
+                            obs,
+                        })
+                        .expect("observation");
+                }
+            }
+            self.sequence += 1;
+            let mut state = StateMsg {
+                header,
+                n_agents: 3,
+                outcome,
+                reward,
+                sequence: self.sequence,
+                ..StateMsg::default()
+            };
+            for agent in 0..3 {
+                state.poses[agent] = [agent as f32, tick as f32, 0.0];
+                state.applied[agent] = [applied, -applied];
+            }
+            self.state.send_copy(state).expect("state");
+        }
+    }
+
+    fn collector_and_sim(run: &str) -> (Node<local::Service>, Collector<local::Service>, FakeSim, EnvConfig) {
+        let identity = RunIdentity::new(&format!("{run}{}", std::process::id())).expect("id");
+        let node = services::create_node::<local::Service>(&identity, "critic").expect("node");
+        let sizing = Sizing::new(3, 8, 12);
+        let env = EnvConfig::default();
+        let collector = Collector::new(&node, &sizing, &env).expect("collector");
+        let sim = FakeSim {
+            observations: (0..3)
+                .map(|agent| {
+                    services::observation_stream(&node, &sizing, agent)
+                        .expect("stream")
+                        .publisher_builder()
+                        .create()
+                        .expect("publisher")
+                })
+                .collect(),
+            state: services::state_stream(&node, &sizing)
+                .expect("stream")
+                .publisher_builder()
+                .create()
+                .expect("publisher"),
+            sequence: 0,
+        };
+        (node, collector, sim, env)
+    }
+
+    #[test]
+    fn state_t_plus_1_carries_the_commands_and_reward_of_tick_t() {
+        let (_node, mut collector, mut sim, env) = collector_and_sim("collshift");
+        sim.tick(0, 0, 0.0, 0.0, OUTCOME_RUNNING, None);
+        sim.tick(0, 1, 0.2, 1.5, OUTCOME_RUNNING, None);
+        sim.tick(0, 2, 0.4, 2.5, OUTCOME_SUCCESS, None);
+        let finished = collector.drain().expect("drain");
+        assert_eq!(finished.len(), 1);
+        let done = &finished[0];
+        assert_eq!(done.outcome, Outcome::Success);
+        assert!(done.episode.terminal, "a success is terminal");
+        assert_eq!(done.episode_return, 4.0);
+        let ticks = &done.episode.ticks;
+        assert_eq!(ticks.len(), 3);
+        // Tick t's action and reward are those the state of t + 1 carries.
+        assert_eq!(
+            ticks[0].actions[1],
+            env.action_from_command(0.2f32.into(), (-0.2f32).into())
+        );
+        assert_eq!(ticks[0].reward, 1.5);
+        assert_eq!(
+            ticks[1].actions[2],
+            env.action_from_command(0.4f32.into(), (-0.4f32).into())
+        );
+        assert_eq!(ticks[1].reward, 2.5);
+        assert_eq!((ticks[2].actions[0], ticks[2].reward), ([0.0; 2], 0.0), "the last tick");
+        // Each tick holds the observations the robots were sent at that tick.
+        assert!((ticks[1].observations[2][0] - 1.2).abs() < 1e-6);
+        assert_eq!(collector.stats.lost_transitions, 0);
+        assert_eq!(collector.stats.ticks_received, 3);
+        assert_eq!(collector.stats.latest_sequence, Some(3));
+    }
+
+    #[test]
+    fn a_missing_observation_or_a_gap_is_counted_as_lost() {
+        let (_node, mut collector, mut sim, _env) = collector_and_sim("colllost");
+        // Robot 1's observation of tick 1 never arrives: the tick is rebuilt from the state
+        // (the episode stays usable) and counted.
+        sim.tick(0, 0, 0.0, 0.0, OUTCOME_RUNNING, None);
+        sim.tick(0, 1, 0.1, 1.0, OUTCOME_RUNNING, Some(1));
+        sim.tick(0, 2, 0.1, 1.0, OUTCOME_TIMEOUT, None);
+        let finished = collector.drain().expect("drain");
+        assert_eq!(collector.stats.lost_transitions, 1);
+        assert_eq!(finished.len(), 1);
+        assert!(!finished[0].episode.terminal, "a time limit is a truncation");
+        // A gap (tick 1 of episode 1 never published): the episode is dropped.
+        sim.tick(1, 0, 0.0, 0.0, OUTCOME_RUNNING, None);
+        sim.tick(1, 2, 0.1, 1.0, OUTCOME_SUCCESS, None);
+        assert!(collector.drain().expect("drain").is_empty());
+        assert_eq!(collector.stats.lost_transitions, 2);
     }
 }
