@@ -3,6 +3,9 @@
 
 use std::time::Duration;
 
+use formation_critic::selection::Selector;
+use formation_model::checkpoint;
+use formation_protocol::config::{LearnConfig, RunConfig};
 use formation_swarm::{assert_clean, processes_of_run, repo_root, run_swarm, scratch_dir, shm_leftovers};
 
 fn scripted_eval(n: &str, episodes: &str) {
@@ -180,13 +183,76 @@ fn one_critic_trains_one_actor_on_two_swarm_sizes_at_once() {
         serde_json::from_str(&std::fs::read_to_string(&extra).expect("the extra swarm's summary")).expect("json");
     assert_eq!(extra["n_agents"], serde_json::json!(4), "{extra}");
     assert!(extra["episodes"].as_u64().expect("episodes") > 0, "{extra}");
-    let checkpoint =
-        formation_model::checkpoint::load(&run.run_dir.join("checkpoint.safetensors")).expect("checkpoint");
-    assert_eq!(checkpoint.meta.extra["swarm_sizes"], "3,4");
+    let last = checkpoint::load(&run.run_dir.join("checkpoint.safetensors")).expect("checkpoint");
+    assert_eq!(last.meta.extra["swarm_sizes"], "3,4");
+    // Scored on each size's selection episodes; the first score is also the best so far.
+    let path = run.run_dir.join("best.safetensors");
+    let best = checkpoint::load(&path).expect("best.safetensors");
+    let score = best.meta.selection(&path).expect("selection metadata").expect("scored");
+    assert_eq!(score.sizes.iter().map(|s| s.n_agents).collect::<Vec<_>>(), [3, 4]);
     assert_clean(&run);
     let extra_id = format!("{}x1", run.run_id.as_deref().expect("run id"));
     assert!(shm_leftovers(&extra_id).is_empty(), "{:?}", shm_leftovers(&extra_id));
     assert!(processes_of_run(&extra_id).is_empty());
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn an_eval_run_from_the_selection_seed_measures_the_selection_score() {
+    // The 3-robot paper model misses a few of these episodes, so the two agree only if they
+    // play the same episodes with the same actions.
+    let dir = scratch_dir("selection-seed");
+    let config_path = repo_root().join("configs/paper-observation.toml");
+    let model_path = repo_root().join("models/formation-3robots-paper.safetensors");
+    let learn = LearnConfig {
+        selection_episodes: 200,
+        ..LearnConfig::default()
+    };
+    let seed = learn.selection_seed.to_string();
+    let run = run_swarm(
+        &[
+            "3",
+            "--config",
+            config_path.to_str().expect("utf8"),
+            "--mode",
+            "eval",
+            "--checkpoint",
+            model_path.to_str().expect("utf8"),
+            "--episodes",
+            "200",
+            "--seed",
+            &seed,
+            "--viewer",
+            "off",
+        ],
+        &dir.join("run"),
+        Duration::from_secs(180),
+    )
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "launcher failed:\n{}", run.output);
+    let csv = std::fs::read_to_string(run.run_dir.join("episodes.csv")).expect("episodes.csv");
+    // episode,outcome,steps,...
+    let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|line| line.split(',').collect()).collect();
+    assert_eq!(rows.len(), 200);
+    let successes = rows.iter().filter(|row| row[1] == "success").count();
+    let steps: u64 = rows.iter().map(|row| row[2].parse::<u64>().expect("steps")).sum();
+
+    let env = RunConfig::from_toml_file(&config_path).expect("config").env;
+    let model = checkpoint::load(&model_path).expect("model");
+    let actors = [model.actor_weights(0).expect("weights")];
+    let scored = Selector::new(&env, &learn, &[3])
+        .score(&actors, &model.meta.actor)
+        .expect("score");
+    assert!(
+        successes < 200,
+        "the model should miss some episodes to tell them apart"
+    );
+    assert_eq!(scored.sizes[0].success, successes as f64 / 200.0, "{scored:?}");
+    assert!(
+        (scored.sizes[0].mean_steps - steps as f64 / 200.0).abs() < 1e-9,
+        "{scored:?}"
+    );
+    assert_clean(&run);
     std::fs::remove_dir_all(&dir).expect("cleanup");
 }
 

@@ -10,7 +10,8 @@
 
 use formation_protocol::config::{EnvConfig, FormationShape, LARGE_SWARM};
 use formation_protocol::{NEIGHBOURS, neighbours};
-use rand::Rng;
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
 
 use crate::physics::{Pose, wrap_angle};
 
@@ -311,12 +312,40 @@ pub fn random_episode<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> Episode
     unreachable!("the attempt counter is unbounded")
 }
 
+/// The episodes of a run, in order: episode k is the k-th [`random_episode`] drawn from one
+/// generator seeded with the run's seed. The sim plays these, and the critic's model selection
+/// plays the first K of its own seed, so both start every episode from the same function.
+#[derive(Debug, Clone)]
+pub struct Episodes {
+    n: usize,
+    env: EnvConfig,
+    rng: StdRng,
+}
+
+impl Episodes {
+    /// The episodes of `n` robots that `seed` starts.
+    pub fn new(n: usize, env: &EnvConfig, seed: u64) -> Self {
+        Self {
+            n,
+            env: env.clone(),
+            rng: StdRng::seed_from_u64(seed),
+        }
+    }
+}
+
+impl Iterator for Episodes {
+    type Item = EpisodeInit;
+
+    /// Never `None`: a run may play as many episodes as it likes.
+    fn next(&mut self) -> Option<EpisodeInit> {
+        Some(random_episode(self.n, &self.env, &mut self.rng))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::task::{centroid, conditions};
-    use rand::SeedableRng;
-    use rand::rngs::StdRng;
 
     #[test]
     fn episodes_of_every_shape_start_in_formation_with_valid_edges_for_3_to_64_robots() {
@@ -377,6 +406,16 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn a_seed_starts_the_same_episodes_every_time_and_another_seed_others() {
+        let env = EnvConfig::default();
+        let mut rng = StdRng::seed_from_u64(11);
+        let drawn: Vec<EpisodeInit> = (0..4).map(|_| random_episode(3, &env, &mut rng)).collect();
+        assert_eq!(Episodes::new(3, &env, 11).take(4).collect::<Vec<_>>(), drawn);
+        let other: Vec<EpisodeInit> = Episodes::new(3, &env, 12).take(4).collect();
+        assert!(other.iter().all(|init| !drawn.contains(init)));
     }
 
     #[test]

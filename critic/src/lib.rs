@@ -5,6 +5,7 @@
 //! * [`run`]: the process's loop and the flow-control link to the sim;
 //! * [`collector`]: the subscriptions, assembling each tick of every stream into episodes;
 //! * [`trainer`]: replay, updates at the update-to-data ratio, weights, checkpoints;
+//! * [`selection`]: each checkpoint's score, on fixed noise-free episodes played in-process;
 //! * [`learner`]: the networks and one gradient update (TD3 or DDPG);
 //! * [`weights`]: the weights services towards the agents;
 //! * [`progress`], [`view`]: the progress display, `training.csv` and the training curves.
@@ -13,6 +14,7 @@ pub mod collector;
 pub mod learner;
 pub mod progress;
 pub mod run;
+pub mod selection;
 pub mod trainer;
 pub mod view;
 pub mod weights;

@@ -86,6 +86,12 @@ fn try_main(cli: Cli) -> Result<()> {
             );
         }
     }
+    if cli.run.mode == Mode::Train && cli.run.seed == config.learn.selection_seed {
+        bail!(
+            "--seed {} is learn.selection_seed: the run would train on the episodes its checkpoints are selected on",
+            cli.run.seed
+        );
+    }
     if cli.check {
         if let Some(path) = &resume {
             let mut learner =

@@ -81,8 +81,10 @@ pub struct TrainingStatus {
     pub weights_version: u32,
     /// Transitions held by the replay.
     pub replay_transitions: usize,
-    /// Rolling noise-free success when `best.safetensors` was last written, if it was.
-    pub best_eval: Option<f64>,
+    /// The latest checkpoint's selection score, once one is saved.
+    pub selection: Option<f64>,
+    /// The selection score of `best.safetensors`, once there is one.
+    pub best_selection: Option<f64>,
 }
 
 /// One row of `training.csv`.
@@ -94,6 +96,7 @@ struct TrainingRow {
     updates: u64,
     success_rate_100: f64,
     eval_success_rate_20: Option<f64>,
+    selection_success: Option<f64>,
     mean_return_100: f64,
     critic_loss: f64,
     actor_loss: Option<f64>,
@@ -179,6 +182,7 @@ impl Progress {
             updates: status.map_or(0, |s| s.updates),
             success_rate_100: self.rolling.success_rate(),
             eval_success_rate_20: self.rolling.eval_success_rate(),
+            selection_success: status.and_then(|s| s.selection),
             mean_return_100: self.rolling.mean_return(),
             critic_loss: losses.critic,
             actor_loss: losses.actor,
@@ -219,7 +223,7 @@ impl Progress {
                 status.losses.actor.map_or("-".into(), |a| format!("{a:.2}")),
                 status.weights_version,
             );
-            if let Some(best) = status.best_eval {
+            if let Some(best) = status.best_selection {
                 line += &format!(" | best {best:.2}");
             }
         }

@@ -1,6 +1,6 @@
 //! The critic's loop: drain the streams into the replay, acknowledge progress (the sim's flow
-//! control), train at the configured update-to-data ratio, report; at the end, save the
-//! checkpoint and add the learner's figures to `summary.json`. One critic may serve several
+//! control), train at the configured update-to-data ratio, report; at the end, score and save
+//! the checkpoint and add the learner's figures to `summary.json`. One critic may serve several
 //! swarms (sizes) at once, each its own sim and robots under its own run id: one link each.
 
 use std::path::PathBuf;
@@ -156,7 +156,7 @@ where
                 progress.episode(&finished)?;
                 // Eval mode only records figures: keeping episodes would grow memory for nothing.
                 if let Some(trainer) = &mut trainer {
-                    trainer.keep(k, finished, &progress.rolling)?;
+                    trainer.keep(k, finished);
                 }
             }
             if link.collector.stats.ticks_received > before {
@@ -174,7 +174,7 @@ where
         // start-up limit, since a critic restart loses the replay.
         for link in links.iter_mut().filter(|l| !l.ended()) {
             if let Some(quiet) = link.sim_watch.gone::<S>(&link.identity, "critic")? {
-                if let Some(trainer) = &trainer {
+                if let Some(trainer) = &mut trainer {
                     trainer.save_checkpoint(&progress.rolling)?;
                 }
                 bail!(
@@ -199,10 +199,10 @@ where
     }
 
     let elapsed = progress.elapsed_s();
-    let status = trainer.as_ref().map(Trainer::status);
-    if let Some(trainer) = &trainer {
+    if let Some(trainer) = &mut trainer {
         trainer.save_checkpoint(&progress.rolling)?;
     }
+    let status = trainer.as_ref().map(Trainer::status);
     progress.finish();
     merge_summary(options, &links[0].collector.stats, status, elapsed)
 }

@@ -1,13 +1,15 @@
 //! Training in the critic process: the learner, one replay and weights stream per swarm it
 //! serves, updates at the configured update-to-data ratio on each swarm's data, and the
-//! checkpoints.
+//! checkpoints, each scored by model selection before it is saved.
 
 use std::collections::HashMap;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use anyhow::{Result, bail};
-use formation_model::checkpoint::{BEST_FILE_NAME, FILE_NAME};
+use anyhow::{Context, Result, bail};
+use formation_model::actor::ActorShape;
+use formation_model::checkpoint::{self, BEST_FILE_NAME, FILE_NAME, SelectionScore};
 use formation_protocol::config::Algorithm;
 use formation_protocol::services::Sizing;
 use formation_replay::buffer::ReplayBuffer;
@@ -20,11 +22,15 @@ use crate::collector::FinishedEpisode;
 use crate::learner::{Learner, Losses};
 use crate::progress::{Rolling, TrainingStatus};
 use crate::run::CriticOptions;
+use crate::selection::Selector;
 use crate::weights::WeightsPublisher;
 
 /// Longest run of updates between two drains of the streams: the critic keeps telling the sim
 /// it is alive (and acknowledging) while updates are slow, e.g. a big swarm on a busy machine.
 const UPDATES_BETWEEN_DRAINS: Duration = Duration::from_millis(40);
+
+/// A selection running on its own thread: the score and how long it took.
+type Selection = JoinHandle<Result<(SelectionScore, Duration)>>;
 
 /// What the trainer keeps of one swarm: its episodes, the stream of weights to its robots, and
 /// the updates its data has paid for (which its sim's flow control counts).
@@ -42,7 +48,13 @@ pub struct Trainer<S: Service> {
     sampler: Sampler,
     rng: StdRng,
     losses: Losses,
-    best_eval: f64,
+    selector: Selector,
+    /// The selection score of `best.safetensors`, once there is one.
+    best: Option<SelectionScore>,
+    /// The latest checkpoint's selection score.
+    latest: Option<f64>,
+    /// The selection under way, if any.
+    selecting: Option<Selection>,
     last_checkpoint: Instant,
     checkpoint_every: Duration,
     warmup_transitions: usize,
@@ -87,6 +99,13 @@ impl<S: Service> Trainer<S> {
                 updates: 0,
             });
         }
+        let sizes: Vec<usize> = swarms.iter().map(|(_, sizing)| sizing.n_agents).collect();
+        let selector = Selector::new(&config.env, learn, &sizes);
+        // A restarted critic (resuming in its run directory) keeps its predecessor's best.
+        let best = match options.resume {
+            Some(_) => previous_best(&options.run_dir, &selector),
+            None => None,
+        };
         Ok(Self {
             learner,
             swarms: data,
@@ -98,7 +117,10 @@ impl<S: Service> Trainer<S> {
             },
             rng: StdRng::seed_from_u64(options.seed ^ 0x5eed_c817),
             losses: Losses::default(),
-            best_eval: -1.0,
+            selector,
+            best,
+            latest: None,
+            selecting: None,
             last_checkpoint: Instant::now(),
             checkpoint_every: Duration::from_secs(learn.checkpoint_every_s),
             warmup_transitions: learn.warmup_transitions,
@@ -113,22 +135,17 @@ impl<S: Service> Trainer<S> {
         })
     }
 
-    /// Stores a finished episode of swarm `swarm`; a noise-free one that lifts the rolling
-    /// evaluation success to a new best saves `best.safetensors`.
-    pub fn keep(&mut self, swarm: usize, finished: FinishedEpisode, rolling: &Rolling) -> Result<()> {
-        if let (true, Some(eval)) = (finished.eval, rolling.eval_success_rate())
-            && eval > self.best_eval
-        {
-            self.best_eval = eval;
-            self.learner
-                .save(&self.run_dir.join(BEST_FILE_NAME), self.meta(rolling, Some(eval)))?;
-        }
+    /// Stores a finished episode of swarm `swarm`.
+    pub fn keep(&mut self, swarm: usize, finished: FinishedEpisode) {
         self.swarms[swarm].replay.push(finished.episode);
-        Ok(())
     }
 
-    /// Updates still due on swarm `swarm`'s data for its `ticks` received.
+    /// Updates still due on swarm `swarm`'s data for its `ticks` received (none while a
+    /// selection is under way).
     pub fn updates_owed(&self, swarm: usize, ticks: u64) -> u64 {
+        if self.selecting.is_some() {
+            return 0;
+        }
         updates_owed(
             ticks,
             self.warmup_transitions,
@@ -142,10 +159,25 @@ impl<S: Service> Trainer<S> {
         self.swarms.iter().try_for_each(|s| s.weights.update_connections())
     }
 
-    /// Does the updates owed for each swarm's `ticks` received (in turn), for at most 40 ms (at least one), streams weights
-    /// every `publish_every_updates`, checkpoints every `checkpoint_every_s`; returns for each
-    /// swarm the ticks its updates have paid for (what the critic may acknowledge to its sim).
+    /// Does the updates owed for each swarm's `ticks` received, streams weights every
+    /// `publish_every_updates` and starts a checkpoint's selection every `checkpoint_every_s`
+    /// (saving it once scored); returns for each swarm the ticks its updates have paid for
+    /// (what the critic may acknowledge to its sim).
     pub fn train(&mut self, ticks: &[u64], rolling: &Rolling) -> Result<Vec<u64>> {
+        if let Some(selection) = self.selecting.take_if(|s| s.is_finished()) {
+            self.save_scored(joined(selection)?, rolling)?;
+        }
+        if self.selecting.is_none() {
+            self.update(ticks)?;
+            if self.last_checkpoint.elapsed() >= self.checkpoint_every {
+                self.start_selection()?;
+            }
+        }
+        Ok(self.paid_ticks(ticks))
+    }
+
+    /// The updates owed, swarm by swarm in turn, for at most 40 ms (at least one).
+    fn update(&mut self, ticks: &[u64]) -> Result<()> {
         let started = Instant::now();
         while started.elapsed() < UPDATES_BETWEEN_DRAINS {
             // Round robin over the swarms owed updates: every size gets the same share, and
@@ -182,10 +214,11 @@ impl<S: Service> Trainer<S> {
                 );
             }
         }
-        if self.last_checkpoint.elapsed() >= self.checkpoint_every {
-            self.save_checkpoint(rolling)?;
-            self.last_checkpoint = Instant::now();
-        }
+        Ok(())
+    }
+
+    /// For each swarm, the ticks its updates have paid for.
+    fn paid_ticks(&mut self, ticks: &[u64]) -> Vec<u64> {
         let mut paid = Vec::with_capacity(self.swarms.len());
         for (k, data) in self.swarms.iter_mut().enumerate() {
             if data.replay.transitions() == 0 {
@@ -208,17 +241,75 @@ impl<S: Service> Trainer<S> {
             }
             paid.push(paid_ticks(data.updates));
         }
-        Ok(paid)
+        paid
     }
 
     fn weights_version(&self) -> u32 {
         self.swarms[0].weights.version
     }
 
-    /// Saves the current networks as `checkpoint.safetensors`.
-    pub fn save_checkpoint(&self, rolling: &Rolling) -> Result<()> {
-        self.learner
-            .save(&self.run_dir.join(FILE_NAME), self.meta(rolling, None))
+    /// The flat weights of every actor, as saved and as streamed.
+    fn actor_weights(&self) -> Result<Vec<Vec<f32>>> {
+        (0..self.learner.n_actors())
+            .map(|k| self.learner.actor_weights(k))
+            .collect()
+    }
+
+    /// Scores the current weights on a thread of its own: updates wait for it (the weights
+    /// stay those scored) while the critic goes on reading the streams and answering its sims.
+    fn start_selection(&mut self) -> Result<()> {
+        let actors = self.actor_weights()?;
+        let selector = self.selector.clone();
+        let shape = self.learner.actor_shape().clone();
+        let thread = std::thread::Builder::new()
+            .name("selection".into())
+            .spawn(move || timed_score(&selector, &actors, &shape))
+            .context("critic: cannot start the selection thread")?;
+        self.selecting = Some(thread);
+        self.last_checkpoint = Instant::now();
+        Ok(())
+    }
+
+    /// Scores the current weights (or finishes the selection under way, whose weights they
+    /// still are) and saves them: the checkpoint at the end of a run.
+    pub fn save_checkpoint(&mut self, rolling: &Rolling) -> Result<()> {
+        let scored = match self.selecting.take() {
+            Some(selection) => joined(selection)?,
+            None => timed_score(&self.selector, &self.actor_weights()?, self.learner.actor_shape())?,
+        };
+        self.save_scored(scored, rolling)
+    }
+
+    /// Saves the networks as `checkpoint.safetensors` with their selection score, and as
+    /// `best.safetensors` too when it beats the best so far.
+    fn save_scored(&mut self, (score, took): (SelectionScore, Duration), rolling: &Rolling) -> Result<()> {
+        let mut meta = self.meta(rolling);
+        score.to_metadata(&mut meta);
+        self.learner.save(&self.run_dir.join(FILE_NAME), meta.clone())?;
+        let better = score.beats(self.best.as_ref());
+        if better {
+            self.learner.save(&self.run_dir.join(BEST_FILE_NAME), meta)?;
+        }
+        let by_size: Vec<String> = score
+            .sizes
+            .iter()
+            .map(|s| format!("N={} {:.2}", s.n_agents, s.success))
+            .collect();
+        eprintln!(
+            "critic: checkpoint at {} updates: selection success {:.3} ({}), formation held {:.2}, {:.1} steps; scored in {} ms{}",
+            self.learner.updates(),
+            score.success(),
+            by_size.join(", "),
+            score.mean(|s| s.formation_held),
+            score.mean(|s| s.mean_steps),
+            took.as_millis(),
+            if better { "; new best" } else { "" }
+        );
+        self.latest = Some(score.success());
+        if better {
+            self.best = Some(score);
+        }
+        Ok(())
     }
 
     /// Figures for the progress display and `training.csv`.
@@ -228,11 +319,12 @@ impl<S: Service> Trainer<S> {
             losses: self.losses,
             weights_version: self.weights_version(),
             replay_transitions: self.swarms.iter().map(|s| s.replay.transitions()).sum(),
-            best_eval: (self.best_eval >= 0.0).then_some(self.best_eval),
+            selection: self.latest,
+            best_selection: self.best.as_ref().map(SelectionScore::success),
         }
     }
 
-    fn meta(&self, rolling: &Rolling, eval: Option<f64>) -> HashMap<String, String> {
+    fn meta(&self, rolling: &Rolling) -> HashMap<String, String> {
         let mut extra = HashMap::new();
         extra.insert("updates".into(), self.learner.updates().to_string());
         extra.insert("episodes".into(), rolling.episodes.to_string());
@@ -241,10 +333,36 @@ impl<S: Service> Trainer<S> {
         extra.insert("swarm_sizes".into(), sizes.join(","));
         extra.insert("algorithm".into(), format!("{:?}", self.algorithm).to_lowercase());
         extra.insert("success_rate_100".into(), format!("{:.3}", rolling.success_rate()));
-        if let Some(eval) = eval {
-            extra.insert("eval_success_rate_20".into(), format!("{eval:.3}"));
-        }
         extra
+    }
+}
+
+/// The selection score of `actors` and how long it took.
+fn timed_score(selector: &Selector, actors: &[Vec<f32>], shape: &ActorShape) -> Result<(SelectionScore, Duration)> {
+    let started = Instant::now();
+    Ok((selector.score(actors, shape)?, started.elapsed()))
+}
+
+/// The outcome of a finished (or finishing) selection thread.
+fn joined(selection: Selection) -> Result<(SelectionScore, Duration)> {
+    selection
+        .join()
+        .map_err(|_| anyhow::anyhow!("critic: the selection thread panicked"))?
+}
+
+/// The selection score of `best.safetensors` in `run_dir` if it was measured on `selector`'s
+/// episodes; an unreadable file is reported and ignored (it will be replaced).
+fn previous_best(run_dir: &Path, selector: &Selector) -> Option<SelectionScore> {
+    let path = run_dir.join(BEST_FILE_NAME);
+    if !path.is_file() {
+        return None;
+    }
+    match checkpoint::load(&path).and_then(|loaded| loaded.meta.selection(&path)) {
+        Ok(score) => score.filter(|score| selector.measured(score)),
+        Err(err) => {
+            eprintln!("critic: ignoring the best so far: {err:#}");
+            None
+        }
     }
 }
 

@@ -16,7 +16,7 @@ use crate::actor::ActorShape;
 pub const FORMAT: &str = "formation-rl/1";
 /// The file name inside a run directory.
 pub const FILE_NAME: &str = "checkpoint.safetensors";
-/// The best checkpoint (by rolling success rate) inside a run directory.
+/// The best checkpoint (by its selection score, [`SelectionScore`]) inside a run directory.
 pub const BEST_FILE_NAME: &str = "best.safetensors";
 
 /// Observation width of the files written before the metadata named their observation model.
@@ -111,6 +111,114 @@ impl CheckpointMeta {
             );
         }
         Ok(())
+    }
+}
+
+impl CheckpointMeta {
+    /// The selection score the file was saved with (files from before model selection have none).
+    pub fn selection(&self, path: &Path) -> Result<Option<SelectionScore>> {
+        SelectionScore::from_metadata(&self.extra)
+            .with_context(|| format!("checkpoint {}: selection metadata", path.display()))
+    }
+}
+
+/// How a checkpoint's weights did on the run's fixed selection episodes: noise-free, played with
+/// exactly the weights in the file, `episodes` per swarm size from `seed`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SelectionScore {
+    /// Seed of the episodes (a sim started with this `--seed` plays the same ones).
+    pub seed: u64,
+    /// Episodes per swarm size.
+    pub episodes: usize,
+    /// The figures of each swarm size.
+    pub sizes: Vec<SizeScore>,
+}
+
+/// The selection figures of one swarm size.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SizeScore {
+    /// Robots in the swarm.
+    pub n_agents: usize,
+    /// Fraction of the episodes that reached the goal in formation.
+    pub success: f64,
+    /// Fraction of the ticks in formation (C1), averaged over the episodes.
+    pub formation_held: f64,
+    /// Steps per episode (a time limit counts in full).
+    pub mean_steps: f64,
+}
+
+impl SelectionScore {
+    /// The score: the lowest success over the swarm sizes, since one model must serve every N
+    /// (a mean would let a size the actor forgot hide behind the others).
+    pub fn success(&self) -> f64 {
+        self.sizes.iter().map(|s| s.success).reduce(f64::min).unwrap_or(0.0)
+    }
+
+    /// A figure averaged over the swarm sizes.
+    pub fn mean(&self, figure: impl Fn(&SizeScore) -> f64) -> f64 {
+        self.sizes.iter().map(figure).sum::<f64>() / self.sizes.len().max(1) as f64
+    }
+
+    /// Whether this beats `best`: a higher score, or the same score and a higher mean success.
+    pub fn beats(&self, best: Option<&SelectionScore>) -> bool {
+        best.is_none_or(|best| (self.success(), self.mean(|s| s.success)) > (best.success(), best.mean(|s| s.success)))
+    }
+
+    /// Adds the `selection_*` metadata keys: the score, seed and episodes, the formation-held
+    /// rate and steps averaged over the sizes, and `selection_by_size`, each size's
+    /// `N:success:formation_held:mean_steps`, comma-separated.
+    pub fn to_metadata(&self, extra: &mut HashMap<String, String>) {
+        extra.insert("selection_success".into(), format!("{:.3}", self.success()));
+        extra.insert("selection_seed".into(), self.seed.to_string());
+        extra.insert("selection_episodes".into(), self.episodes.to_string());
+        extra.insert(
+            "selection_formation_held".into(),
+            format!("{:.3}", self.mean(|s| s.formation_held)),
+        );
+        extra.insert(
+            "selection_mean_steps".into(),
+            format!("{:.1}", self.mean(|s| s.mean_steps)),
+        );
+        // Shortest round-trip decimals: the score reads back exactly.
+        let by_size: Vec<String> = self
+            .sizes
+            .iter()
+            .map(|s| format!("{}:{}:{}:{}", s.n_agents, s.success, s.formation_held, s.mean_steps))
+            .collect();
+        extra.insert("selection_by_size".into(), by_size.join(","));
+    }
+
+    /// Reads the keys written by [`SelectionScore::to_metadata`]; `None` when there are none.
+    pub fn from_metadata(map: &HashMap<String, String>) -> Result<Option<Self>> {
+        let Some(by_size) = map.get("selection_by_size") else {
+            return Ok(None);
+        };
+        let field = |key: &str| map.get(key).with_context(|| format!("no {key}"));
+        Ok(Some(Self {
+            seed: field("selection_seed")?.parse().context("selection_seed")?,
+            episodes: field("selection_episodes")?.parse().context("selection_episodes")?,
+            sizes: by_size
+                .split(',')
+                .map(SizeScore::parse)
+                .collect::<Result<_>>()
+                .context("selection_by_size")?,
+        }))
+    }
+}
+
+impl SizeScore {
+    /// Reads `N:success:formation_held:mean_steps`.
+    fn parse(text: &str) -> Result<Self> {
+        let fields: Vec<&str> = text.split(':').collect();
+        let [n_agents, success, formation_held, mean_steps] = fields[..] else {
+            bail!("{text:?} is not N:success:formation_held:mean_steps");
+        };
+        Ok(Self {
+            n_agents: n_agents.parse()?,
+            success: success.parse()?,
+            formation_held: formation_held.parse()?,
+            mean_steps: mean_steps.parse()?,
+        })
     }
 }
 
@@ -235,6 +343,29 @@ mod tests {
     }
 
     #[test]
+    fn a_selection_score_beats_another_by_its_worst_size_then_its_mean() {
+        let score = |successes: &[f64]| SelectionScore {
+            seed: 1,
+            episodes: 10,
+            sizes: successes
+                .iter()
+                .enumerate()
+                .map(|(k, &success)| SizeScore {
+                    n_agents: 3 + k,
+                    success,
+                    formation_held: 1.0,
+                    mean_steps: 50.0,
+                })
+                .collect(),
+        };
+        assert_eq!(score(&[1.0, 0.6]).success(), 0.6);
+        assert!(score(&[0.1]).beats(None));
+        assert!(score(&[0.7, 0.7]).beats(Some(&score(&[1.0, 0.6]))));
+        assert!(score(&[0.8, 0.7]).beats(Some(&score(&[0.7, 0.7]))));
+        assert!(!score(&[0.7, 0.7]).beats(Some(&score(&[0.7, 0.7]))));
+    }
+
+    #[test]
     fn round_trip_and_bad_files() {
         let dir = temp_dir("rt");
         let shape = ActorShape {
@@ -254,7 +385,7 @@ mod tests {
                 )
             })
             .collect();
-        let meta = CheckpointMeta {
+        let mut meta = CheckpointMeta {
             n_agents: 3,
             observation: ObservationModel::Slot,
             n_actors: 1,
@@ -262,8 +393,34 @@ mod tests {
             extra: HashMap::new(),
         };
         let path = dir.join(FILE_NAME);
+        // A file without selection metadata (as written before model selection) loads.
+        save(&path, &tensors, &meta).expect("save");
+        assert_eq!(load(&path).expect("load").meta.selection(&path).expect("parse"), None);
+        let score = SelectionScore {
+            seed: 6_168_263,
+            episodes: 30,
+            sizes: vec![
+                SizeScore {
+                    n_agents: 3,
+                    success: 29.0 / 30.0,
+                    formation_held: 0.912_345,
+                    mean_steps: 61.3,
+                },
+                SizeScore {
+                    n_agents: 16,
+                    success: 0.9,
+                    formation_held: 0.8,
+                    mean_steps: 70.0,
+                },
+            ],
+        };
+        score.to_metadata(&mut meta.extra);
         save(&path, &tensors, &meta).expect("save");
         let loaded = load(&path).expect("load");
+        assert_eq!(loaded.meta.selection(&path).expect("parse"), Some(score.clone()));
+        assert_eq!(loaded.meta.extra["selection_success"], "0.900");
+        assert_eq!(loaded.meta.extra["selection_seed"], "6168263");
+        assert_eq!(loaded.meta.extra["selection_episodes"], "30");
         assert_eq!(loaded.meta.actor, shape);
         assert_eq!(loaded.meta.observation, ObservationModel::Slot);
         loaded

@@ -224,6 +224,10 @@ impl EnvConfig {
     }
 }
 
+/// Episode seed of the held-out evaluations (`scripts/eval_grid.sh`, the tables in the docs):
+/// model selection must not play these episodes.
+pub const HELD_OUT_SEED: u64 = 1000;
+
 /// From this many robots on, formations are compact rings (smaller swarms get freer shapes).
 pub const LARGE_SWARM: usize = 8;
 
@@ -338,6 +342,12 @@ pub struct LearnConfig {
     pub threads: usize,
     /// In train mode, every this many episodes is played without noise to measure the policy.
     pub eval_every_episodes: u32,
+    /// Seed of the model-selection episodes, scored at every checkpoint. Episode k of a run is
+    /// the k-th draw of a generator seeded with the run's `--seed`, so only an equal seed plays
+    /// the same episodes: the default (0x5E1EC7) is no training seed and not the held-out 1000.
+    pub selection_seed: u64,
+    /// Model-selection episodes per swarm size.
+    pub selection_episodes: usize,
 }
 
 impl Default for LearnConfig {
@@ -371,6 +381,8 @@ impl Default for LearnConfig {
             checkpoint_every_s: 120,
             threads: 1,
             eval_every_episodes: 10,
+            selection_seed: 0x5E1EC7,
+            selection_episodes: 50,
         }
     }
 }
@@ -666,6 +678,12 @@ impl LearnConfig {
             l.imitation_alpha,
             "must be >= 0 (0 = no teacher)",
         )?;
+        self.validate_bookkeeping()
+    }
+
+    /// Replay, weights streaming, threads, evaluation and model selection.
+    fn validate_bookkeeping(&self) -> Result<(), ConfigError> {
+        let l = self;
         check(
             l.replay_capacity >= 1000,
             "learn.replay_capacity",
@@ -689,6 +707,18 @@ impl LearnConfig {
             "learn.eval_every_episodes",
             l.eval_every_episodes,
             "must be >= 1",
+        )?;
+        check(
+            l.selection_seed != HELD_OUT_SEED,
+            "learn.selection_seed",
+            l.selection_seed,
+            "must not be the held-out evaluation seed (selecting on the test episodes)",
+        )?;
+        check(
+            (1..=10_000).contains(&l.selection_episodes),
+            "learn.selection_episodes",
+            l.selection_episodes,
+            "must be in 1..=10000",
         )?;
         Ok(())
     }
@@ -742,6 +772,8 @@ mod tests {
             ("[learn]\ngamma = 1.5\n", "learn.gamma"),
             ("[learn]\ncritic_encoder = []\n", "learn.critic_encoder"),
             ("[learn]\ncritic = \"attention\"\n", "critic"),
+            ("[learn]\nselection_seed = 1000\n", "learn.selection_seed"),
+            ("[learn]\nselection_episodes = 0\n", "learn.selection_episodes"),
         ] {
             let err = RunConfig::from_toml_str(text).expect_err(text);
             assert!(err.to_string().contains(field), "{err} should name {field}");

@@ -13,7 +13,7 @@ use std::sync::mpsc::SyncSender;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
-use formation_core::formation::{observed_edges, random_episode};
+use formation_core::formation::{Episodes, observed_edges};
 use formation_core::observation::Layout;
 use formation_core::task::{Conditions, Outcome, edge_error};
 use formation_core::world::World;
@@ -28,8 +28,6 @@ use formation_protocol::wire::*;
 use hdrhistogram::Histogram;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::prelude::*;
-use rand::SeedableRng;
-use rand::rngs::StdRng;
 
 use crate::commands::CommandRound;
 use crate::critic_link::{CriticLink, check_protocol};
@@ -142,19 +140,16 @@ where
         edge_names: sim.traced.iter().map(|&(i, _, j)| format!("e{i}{j}")).collect(),
         ..EpisodeTrace::default()
     };
-    let mut rng = StdRng::seed_from_u64(options.seed);
+    let episodes = Episodes::new(options.n_agents, &options.config.env, options.seed);
     let budget = options.minutes.map(|m| Duration::from_secs_f64(m * 60.0));
     let mut stop = Stop::Budget;
-    for episode in 0u32.. {
+    for (episode, init) in (0u32..).zip(episodes) {
         if options.episodes.is_some_and(|e| u64::from(episode) >= e)
             || budget.is_some_and(|b| sim.started.elapsed() >= b)
         {
             break;
         }
-        let world = World::new(
-            &options.config.env,
-            random_episode(options.n_agents, &options.config.env, &mut rng),
-        );
+        let world = World::new(&options.config.env, init);
         if let Some(stopped) = sim.play_episode(episode, world)? {
             stop = stopped;
             break;

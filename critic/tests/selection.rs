@@ -1,0 +1,103 @@
+//! Model selection: checkpoints scored on fixed noise-free episodes with exactly their weights.
+
+use std::path::PathBuf;
+
+use formation_critic::learner::Learner;
+use formation_critic::selection::Selector;
+use formation_model::checkpoint::{self, SelectionScore};
+use formation_protocol::config::{EnvConfig, LearnConfig};
+
+fn shipped_model() -> checkpoint::Checkpoint {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../models/formation.safetensors");
+    checkpoint::load(&path).expect("the shipped model")
+}
+
+fn score(checkpoint: &checkpoint::Checkpoint, selector: &Selector) -> SelectionScore {
+    let actors = [checkpoint.actor_weights(0).expect("weights")];
+    selector.score(&actors, &checkpoint.meta.actor).expect("score")
+}
+
+#[test]
+fn the_same_weights_and_seed_score_the_same() {
+    let (env, learn) = (EnvConfig::default(), LearnConfig::default());
+    let model = shipped_model();
+    let selector = Selector::new(
+        &env,
+        &LearnConfig {
+            selection_episodes: 20,
+            ..learn
+        },
+        &[3, 4],
+    );
+    let first = score(&model, &selector);
+    assert_eq!(first, score(&model, &selector));
+    assert_eq!(first.sizes.len(), 2);
+    assert_eq!(first.success(), first.sizes[0].success.min(first.sizes[1].success));
+}
+
+#[test]
+fn the_shipped_model_scores_high_and_a_fresh_actor_low() {
+    let (env, learn) = (EnvConfig::default(), LearnConfig::default());
+    let selector = Selector::new(&env, &learn, &[3]);
+    let shipped = score(&shipped_model(), &selector);
+    assert_eq!((shipped.seed, shipped.episodes), (learn.selection_seed, 50));
+    assert!(shipped.success() >= 0.9, "{shipped:?}");
+    let fresh = Learner::new(3, &env, &learn, 1).expect("learner");
+    let actors = [fresh.actor_weights(0).expect("weights")];
+    let untrained = selector.score(&actors, fresh.actor_shape()).expect("score");
+    assert!(
+        untrained.success() <= shipped.success() - 0.5,
+        "{untrained:?} vs {shipped:?}"
+    );
+}
+
+#[test]
+fn independent_actors_drive_only_their_own_swarm_size() {
+    let env = EnvConfig::default();
+    let learn = LearnConfig {
+        shared_actor: false,
+        selection_episodes: 3,
+        ..LearnConfig::default()
+    };
+    let learner = Learner::new(3, &env, &learn, 3).expect("learner");
+    let actors: Vec<Vec<f32>> = (0..3).map(|k| learner.actor_weights(k).expect("weights")).collect();
+    let three = Selector::new(&env, &learn, &[3]).score(&actors, learner.actor_shape());
+    assert_eq!(three.expect("one actor per robot").sizes[0].n_agents, 3);
+    let four = Selector::new(&env, &learn, &[4]).score(&actors, learner.actor_shape());
+    assert!(
+        four.expect_err("a robot without an actor")
+            .to_string()
+            .contains("3 independent actors")
+    );
+}
+
+#[test]
+fn the_score_travels_with_the_saved_weights() {
+    let (env, learn) = (EnvConfig::default(), LearnConfig::default());
+    let learner = Learner::new(3, &env, &learn, 2).expect("learner");
+    let selector = Selector::new(
+        &env,
+        &LearnConfig {
+            selection_episodes: 5,
+            ..learn
+        },
+        &[3],
+    );
+    let actors = [learner.actor_weights(0).expect("weights")];
+    let scored = selector.score(&actors, learner.actor_shape()).expect("score");
+    assert!(selector.measured(&scored));
+    let mut extra = std::collections::HashMap::new();
+    scored.to_metadata(&mut extra);
+    let dir = std::env::temp_dir().join(format!("formation-selection-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("dir");
+    let path = dir.join(checkpoint::BEST_FILE_NAME);
+    learner.save(&path, extra).expect("save");
+    let loaded = checkpoint::load(&path).expect("load");
+    assert_eq!(loaded.meta.selection(&path).expect("parse"), Some(scored.clone()));
+    // The file's weights score what its metadata says.
+    let again = selector
+        .score(&[loaded.actor_weights(0).expect("weights")], &loaded.meta.actor)
+        .expect("score");
+    assert_eq!(again, scored);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
