@@ -82,9 +82,7 @@ pub fn apply(placement: Placement, role: Role) -> Result<Option<Vec<usize>>> {
     if placement == Placement::Off {
         return Ok(None);
     }
-    if let Role::Agent { .. } = role
-        && std::env::var("FORMATION_BATCH").map_or(true, |v| v != "off")
-    {
+    if let Role::Agent { .. } = role {
         wait_for_the_waker();
     }
     let Some(cpus) = plan(process_cpus()?, role) else {
