@@ -26,6 +26,9 @@ use crate::wire::{CommandMsg, CriticProgressMsg, ObservationMsg, StateMsg, Weigh
 /// observers such as a viewer (or a Python `Observer`).
 pub const SPARE_PORTS: usize = 4;
 
+/// Where POSIX shared memory lives: iceoryx2's segments and the tick gate.
+pub const SHM_DIR: &str = "/dev/shm";
+
 /// The run's iceoryx2 configuration, in its run directory.
 pub const ICEORYX_CONFIG_FILE: &str = "iceoryx2.toml";
 
@@ -89,7 +92,7 @@ impl RunIdentity {
     pub fn remove_leftovers(&self) -> usize {
         let prefix = self.shm_prefix();
         let mut removed = 0;
-        if let Ok(entries) = std::fs::read_dir("/dev/shm") {
+        if let Ok(entries) = std::fs::read_dir(SHM_DIR) {
             for entry in entries.flatten() {
                 if entry.file_name().to_string_lossy().starts_with(&prefix)
                     && std::fs::remove_file(entry.path()).is_ok()

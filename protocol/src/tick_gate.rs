@@ -25,13 +25,15 @@ use anyhow::{Context, Result, bail};
 use memmap2::MmapMut;
 
 use crate::MAX_AGENTS;
-use crate::services::RunIdentity;
+use crate::services::{RunIdentity, SHM_DIR};
 
 /// Event id with which the last robot of a tick wakes the sim: every answer is in, read them all.
 pub const ALL_ANSWERED_EVENT_ID: usize = MAX_AGENTS;
 
-/// Identifies a gate file of this layout.
+/// Identifies a gate file.
 const MAGIC: u32 = 0x6761_7465;
+/// The layout below; a gate of another layout is not attached to.
+const LAYOUT_VERSION: u32 = 1;
 /// Bytes: magic, layout version, the round word, one session per robot.
 const SIZE: usize = 16 + 4 * MAX_AGENTS;
 const ROUND_OFFSET: usize = 8;
@@ -69,7 +71,7 @@ pub enum Answer {
 impl TickGate {
     /// Where the gate of `identity`'s run lives.
     pub fn path(identity: &RunIdentity) -> PathBuf {
-        PathBuf::from("/dev/shm").join(format!("{}tick_gate", identity.shm_prefix()))
+        PathBuf::from(SHM_DIR).join(format!("{}tick_gate", identity.shm_prefix()))
     }
 
     /// The sim's gate, new and empty (a gate left by an earlier process of the run is replaced).
@@ -89,7 +91,7 @@ impl TickGate {
             owned: Some(path),
         };
         gate.word(ROUND_OFFSET).store(0, Ordering::Release);
-        gate.header(4).store(1, Ordering::Release);
+        gate.header(4).store(LAYOUT_VERSION, Ordering::Release);
         gate.header(0).store(MAGIC, Ordering::Release);
         Ok(gate)
     }
@@ -110,7 +112,10 @@ impl TickGate {
             map: Self::map(&file, &path)?,
             owned: None,
         };
-        if gate.header(0).load(Ordering::Acquire) != MAGIC || agent >= MAX_AGENTS {
+        if gate.header(0).load(Ordering::Acquire) != MAGIC
+            || gate.header(4).load(Ordering::Acquire) != LAYOUT_VERSION
+            || agent >= MAX_AGENTS
+        {
             return Ok(None);
         }
         gate.member(agent).store(session, Ordering::Release);
