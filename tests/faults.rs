@@ -5,7 +5,9 @@ use std::path::Path;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use formation_swarm::{assert_clean, bin_dir, processes_of_run, repo_root, run_swarm, run_swarm_with, scratch_dir};
+use formation_swarm::{
+    assert_clean, bin_dir, processes_of_run, repo_root, run_swarm, run_swarm_with, scratch_dir, shm_leftovers,
+};
 
 /// Waits until the launcher `pid` has announced its run id in `log`, then returns it.
 fn run_id_of(log: &Path) -> String {
@@ -114,6 +116,61 @@ fn a_stalled_sim_is_waited_for_not_given_up() {
     assert!(critic_log.contains("but its process is alive"), "{critic_log}");
     let summary = run.summary().expect("summary");
     assert_eq!(summary["episodes"], serde_json::json!(1500), "{summary}");
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn a_launcher_killed_outright_takes_every_member_with_it() {
+    // SIGKILL to the launcher alone (its members run in their own process groups): the
+    // kernel ends each member with it, so no robot, sim or critic outlives its run, and the
+    // next launcher removes what the dead one could not.
+    let (run, dir) = long_eval_hurt_by("kill-launcher", |run_id, launcher| {
+        assert!(!processes_of_run(run_id).is_empty(), "the run is under way");
+        kill(launcher, libc::SIGKILL);
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while !processes_of_run(run_id).is_empty() {
+            assert!(
+                Instant::now() < deadline,
+                "members outlived their launcher: {:?}",
+                processes_of_run(run_id)
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        // Nobody was left to clean up; the next launcher sweeps the run of a dead launcher.
+        assert!(
+            !shm_leftovers(run_id).is_empty(),
+            "the killed run's shared memory is there"
+        );
+        let next_dir = scratch_dir("after-kill-launcher");
+        let next = run_swarm(
+            &[
+                "3",
+                "--scripted",
+                "all",
+                "--mode",
+                "eval",
+                "--episodes",
+                "1",
+                "--viewer",
+                "off",
+            ],
+            &next_dir.join("run"),
+            Duration::from_secs(120),
+        )
+        .expect("launch the next run");
+        assert_eq!(next.status, Some(0), "{}", next.output);
+        assert!(
+            next.output
+                .contains(&format!("files of run {run_id}, whose launcher is gone")),
+            "{}",
+            next.output
+        );
+        assert!(shm_leftovers(run_id).is_empty(), "{:?}", shm_leftovers(run_id));
+        assert_clean(&next);
+        std::fs::remove_dir_all(&next_dir).expect("cleanup");
+    });
+    assert_eq!(run.status, None, "the launcher was killed:\n{}", run.output);
     assert_clean(&run);
     std::fs::remove_dir_all(&dir).expect("cleanup");
 }

@@ -262,7 +262,7 @@ fn bad_input_is_refused_before_anything_starts() {
     for (args, needle) in [
         (vec!["2"], "between 3 and 64"),
         (vec!["65"], "between 3 and 64"),
-        (vec!["3", "--bogus"], "unknown flag"),
+        (vec!["3", "--bogus"], "unexpected argument '--bogus'"),
         (vec!["3", "--mode", "fly"], "--mode"),
         (vec!["3", "--scripted", "0,7"], "robot 7 does not exist"),
         (vec!["3", "--shape", "blob"], "--shape"),

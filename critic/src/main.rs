@@ -8,11 +8,11 @@ use anyhow::{Context, Result, bail};
 use clap::Parser;
 use formation_critic::run::{CriticOptions, run};
 use formation_model::checkpoint;
+use formation_protocol::cli::ViewerMode;
 use formation_protocol::cli::{Mode, RunArgs, prepare_run_dir};
 use formation_protocol::config::{CriticArchitecture, validate_agent_count};
 use formation_protocol::placement::Role;
 use formation_protocol::services::RunIdentity;
-use formation_view::ViewerMode;
 use iceoryx2::prelude::*;
 
 /// Subscribes to the sim's state and every agent's observations and commands, assembles them

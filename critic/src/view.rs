@@ -4,7 +4,7 @@
 use std::path::Path;
 
 use anyhow::Result;
-use formation_view::ViewerMode;
+use formation_protocol::cli::ViewerMode;
 use rerun::RecordingStream;
 
 /// Training curves of one run.
@@ -15,7 +15,7 @@ pub struct CurveView {
 impl CurveView {
     /// Joins the run's recording (`training.rrd` in save mode); `None` when the viewer is off.
     pub fn open(mode: &ViewerMode, run_id: &str, run_dir: &Path) -> Result<Option<Self>> {
-        let Some(stream) = mode.open(run_id, run_dir, "training", false)? else {
+        let Some(stream) = formation_view::open_recording(mode, run_id, run_dir, "training", false)? else {
             return Ok(None);
         };
         for (path, name, colour) in [

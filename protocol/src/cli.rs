@@ -2,7 +2,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 
 use crate::config::{FormationShape, RunConfig, validate_agent_count};
@@ -27,6 +27,78 @@ impl Mode {
             Mode::Eval => "eval",
         }
     }
+}
+
+/// Where the run's Rerun recording goes (`--viewer` of the sim, the critic and the launcher).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum ViewerMode {
+    /// Start the `rerun` viewer from PATH and stream to it.
+    Spawn,
+    /// Write `<stem>.rrd` into the run directory.
+    Save,
+    /// No recording.
+    Off,
+    /// Stream to a running viewer at this URL.
+    Connect(String),
+}
+
+impl ViewerMode {
+    /// Parses `spawn`, `save`, `off` or `connect=URL`.
+    pub fn parse(text: &str) -> Result<Self> {
+        Ok(match text {
+            "spawn" => Self::Spawn,
+            "save" => Self::Save,
+            "off" => Self::Off,
+            other => match other.strip_prefix("connect=") {
+                Some(url) if !url.is_empty() => Self::Connect(url.to_string()),
+                _ => bail!("--viewer must be spawn, save, off or connect=URL, got {other:?}"),
+            },
+        })
+    }
+
+    /// The flag's spelling, as [`ViewerMode::parse`] reads it.
+    pub fn as_arg(&self) -> String {
+        match self {
+            Self::Spawn => "spawn".into(),
+            Self::Save => "save".into(),
+            Self::Off => "off".into(),
+            Self::Connect(url) => format!("connect={url}"),
+        }
+    }
+}
+
+/// Robots named by a flag such as `--scripted` or `--external`: empty or `none`, `all`, or
+/// indices like `0,2`. Returns them sorted; `flag` names the flag in errors.
+pub fn parse_robot_set(flag: &str, text: &str, n_agents: usize) -> Result<Vec<usize>> {
+    let robots: Vec<usize> = match text.trim() {
+        "" | "none" => return Ok(Vec::new()),
+        "all" => return Ok((0..n_agents).collect()),
+        list => list
+            .split(',')
+            .map(|part| {
+                part.trim()
+                    .parse()
+                    .map_err(|_| anyhow::anyhow!("{flag} takes 'all' or indices like 0,2; got {text:?}"))
+            })
+            .collect::<Result<_>>()?,
+    };
+    let mut sorted = Vec::with_capacity(robots.len());
+    for robot in robots {
+        if robot >= n_agents {
+            bail!("{flag}: robot {robot} does not exist (robots are 0..{})", n_agents - 1);
+        }
+        if sorted.contains(&robot) {
+            bail!("{flag}: robot {robot} is named twice");
+        }
+        sorted.push(robot);
+    }
+    sorted.sort_unstable();
+    Ok(sorted)
+}
+
+/// The spelling of a robot set for a flag: `0,2` (empty for none).
+pub fn robot_set_arg(robots: &[usize]) -> String {
+    robots.iter().map(usize::to_string).collect::<Vec<_>>().join(",")
 }
 
 /// Flags shared by sim, agent and critic.
@@ -97,4 +169,40 @@ pub fn write_atomically(path: &Path, contents: &[u8]) -> Result<()> {
     let tmp = path.with_extension("tmp");
     std::fs::write(&tmp, contents).with_context(|| format!("cannot write {}", tmp.display()))?;
     std::fs::rename(&tmp, path).with_context(|| format!("cannot rename {} to {}", tmp.display(), path.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn robot_sets_read_all_none_and_lists_and_refuse_strangers() {
+        assert_eq!(
+            parse_robot_set("--scripted", "", 3).expect("empty"),
+            Vec::<usize>::new()
+        );
+        assert_eq!(parse_robot_set("--scripted", "all", 3).expect("all"), vec![0, 1, 2]);
+        assert_eq!(parse_robot_set("--scripted", "2, 0", 3).expect("list"), vec![0, 2]);
+        let stranger = parse_robot_set("--external", "0,3", 3).expect_err("robot 3");
+        assert!(
+            stranger
+                .to_string()
+                .contains("robot 3 does not exist (robots are 0..2)"),
+            "{stranger}"
+        );
+        let twice = parse_robot_set("--external", "1,1", 3).expect_err("twice");
+        assert!(twice.to_string().contains("named twice"), "{twice}");
+        let word = parse_robot_set("--external", "x", 3).expect_err("word");
+        assert!(word.to_string().contains("--external takes 'all' or indices"), "{word}");
+        assert_eq!(robot_set_arg(&[0, 2]), "0,2");
+    }
+
+    #[test]
+    fn viewer_modes_round_trip_through_their_flag() {
+        for text in ["spawn", "save", "off", "connect=rerun+http://127.0.0.1:9876/proxy"] {
+            assert_eq!(ViewerMode::parse(text).expect(text).as_arg(), text);
+        }
+        assert!(ViewerMode::parse("connect=").is_err());
+        assert!(ViewerMode::parse("window").is_err());
+    }
 }

@@ -4,11 +4,10 @@ use std::process::ExitCode;
 
 use anyhow::Result;
 use clap::Parser;
-use formation_protocol::cli::{Mode, RunArgs, prepare_run_dir};
+use formation_protocol::cli::{Mode, RunArgs, ViewerMode, parse_robot_set, prepare_run_dir};
 use formation_protocol::placement::Role;
 use formation_sim::lockstep::{SimOptions, run};
 use formation_sim::view;
-use formation_view::ViewerMode;
 use iceoryx2::prelude::*;
 
 /// Steps the unicycle physics, scores the paper's reward and drives N agent processes in
@@ -46,28 +45,6 @@ struct Cli {
     check_config: bool,
 }
 
-/// A robot list flag (`flag` names it in errors): empty or `none`, `all`, or `0,2`.
-fn parse_agents(flag: &str, text: &str, n_agents: usize) -> Result<Vec<usize>> {
-    match text.trim() {
-        "" | "none" => Ok(Vec::new()),
-        "all" => Ok((0..n_agents).collect()),
-        list => list
-            .split(',')
-            .map(|part| {
-                let agent: usize = part
-                    .trim()
-                    .parse()
-                    .map_err(|_| anyhow::anyhow!("{flag}: {part:?} is not an agent index"))?;
-                anyhow::ensure!(
-                    agent < n_agents,
-                    "{flag}: agent {agent} does not exist (robots are 0..{n_agents})"
-                );
-                Ok(agent)
-            })
-            .collect(),
-    }
-}
-
 fn main() -> ExitCode {
     let cli = Cli::parse();
     match try_main(cli) {
@@ -81,8 +58,8 @@ fn main() -> ExitCode {
 
 fn try_main(cli: Cli) -> Result<()> {
     let (identity, config) = cli.run.load()?;
-    let scripted = parse_agents("--scripted", &cli.scripted, cli.run.agents)?;
-    let external = parse_agents("--external", &cli.external, cli.run.agents)?;
+    let scripted = parse_robot_set("--scripted", &cli.scripted, cli.run.agents)?;
+    let external = parse_robot_set("--external", &cli.external, cli.run.agents)?;
     if let Some(minutes) = cli.minutes {
         anyhow::ensure!(
             minutes.is_finite() && minutes > 0.0,

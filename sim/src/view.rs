@@ -13,10 +13,10 @@ use std::sync::mpsc::{Receiver, sync_channel};
 use std::thread::JoinHandle;
 
 use anyhow::{Context, Result};
+use formation_protocol::cli::ViewerMode;
 use formation_protocol::config::EnvConfig;
 use formation_protocol::neighbours;
 use formation_protocol::wire::{FLAG_EPISODE_START, StateMsg};
-use formation_view::ViewerMode;
 use rerun::RecordingStream;
 use rerun::blueprint::{Blueprint, Horizontal, Spatial2DView, TimeSeriesView, Vertical};
 
@@ -84,7 +84,7 @@ pub fn start(
     n_agents: usize,
     trail_ticks: usize,
 ) -> Result<Option<(StateTap, JoinHandle<()>)>> {
-    let Some(stream) = mode.open(run_id, run_dir, "recording", true)? else {
+    let Some(stream) = formation_view::open_recording(mode, run_id, run_dir, "recording", true)? else {
         return Ok(None);
     };
     blueprint().send(

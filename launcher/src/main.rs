@@ -1,0 +1,158 @@
+//! `formation`: starts one formation-control run (the sim, one process per robot, the central
+//! critic, and any extra swarms), supervises it and cleans up after it. `scripts/run_swarm.sh`
+//! builds the binaries and runs this with the same flags.
+
+mod plan;
+mod supervise;
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::error::ErrorKind;
+use clap::{CommandFactory, Parser, ValueEnum};
+use formation_protocol::cli::{Mode, ViewerMode};
+use formation_protocol::config::{FormationShape, validate_agent_count};
+use formation_protocol::placement::Placement;
+
+use crate::plan::Plan;
+
+const EXAMPLES: &str = "\
+Before any process starts, the run directory gets run.json (run id, N, shared-memory prefix,
+iceoryx2 root path, protocol version, observation model and size, the service sizing inputs and
+the robot limits): an external client needs only the run directory.
+
+Environment: FORMATION_BIN_DIR=DIR runs the sim, agent and critic binaries from DIR (default:
+beside this launcher).
+
+Examples:
+  scripts/run_swarm.sh 3 --scripted all --mode eval --episodes 50 --seed 1 --viewer off
+  scripts/run_swarm.sh 3 --minutes 20
+  scripts/run_swarm.sh 6 --mode eval --checkpoint runs/my-training
+  scripts/run_swarm.sh 3 --mode eval --scripted 0,1 --external 2 --run-dir runs/py
+  scripts/run_swarm.sh 4 --extra-swarms 3,8,16 --config configs/any-n.toml --minutes 30";
+
+/// Starts the physics process, N robot processes and the central critic, lockstep over
+/// iceoryx2 shared memory, and leaves results in a run directory. Ctrl-C ends the run cleanly:
+/// the sim closes the episode and tells every process.
+#[derive(Debug, Parser)]
+#[command(name = "formation", version, after_help = EXAMPLES)]
+pub struct LaunchArgs {
+    /// Robots in the swarm, 3 to 64.
+    #[arg(value_name = "N", value_parser = swarm_size)]
+    pub n: usize,
+    /// train: explore and learn; eval: act without noise and record.
+    #[arg(long, value_enum, default_value_t = Mode::Train)]
+    pub mode: Mode,
+    /// Stop after E episodes (eval default: 100).
+    #[arg(long, value_name = "E", value_parser = clap::value_parser!(u64).range(1..))]
+    pub episodes: Option<u64>,
+    /// Stop after M minutes of wall clock (train default: 30).
+    #[arg(long, value_name = "M", value_parser = positive_minutes)]
+    pub minutes: Option<f64>,
+    /// Robots that run the scripted baseline instead of the learned actor: all, or i,j,...
+    #[arg(long, value_name = "all|i,j")]
+    pub scripted: Option<String>,
+    /// Robots this launcher does not start: you attach them yourself, e.g. from Python
+    /// (pip install ./python; python3 -m formation_swarm robot RUN_DIR i); the sim waits
+    /// ticks.startup_timeout_s (60 s) for them to greet. See README.md, "From Python".
+    #[arg(long, value_name = "all|i,j")]
+    pub external: Option<String>,
+    /// Checkpoint file or run directory: eval loads it into the agents, train resumes the critic
+    /// from it (eval default: the shipped model models/formation.safetensors, one model for any N).
+    #[arg(long, value_name = "PATH")]
+    pub checkpoint: Option<PathBuf>,
+    /// Seed of episodes, noise and networks.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Where results go (default runs/<timestamp>).
+    #[arg(long, value_name = "DIR")]
+    pub run_dir: Option<PathBuf>,
+    /// spawn | save | off | connect=URL (default: spawn when a `rerun` viewer and a display are
+    /// present, else save).
+    #[arg(long, value_name = "MODE", value_parser = ViewerMode::parse)]
+    pub viewer: Option<ViewerMode>,
+    /// Pace ticks at dt of wall-clock time instead of as fast as possible.
+    #[arg(long)]
+    pub realtime: bool,
+    /// TOML overrides of the defaults (see config.toml in any run directory).
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
+    /// Formation of every episode (default: the config's env.shape, random): every observed
+    /// edge 0.8-2.0 m, any N; mixed draws a kind per episode.
+    #[arg(long, value_enum)]
+    pub shape: Option<FormationShape>,
+    /// auto: the sim's tick thread and the robots share the last CPU this process may use, the
+    /// critic and the view get the others (ticks are 2-4x faster than letting the OS place
+    /// them); 24 robots or more split into groups of at least 12 per CPU. off: the OS places
+    /// every process.
+    #[arg(long, value_enum, default_value_t = Placement::Auto)]
+    pub placement: Placement,
+    /// Train mode: besides the N-robot swarm, one swarm of each of these sizes (its own sim and
+    /// robots, all learned, results in RUN_DIR/swarm-K-nNK), every one feeding this run's one
+    /// critic, so one actor learns all the sizes at once; needs learn.critic = "pooled"
+    /// (configs/any-n.toml).
+    #[arg(long, value_name = "N1,N2", value_delimiter = ',', value_parser = extra_swarm_size)]
+    pub extra_swarms: Vec<usize>,
+    /// Restart an agent or the critic that dies mid-run (a restarted agent rejoins at once with
+    /// the latest weights, a restarted critic resumes from the run's last checkpoint).
+    #[arg(long, value_enum, default_value_t = Switch::On)]
+    pub restart: Switch,
+}
+
+/// An on/off flag value.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Switch {
+    /// Enabled.
+    On,
+    /// Disabled.
+    Off,
+}
+
+fn swarm_size(text: &str) -> Result<usize, String> {
+    let n: usize = text
+        .parse()
+        .map_err(|_| format!("N must be a whole number, got {text:?}"))?;
+    validate_agent_count(n)
+        .map_err(|_| format!("N must be between 3 and 64 (each robot observes two distinct neighbours), got {n}"))?;
+    Ok(n)
+}
+
+fn extra_swarm_size(text: &str) -> Result<usize, String> {
+    text.parse()
+        .ok()
+        .filter(|n| validate_agent_count(*n).is_ok())
+        .ok_or_else(|| format!("--extra-swarms takes sizes 3 to 64 like 3,8; got {text:?}"))
+}
+
+fn positive_minutes(text: &str) -> Result<f64, String> {
+    text.parse::<f64>()
+        .ok()
+        .filter(|m| m.is_finite() && *m > 0.0)
+        .ok_or_else(|| format!("--minutes must be a positive number, got {text:?}"))
+}
+
+fn main() -> ExitCode {
+    let args = LaunchArgs::parse();
+    let plan = match Plan::new(args) {
+        Ok(plan) => plan,
+        Err(refusal) => {
+            // Named as invoked (scripts/run_swarm.sh execs this as `run_swarm.sh`), like clap's own errors.
+            let invoked = std::env::args_os().next().map(PathBuf::from);
+            let name = invoked
+                .as_deref()
+                .and_then(|path| path.file_name())
+                .map_or("formation".into(), |name| name.to_string_lossy().into_owned());
+            LaunchArgs::command()
+                .bin_name(name)
+                .error(ErrorKind::ValueValidation, format!("{refusal:#}"))
+                .exit()
+        }
+    };
+    match supervise::launch(&plan) {
+        Ok(code) => ExitCode::from(code),
+        Err(err) => {
+            eprintln!("run_swarm.sh: error: {err:#}");
+            ExitCode::from(1)
+        }
+    }
+}

@@ -1,0 +1,615 @@
+//! What a run is, declared once: its swarms, its process set, each member's restart policy and
+//! the flags each member starts with. `supervise` runs a plan and decides nothing of this.
+
+use std::ffi::OsString;
+use std::path::{Path, PathBuf};
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use anyhow::{Context, Result, bail, ensure};
+use clap::ValueEnum;
+use formation_core::observation::Layout;
+use formation_protocol::cli::{Mode, ViewerMode, parse_robot_set, robot_set_arg};
+use formation_protocol::config::{FormationShape, RunConfig};
+use formation_protocol::placement::Placement;
+use formation_protocol::services::{ICEORYX_CONFIG_FILE, RunIdentity};
+use formation_protocol::wire::PROTOCOL_VERSION;
+
+use crate::{LaunchArgs, Switch};
+
+/// At most this many extra swarms feed one critic.
+const MAX_EXTRA_SWARMS: usize = 8;
+
+/// One swarm of the run: a sim and its robots under their own run id (own shared memory).
+#[derive(Debug)]
+pub struct Swarm {
+    /// Robots.
+    pub n: usize,
+    /// Its run id, shared-memory prefix and iceoryx2 root path.
+    pub identity: RunIdentity,
+    /// Where its results go.
+    pub run_dir: PathBuf,
+    /// Seed of its episodes, noise and networks.
+    pub seed: u64,
+    /// Robots that run the scripted baseline.
+    pub scripted: Vec<usize>,
+    /// Robots started by someone else (not members of the process set).
+    pub external: Vec<usize>,
+}
+
+/// One process of the run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Member {
+    /// The central critic (one for every swarm).
+    Critic,
+    /// The physics process of swarm `swarm` (0 is the primary swarm).
+    Sim {
+        /// Index into [`Plan::swarms`].
+        swarm: usize,
+    },
+    /// Robot `index` of swarm `swarm`.
+    Robot {
+        /// Index into [`Plan::swarms`].
+        swarm: usize,
+        /// The robot.
+        index: usize,
+    },
+}
+
+/// What the launcher does when a member exits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Restart {
+    /// Its exit ends the run (the primary sim: it tells everyone else).
+    EndsTheRun,
+    /// Left ended (an extra swarm's sim, or any member under `--restart off`).
+    Never,
+    /// Started again at once after a failure; a robot rejoins with the latest weights.
+    OnFailure,
+    /// Started again after a failure from the run's last checkpoint; three deaths in a row
+    /// within seconds of their start stop the run instead.
+    OnFailureResuming,
+}
+
+/// A validated run.
+#[derive(Debug)]
+pub struct Plan {
+    /// train or eval.
+    pub mode: Mode,
+    /// Stop after this many episodes.
+    pub episodes: Option<u64>,
+    /// Stop after this many minutes.
+    pub minutes: Option<f64>,
+    /// Eval: the agents' weights; train: the critic's resume point.
+    pub checkpoint: Option<PathBuf>,
+    /// Where the recording goes.
+    pub viewer: ViewerMode,
+    /// Ticks paced at dt of wall-clock time.
+    pub realtime: bool,
+    /// The `--config` file, passed on to every member.
+    pub config_path: Option<PathBuf>,
+    /// The `--shape` override, passed on to every member.
+    pub shape: Option<FormationShape>,
+    /// CPU placement of every member.
+    pub placement: Placement,
+    /// Whether failed members are restarted.
+    pub restart: bool,
+    /// The configuration every member reads (defaults, the file, the shape).
+    pub config: RunConfig,
+    /// The primary swarm first, then the extra swarms.
+    pub swarms: Vec<Swarm>,
+}
+
+impl Plan {
+    /// Checks every flag and the configuration; nothing is created yet.
+    pub fn new(args: LaunchArgs) -> Result<Self> {
+        let n = args.n;
+        let external_flag = args.external.as_deref().unwrap_or("");
+        let external = parse_robot_set("--external", external_flag, n)?;
+        ensure!(
+            external_flag.trim().is_empty() || !external.is_empty(),
+            "--external takes 'all' or indices like 0,2; got {external_flag:?}"
+        );
+        let scripted_flag = args.scripted.as_deref().unwrap_or("");
+        let mut scripted = parse_robot_set("--scripted", scripted_flag, n)?;
+        if scripted_flag.trim() == "all" {
+            // `--scripted all --external 2`: every robot this launcher starts is scripted.
+            scripted.retain(|robot| !external.contains(robot));
+        } else if let Some(both) = scripted.iter().find(|robot| external.contains(robot)) {
+            bail!("robot {both} cannot be both --scripted and --external");
+        }
+        if !args.extra_swarms.is_empty() {
+            ensure!(
+                args.mode == Mode::Train,
+                "--extra-swarms is for training; evaluate each size on its own"
+            );
+            ensure!(
+                args.extra_swarms.len() <= MAX_EXTRA_SWARMS,
+                "--extra-swarms: at most {MAX_EXTRA_SWARMS} extra swarms"
+            );
+        }
+        if let Some(path) = &args.config {
+            ensure!(path.is_file(), "--config file {} does not exist", path.display());
+        }
+        if let Some(path) = &args.checkpoint {
+            ensure!(path.exists(), "--checkpoint {} does not exist", path.display());
+        }
+        let mut config = match &args.config {
+            Some(path) => RunConfig::from_toml_file(path)?,
+            None => RunConfig::default(),
+        };
+        if let Some(shape) = args.shape {
+            config.env.shape = shape;
+        }
+        let learned = n - scripted.len() - external.len();
+        let checkpoint = match (&args.checkpoint, args.mode) {
+            (None, Mode::Eval) if learned > 0 => Some(shipped_model()?),
+            (given, _) => given.clone(),
+        };
+        let run_dir = args.run_dir.clone().unwrap_or_else(default_run_dir);
+        let run_id = new_run_id();
+        let mut swarms = vec![Swarm {
+            n,
+            identity: RunIdentity::new(&run_id)?,
+            run_dir: run_dir.clone(),
+            seed: args.seed,
+            scripted,
+            external,
+        }];
+        for (k, &size) in (1..).zip(&args.extra_swarms) {
+            swarms.push(Swarm {
+                n: size,
+                identity: RunIdentity::new(&format!("{run_id}x{k}"))?,
+                run_dir: run_dir.join(format!("swarm-{k}-n{size}")),
+                seed: args.seed.wrapping_add(7919 * k as u64),
+                scripted: Vec::new(),
+                external: Vec::new(),
+            });
+        }
+        Ok(Self {
+            mode: args.mode,
+            episodes: args.episodes,
+            minutes: args.minutes,
+            checkpoint,
+            viewer: args.viewer.unwrap_or_else(default_viewer),
+            realtime: args.realtime,
+            config_path: args.config,
+            shape: args.shape,
+            placement: args.placement,
+            restart: args.restart == Switch::On,
+            config,
+            swarms,
+        })
+    }
+
+    /// The primary swarm.
+    pub fn primary(&self) -> &Swarm {
+        &self.swarms[0]
+    }
+
+    /// The process set, in the order it starts: the critic, then each extra swarm's robots and
+    /// sim, then the primary swarm's robots and last its sim (which starts the first tick).
+    pub fn members(&self) -> Vec<Member> {
+        let mut members = vec![Member::Critic];
+        let robots = |swarm: usize| {
+            let external = &self.swarms[swarm].external;
+            (0..self.swarms[swarm].n)
+                .filter(move |index| !external.contains(index))
+                .map(move |index| Member::Robot { swarm, index })
+        };
+        for swarm in 1..self.swarms.len() {
+            members.extend(robots(swarm));
+            members.push(Member::Sim { swarm });
+        }
+        members.extend(robots(0));
+        members.push(Member::Sim { swarm: 0 });
+        members
+    }
+
+    /// The restart policy of every member, in one place.
+    pub fn restart_policy(&self, member: Member) -> Restart {
+        match member {
+            Member::Sim { swarm: 0 } => Restart::EndsTheRun,
+            _ if !self.restart => Restart::Never,
+            Member::Sim { .. } => Restart::Never,
+            Member::Robot { .. } => Restart::OnFailure,
+            Member::Critic => Restart::OnFailureResuming,
+        }
+    }
+
+    /// The binary a member runs.
+    pub fn program(member: Member) -> &'static str {
+        match member {
+            Member::Critic => "formation-critic",
+            Member::Sim { .. } => "formation-sim",
+            Member::Robot { .. } => "formation-agent",
+        }
+    }
+
+    /// The member's log file.
+    pub fn log_path(&self, member: Member) -> PathBuf {
+        match member {
+            Member::Critic => self.primary().run_dir.join("logs/critic.log"),
+            Member::Sim { swarm } => self.swarms[swarm].run_dir.join("logs/sim.log"),
+            Member::Robot { swarm, index } => self.swarms[swarm].run_dir.join(format!("logs/agent-{index}.log")),
+        }
+    }
+
+    /// A member's name in messages ("agent 2", "extra swarm 1: agent 0", "the critic").
+    pub fn name(&self, member: Member) -> String {
+        let swarm_name = |swarm: usize| match swarm {
+            0 => String::new(),
+            k => format!("extra swarm {k}: "),
+        };
+        match member {
+            Member::Critic => "the critic".into(),
+            Member::Sim { swarm } => format!("{}the sim", swarm_name(swarm)),
+            Member::Robot { swarm, index } => format!("{}agent {index}", swarm_name(swarm)),
+        }
+    }
+
+    /// Whether robot `index` of swarm `swarm` runs the learned actor (if this launcher starts it).
+    fn learned(&self, swarm: usize, index: usize) -> bool {
+        !self.swarms[swarm].scripted.contains(&index)
+    }
+
+    /// Flags every member of swarm `swarm` takes.
+    fn common_args(&self, swarm: usize) -> Vec<OsString> {
+        let s = &self.swarms[swarm];
+        let mut args: Vec<OsString> = vec![
+            "--agents".into(),
+            s.n.to_string().into(),
+            "--run-id".into(),
+            s.identity.run_id.clone().into(),
+            "--run-dir".into(),
+            s.run_dir.clone().into(),
+            "--seed".into(),
+            s.seed.to_string().into(),
+            "--mode".into(),
+            self.mode.as_str().into(),
+            "--placement".into(),
+            value_name(self.placement).into(),
+        ];
+        if let Some(path) = &self.config_path {
+            args.extend(["--config".into(), path.clone().into()]);
+        }
+        if let Some(shape) = self.shape {
+            args.extend(["--shape".into(), shape.as_str().into()]);
+        }
+        args
+    }
+
+    /// The flags `member` starts with. The critic's depend on the start: `resume` is the
+    /// checkpoint it resumes from (train), `minutes_left` the time its display counts down.
+    pub fn args(&self, member: Member, resume: Option<&Path>, minutes_left: Option<f64>) -> Vec<OsString> {
+        let opt = |flag: &str, value: Option<String>| value.map(|v| [OsString::from(flag), v.into()]);
+        match member {
+            Member::Critic => {
+                let mut args = self.common_args(0);
+                for extra in &self.swarms[1..] {
+                    args.extend([
+                        "--extra-swarm".into(),
+                        format!("{}:{}", extra.identity.run_id, extra.n).into(),
+                    ]);
+                }
+                args.extend(["--viewer".into(), self.viewer.as_arg().into()]);
+                args.extend(
+                    opt("--minutes", minutes_left.map(|m| format!("{:.3}", m.max(0.01))))
+                        .into_iter()
+                        .flatten(),
+                );
+                if let (Mode::Train, Some(path)) = (self.mode, resume) {
+                    args.extend(["--checkpoint".into(), path.into()]);
+                }
+                args
+            }
+            Member::Robot { swarm, index } => {
+                let mut args = self.common_args(swarm);
+                args.extend(["--agent".into(), index.to_string().into()]);
+                if self.learned(swarm, index) {
+                    args.extend(["--policy".into(), "learned".into()]);
+                    if let (Mode::Eval, Some(path)) = (self.mode, &self.checkpoint) {
+                        args.extend(["--checkpoint".into(), path.into()]);
+                    }
+                } else {
+                    args.extend(["--policy".into(), "scripted".into()]);
+                }
+                args
+            }
+            Member::Sim { swarm } => {
+                let s = &self.swarms[swarm];
+                let mut args = self.common_args(swarm);
+                let viewer = if swarm == 0 { self.viewer.as_arg() } else { "off".into() };
+                args.extend(["--viewer".into(), viewer.into()]);
+                args.extend(
+                    opt("--episodes", self.episodes.map(|e| e.to_string()))
+                        .into_iter()
+                        .flatten(),
+                );
+                args.extend(
+                    opt("--minutes", self.minutes.map(|m| m.to_string()))
+                        .into_iter()
+                        .flatten(),
+                );
+                if self.realtime && swarm == 0 {
+                    args.push("--realtime".into());
+                }
+                if !s.external.is_empty() {
+                    args.extend(["--external".into(), robot_set_arg(&s.external).into()]);
+                }
+                if !s.scripted.is_empty() {
+                    args.extend(["--scripted".into(), robot_set_arg(&s.scripted).into()]);
+                }
+                args
+            }
+        }
+    }
+
+    /// Checks that need a member's own code (a checkpoint against the config, the critic's
+    /// settings for several swarms), as `(program, flags)`: each must exit 0 before anything
+    /// starts.
+    pub fn preflight(&self) -> Vec<(&'static str, Vec<OsString>)> {
+        let mut checks = Vec::new();
+        // Eval: one learned robot loads the checkpoint. The highest index, so that a checkpoint
+        // of independent actors is refused when it holds fewer robots than the swarm.
+        let primary = self.primary();
+        let last_learned = (0..primary.n)
+            .rev()
+            .find(|&index| self.learned(0, index) && !primary.external.contains(&index));
+        if let (Mode::Eval, Some(index), Some(_)) = (self.mode, last_learned, &self.checkpoint) {
+            let member = Member::Robot { swarm: 0, index };
+            let mut args = self.args(member, None, None);
+            args.push("--check".into());
+            checks.push((Self::program(member), args));
+        }
+        if (self.mode == Mode::Train && self.checkpoint.is_some()) || self.swarms.len() > 1 {
+            let mut args = self.args(Member::Critic, self.checkpoint.as_deref(), None);
+            args.push("--check".into());
+            checks.push((Self::program(Member::Critic), args));
+        }
+        checks
+    }
+
+    /// `run.json`: everything a client in another language needs to attach to the primary
+    /// swarm, given its run directory.
+    pub fn run_json(&self) -> serde_json::Value {
+        let s = self.primary();
+        let env = &self.config.env;
+        let ticks = &self.config.ticks;
+        serde_json::json!({
+            "run_id": s.identity.run_id,
+            "n_agents": s.n,
+            "shm_prefix": s.identity.shm_prefix(),
+            "root_path": format!("{}/", s.identity.root_path().display()),
+            "iceoryx2_config": ICEORYX_CONFIG_FILE,
+            "protocol_version": PROTOCOL_VERSION,
+            "observation": env.observation.as_str(),
+            "observation_dim": Layout::of(env.observation).dim(),
+            "critic_window": ticks.critic_window,
+            "startup_timeout_s": ticks.startup_timeout_s,
+            "sim_silence_ms": ticks.sim_silence_ms,
+            "command_timeout_ms": ticks.command_timeout_ms,
+            "v_max": env.v_max,
+            "w_max": env.w_max,
+            "proximity_range_m": env.proximity_range_m,
+            "mode": self.mode.as_str(),
+            "external": s.external,
+            "extra_swarms": self.swarms[1..].iter().map(|x| serde_json::json!({
+                "run_id": x.identity.run_id,
+                "n_agents": x.n,
+                "run_dir": x.run_dir,
+            })).collect::<Vec<_>>(),
+            "launcher_pid": std::process::id(),
+        })
+    }
+}
+
+/// A clap value's spelling on the command line.
+fn value_name(value: impl ValueEnum) -> String {
+    value
+        .to_possible_value()
+        .map(|v| v.get_name().to_string())
+        .unwrap_or_default()
+}
+
+/// The model shipped with the repository (one model for any N).
+fn shipped_model() -> Result<PathBuf> {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/formation.safetensors");
+    ensure!(
+        path.is_file(),
+        "eval with learned robots needs --checkpoint (no shipped model at {})",
+        path.display()
+    );
+    path.canonicalize().context("cannot resolve the shipped model's path")
+}
+
+/// A run id unique on this machine: the clock's last six digits of seconds and this pid.
+fn new_run_id() -> String {
+    let seconds = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
+    format!("r{:06}p{}", seconds % 1_000_000, std::process::id())
+}
+
+/// `runs/<local date-time>`.
+fn default_run_dir() -> PathBuf {
+    let now = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
+    let time = now as libc::time_t;
+    // SAFETY: localtime_r writes only into `tm`, which lives on this stack frame.
+    let mut tm: libc::tm = unsafe { std::mem::zeroed() };
+    let stamp = if unsafe { libc::localtime_r(&time, &mut tm) }.is_null() {
+        now.to_string()
+    } else {
+        format!(
+            "{:04}{:02}{:02}-{:02}{:02}{:02}",
+            tm.tm_year + 1900,
+            tm.tm_mon + 1,
+            tm.tm_mday,
+            tm.tm_hour,
+            tm.tm_min,
+            tm.tm_sec
+        )
+    };
+    PathBuf::from("runs").join(stamp)
+}
+
+/// spawn when a `rerun` viewer is on PATH and a display is present, else save.
+fn default_viewer() -> ViewerMode {
+    let display = ["DISPLAY", "WAYLAND_DISPLAY"]
+        .iter()
+        .any(|name| std::env::var_os(name).is_some_and(|v| !v.is_empty()));
+    let rerun_on_path = std::env::var_os("PATH")
+        .is_some_and(|path| std::env::split_paths(&path).any(|dir| dir.join("rerun").is_file()));
+    let mode = if display && rerun_on_path {
+        ViewerMode::Spawn
+    } else {
+        ViewerMode::Save
+    };
+    println!(
+        "viewer: {} (choose with --viewer spawn|save|off|connect=URL)",
+        mode.as_arg()
+    );
+    mode
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use super::*;
+
+    fn plan(args: &[&str]) -> Result<Plan> {
+        let args = LaunchArgs::try_parse_from(std::iter::once("formation").chain(args.iter().copied()))?;
+        Plan::new(args)
+    }
+
+    #[test]
+    fn every_started_robot_and_one_sim_per_swarm_are_members_and_the_primary_sim_starts_last() {
+        let plan = plan(&["4", "--external", "1", "--extra-swarms", "3", "--viewer", "off"]).expect("plan");
+        let members = plan.members();
+        assert_eq!(members.first(), Some(&Member::Critic));
+        assert_eq!(members.last(), Some(&Member::Sim { swarm: 0 }));
+        let primary_robots: Vec<usize> = members
+            .iter()
+            .filter_map(|m| match m {
+                Member::Robot { swarm: 0, index } => Some(*index),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(primary_robots, vec![0, 2, 3], "the external robot is not started");
+        assert_eq!(
+            members
+                .iter()
+                .filter(|m| matches!(m, Member::Robot { swarm: 1, .. }))
+                .count(),
+            3
+        );
+        assert_eq!(plan.restart_policy(Member::Sim { swarm: 0 }), Restart::EndsTheRun);
+        assert_eq!(plan.restart_policy(Member::Critic), Restart::OnFailureResuming);
+        assert_eq!(
+            plan.restart_policy(Member::Robot { swarm: 1, index: 0 }),
+            Restart::OnFailure
+        );
+        assert_eq!(plan.restart_policy(Member::Sim { swarm: 1 }), Restart::Never);
+    }
+
+    #[test]
+    fn restart_off_leaves_every_member_but_the_primary_sim_ended() {
+        let plan = plan(&["3", "--restart", "off", "--viewer", "off"]).expect("plan");
+        for member in plan.members() {
+            let expected = if member == (Member::Sim { swarm: 0 }) {
+                Restart::EndsTheRun
+            } else {
+                Restart::Never
+            };
+            assert_eq!(plan.restart_policy(member), expected, "{member:?}");
+        }
+    }
+
+    #[test]
+    fn scripted_all_with_an_external_robot_scripts_the_others_and_the_sim_is_told_both() {
+        let plan = plan(&[
+            "3",
+            "--mode",
+            "eval",
+            "--scripted",
+            "all",
+            "--external",
+            "2",
+            "--viewer",
+            "off",
+        ])
+        .expect("plan");
+        assert_eq!(plan.primary().scripted, vec![0, 1]);
+        let sim: Vec<String> = plan
+            .args(Member::Sim { swarm: 0 }, None, None)
+            .iter()
+            .map(|a| a.to_string_lossy().into_owned())
+            .collect();
+        let after = |flag: &str| sim.iter().position(|a| a == flag).map(|i| sim[i + 1].clone());
+        assert_eq!(after("--scripted").as_deref(), Some("0,1"));
+        assert_eq!(after("--external").as_deref(), Some("2"));
+        assert!(plan.checkpoint.is_none(), "no learned robot: no model needed");
+        assert!(plan.preflight().is_empty());
+    }
+
+    #[test]
+    fn eval_with_learned_robots_defaults_to_the_shipped_model_and_checks_it_once() {
+        let plan = plan(&["5", "--mode", "eval", "--viewer", "off"]).expect("plan");
+        let model = plan.checkpoint.clone().expect("shipped model");
+        assert!(model.ends_with("models/formation.safetensors"));
+        let checks = plan.preflight();
+        assert_eq!(checks.len(), 1);
+        let (program, args) = &checks[0];
+        assert_eq!(*program, "formation-agent");
+        let text: Vec<String> = args.iter().map(|a| a.to_string_lossy().into_owned()).collect();
+        assert!(text.windows(2).any(|w| w == ["--agent", "4"]), "{text:?}");
+        assert!(text.contains(&"--check".to_string()));
+    }
+
+    #[test]
+    fn a_restarted_critic_resumes_and_counts_down_what_is_left() {
+        let plan = plan(&["3", "--viewer", "off"]).expect("plan");
+        let args: Vec<String> = plan
+            .args(
+                Member::Critic,
+                Some(Path::new("runs/x/checkpoint.safetensors")),
+                Some(2.5),
+            )
+            .iter()
+            .map(|a| a.to_string_lossy().into_owned())
+            .collect();
+        assert!(
+            args.windows(2)
+                .any(|w| w == ["--checkpoint", "runs/x/checkpoint.safetensors"])
+        );
+        assert!(args.windows(2).any(|w| w == ["--minutes", "2.500"]));
+    }
+
+    #[test]
+    fn conflicting_or_impossible_flags_are_refused_by_name() {
+        for (args, needle) in [
+            (
+                vec!["3", "--scripted", "0,2", "--external", "2"],
+                "cannot be both --scripted and --external",
+            ),
+            (vec!["3", "--external", "3"], "robot 3 does not exist (robots are 0..2)"),
+            (vec!["3", "--extra-swarms", "4", "--mode", "eval"], "for training"),
+            (vec!["3", "--config", "/nonexistent.toml"], "does not exist"),
+            (vec!["3", "--viewer", "window"], "--viewer must be"),
+            (vec!["2"], "between 3 and 64"),
+            (vec!["3", "--extra-swarms", "4,2"], "sizes 3 to 64"),
+            (vec!["3", "--minutes", "0"], "--minutes must be a positive number"),
+        ] {
+            let refusal = plan(&args).expect_err(needle);
+            assert!(format!("{refusal:#}").contains(needle), "{args:?}: {refusal:#}");
+        }
+    }
+
+    #[test]
+    fn run_json_carries_the_contract_of_the_configured_observation() {
+        let plan = plan(&["6", "--viewer", "off"]).expect("plan");
+        let json = plan.run_json();
+        assert_eq!(json["n_agents"], 6);
+        assert_eq!(json["protocol_version"], PROTOCOL_VERSION);
+        assert_eq!(json["observation_dim"], Layout::of(plan.config.env.observation).dim());
+        let root = json["root_path"].as_str().expect("root path");
+        assert!(root.ends_with(&format!("/formation-iox2/{}/", plan.primary().identity.run_id)));
+    }
+}

@@ -1,0 +1,527 @@
+//! Runs a [`Plan`]: preflight checks, the run directory and `run.json`, then every member as a
+//! child process, each watched by a thread that reports its exit on one channel with the
+//! launcher's signals (no polling). Members restart as the plan says; the primary sim's exit
+//! ends the run; whatever happens, nothing of the run is left behind.
+
+use std::collections::HashMap;
+use std::fs::{File, OpenOptions};
+use std::io::{BufRead, BufReader, Write};
+use std::os::unix::process::CommandExt;
+use std::path::{Path, PathBuf};
+use std::process::{Command, ExitStatus, Stdio};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, channel};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use formation_protocol::cli::{Mode, write_atomically};
+use formation_protocol::services::{RunIdentity, SHM_DIR};
+use signal_hook::consts::{SIGINT, SIGTERM};
+use signal_hook::iterator::Signals;
+
+use crate::plan::{Member, Plan, Restart};
+
+/// A critic that dies sooner than this after its start counts as a quick death.
+const QUICK_DEATH: Duration = Duration::from_secs(5);
+/// Quick deaths in a row after which the critic is not restarted and the run stops.
+const QUICK_DEATHS_TO_GIVE_UP: u32 = 3;
+/// After the primary sim's end, how long the others get to end on its end-of-run message.
+const WIND_DOWN: Duration = Duration::from_secs(10);
+/// An extra swarm's sim still running when the primary ends gets this long before Ctrl-C.
+const EXTRA_SIM_GRACE: Duration = Duration::from_secs(2);
+
+/// What the supervisor waits for.
+enum Event {
+    /// A member exited.
+    Exited(Member, ExitStatus),
+    /// The launcher got SIGINT or SIGTERM.
+    Interrupted,
+}
+
+/// The running process set.
+struct Supervisor<'a> {
+    plan: &'a Plan,
+    bin_dir: PathBuf,
+    events: Receiver<Event>,
+    sender: Sender<Event>,
+    /// Pids of members that have not been seen to exit.
+    running: HashMap<Member, u32>,
+    /// Each member's last exit status.
+    exits: HashMap<Member, ExitStatus>,
+    critic_started: Instant,
+    quick_critic_deaths: u32,
+    /// When `--minutes` (or train's default 30) is up, for the critic's countdown.
+    ends_at: Option<Instant>,
+    /// Threads copying the critic's output; they end with its pipes.
+    tees: Vec<JoinHandle<()>>,
+}
+
+/// Runs the plan to its end; returns the launcher's exit code.
+pub fn launch(plan: &Plan) -> Result<u8> {
+    let bin_dir = bin_dir()?;
+    for (run_id, files) in sweep_runs_of_dead_launchers(Path::new(SHM_DIR)) {
+        println!("removed {files} shared-memory files of run {run_id}, whose launcher is gone");
+    }
+    for (program, args) in plan.preflight() {
+        let status = Command::new(bin_dir.join(program))
+            .args(&args)
+            .stdin(Stdio::null())
+            .status()
+            .with_context(|| format!("cannot run {}", bin_dir.join(program).display()))?;
+        if !status.success() {
+            return Ok(2);
+        }
+    }
+    for swarm in &plan.swarms {
+        let logs = swarm.run_dir.join("logs");
+        std::fs::create_dir_all(&logs).with_context(|| format!("cannot create {}", logs.display()))?;
+    }
+    let run_json = serde_json::to_vec_pretty(&plan.run_json())?;
+    write_atomically(&plan.primary().run_dir.join("run.json"), &run_json)?;
+
+    let (sender, events) = channel();
+    let interrupts = sender.clone();
+    let mut signals = Signals::new([SIGINT, SIGTERM]).context("cannot install the Ctrl-C handler")?;
+    std::thread::spawn(move || {
+        for _ in signals.forever() {
+            if interrupts.send(Event::Interrupted).is_err() {
+                break;
+            }
+        }
+    });
+    let minutes = plan
+        .minutes
+        .or((plan.mode == Mode::Train && plan.episodes.is_none()).then_some(30.0));
+    let mut supervisor = Supervisor {
+        plan,
+        bin_dir,
+        events,
+        sender,
+        running: HashMap::new(),
+        exits: HashMap::new(),
+        critic_started: Instant::now(),
+        quick_critic_deaths: 0,
+        ends_at: minutes.map(|m| Instant::now() + Duration::from_secs_f64(m * 60.0)),
+        tees: Vec::new(),
+    };
+    let result = supervisor.run();
+    supervisor.stop_all();
+    // Every member has exited: the critic's last lines are out before the launcher's.
+    for tee in supervisor.tees.drain(..) {
+        let _ = tee.join();
+    }
+    for swarm in &plan.swarms {
+        swarm.identity.remove_leftovers();
+    }
+    let code = result?;
+    println!(
+        "results: {} (summary.json, episodes.csv, config.toml, logs/)",
+        plan.primary().run_dir.display()
+    );
+    Ok(code)
+}
+
+/// The pid of the launcher that made `run_id` (`r<time>p<pid>`, extra swarms `...x<k>`), if
+/// the id is a launcher's.
+fn launcher_pid(run_id: &str) -> Option<u32> {
+    let rest = run_id.strip_prefix('r')?;
+    let (time, pid) = rest.split_once('p')?;
+    let pid = pid.split_once('x').map_or(pid, |(pid, _swarm)| pid);
+    (time.len() == 6 && time.bytes().all(|b| b.is_ascii_digit())).then_some(())?;
+    pid.parse().ok()
+}
+
+/// Whether process `pid` exists and has not ended (a zombie waiting for its parent has).
+fn process_runs(pid: u32) -> bool {
+    std::fs::read_to_string(format!("/proc/{pid}/stat")).is_ok_and(|stat| {
+        // State is the first field after the command name, which is in parentheses.
+        stat.rsplit_once(')')
+            .and_then(|(_, rest)| rest.split_whitespace().next())
+            .is_some_and(|state| state != "Z" && state != "X")
+    })
+}
+
+/// Removes the shared memory and root paths of runs whose launcher no longer exists (one
+/// killed outright cannot clean up after itself; its members died with it). Runs not made by
+/// a launcher (other run ids) are left alone. `shm_dir` is where runs are looked for (the
+/// files are removed from `/dev/shm`). Returns each swept run with its file count.
+fn sweep_runs_of_dead_launchers(shm_dir: &Path) -> Vec<(String, usize)> {
+    let mut run_ids: Vec<String> = std::fs::read_dir(shm_dir)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter_map(|entry| {
+            let name = entry.file_name().to_string_lossy().into_owned();
+            let run_id = name.strip_prefix("fc_")?.split('_').next()?.to_string();
+            (!process_runs(launcher_pid(&run_id)?)).then_some(run_id)
+        })
+        .collect();
+    run_ids.sort();
+    run_ids.dedup();
+    run_ids
+        .into_iter()
+        .filter_map(|run_id| {
+            let identity = RunIdentity::new(&run_id).ok()?;
+            Some((run_id, identity.remove_leftovers()))
+        })
+        .collect()
+}
+
+/// Where the member binaries are: `FORMATION_BIN_DIR`, else beside this launcher.
+fn bin_dir() -> Result<PathBuf> {
+    let dir = match std::env::var_os("FORMATION_BIN_DIR") {
+        Some(dir) => PathBuf::from(dir),
+        None => std::env::current_exe()?
+            .parent()
+            .context("the launcher has no directory")?
+            .to_path_buf(),
+    };
+    for program in ["formation-sim", "formation-agent", "formation-critic"] {
+        anyhow::ensure!(
+            dir.join(program).is_file(),
+            "missing binary {} (build with cargo build --release --workspace --bins)",
+            dir.join(program).display()
+        );
+    }
+    Ok(dir)
+}
+
+impl Supervisor<'_> {
+    fn run(&mut self) -> Result<u8> {
+        for member in self.plan.members() {
+            let resume = self.plan.checkpoint.clone();
+            self.start(member, resume)?;
+        }
+        self.announce();
+        let mut code = 0;
+        loop {
+            match self.events.recv().context("every watcher is gone")? {
+                Event::Interrupted => {
+                    println!("\nstopping: the sim closes the episode and ends the run...");
+                    self.interrupt_sims();
+                }
+                Event::Exited(member, status) => {
+                    self.running.remove(&member);
+                    self.exits.insert(member, status);
+                    if self.plan.restart_policy(member) == Restart::EndsTheRun {
+                        break;
+                    }
+                    if !self.restart_if_due(member, status)? {
+                        code = 1;
+                    }
+                }
+            }
+        }
+        self.wind_down();
+        Ok(self.report(code))
+    }
+
+    /// Starts one member with its log wired up and a thread that reports its exit.
+    fn start(&mut self, member: Member, resume: Option<PathBuf>) -> Result<()> {
+        let plan = self.plan;
+        let minutes_left = self
+            .ends_at
+            .map(|end| end.saturating_duration_since(Instant::now()).as_secs_f64() / 60.0);
+        let program = self.bin_dir.join(Plan::program(member));
+        let mut command = Command::new(&program);
+        command
+            .args(plan.args(member, resume.as_deref(), minutes_left))
+            .stdin(Stdio::null());
+        let log_path = plan.log_path(member);
+        // Robots append (a restarted robot continues its log); the sim's log is its run's.
+        let log = OpenOptions::new()
+            .create(true)
+            .append(!matches!(member, Member::Sim { .. }))
+            .write(true)
+            .truncate(matches!(member, Member::Sim { .. }))
+            .open(&log_path)
+            .with_context(|| format!("cannot open {}", log_path.display()))?;
+        if member == Member::Critic {
+            // The critic's progress and its end-of-run table go to the terminal and its log.
+            command.stdout(Stdio::piped()).stderr(Stdio::piped());
+        } else {
+            command.stdout(log.try_clone()?).stderr(log.try_clone()?);
+        }
+        die_with_the_launcher(&mut command);
+        let mut child = command
+            .spawn()
+            .with_context(|| format!("cannot start {}", program.display()))?;
+        if let Some(stdout) = child.stdout.take() {
+            let log = log.try_clone()?;
+            self.tees
+                .push(std::thread::spawn(move || tee_lines(stdout, std::io::stdout(), log)));
+        }
+        if let Some(stderr) = child.stderr.take() {
+            self.tees
+                .push(std::thread::spawn(move || tee_lines(stderr, std::io::stderr(), log)));
+        }
+        if member == Member::Critic {
+            self.critic_started = Instant::now();
+        }
+        self.running.insert(member, child.id());
+        let exits = self.sender.clone();
+        std::thread::spawn(move || {
+            if let Ok(status) = child.wait() {
+                let _ = exits.send(Event::Exited(member, status));
+            }
+        });
+        Ok(())
+    }
+
+    /// The run's first lines: its id (tests and scripts read it), where results go, and how to
+    /// attach the external robots.
+    fn announce(&self) {
+        let primary = self.plan.primary();
+        let started = primary.n - primary.external.len();
+        println!(
+            "run {}: sim, {started} agents and the critic started; results in {} (logs in {}/logs)",
+            primary.identity.run_id,
+            primary.run_dir.display(),
+            primary.run_dir.display()
+        );
+        if !primary.external.is_empty() {
+            let list: Vec<String> = primary.external.iter().map(usize::to_string).collect();
+            println!(
+                "external robots {}: the sim waits {} s for them to greet. Attach each one with",
+                list.join(","),
+                self.plan.config.ticks.startup_timeout_s
+            );
+            for index in &primary.external {
+                println!(
+                    "  python3 -m formation_swarm robot {} {index}        # the baseline in Python (pip install ./python)",
+                    primary.run_dir.display()
+                );
+            }
+            println!(
+                "or from your code: formation_swarm.run_robot(\"{}\", INDEX, policy)  (run.json in {} has the rest)",
+                primary.run_dir.display(),
+                primary.run_dir.display()
+            );
+        }
+        for (k, swarm) in self.plan.swarms.iter().enumerate().skip(1) {
+            println!(
+                "extra swarm {k}: {} robots and their sim, run {}; results in {}",
+                swarm.n,
+                swarm.identity.run_id,
+                swarm.run_dir.display()
+            );
+        }
+    }
+
+    /// Applies the member's restart policy after an exit; false when the run must stop.
+    fn restart_if_due(&mut self, member: Member, status: ExitStatus) -> Result<bool> {
+        let policy = self.plan.restart_policy(member);
+        if status.success() || policy == Restart::Never {
+            // A clean exit: the run is ending (or the member is not to be restarted).
+            return Ok(true);
+        }
+        let name = self.plan.name(member);
+        if policy == Restart::OnFailureResuming {
+            if self.critic_started.elapsed() < QUICK_DEATH {
+                self.quick_critic_deaths += 1;
+            } else {
+                self.quick_critic_deaths = 0;
+            }
+            if self.quick_critic_deaths >= QUICK_DEATHS_TO_GIVE_UP {
+                eprintln!(
+                    "run_swarm.sh: {name} died at start three times in a row (see {}); stopping the run",
+                    self.plan.log_path(member).display()
+                );
+                self.interrupt_sims();
+                return Ok(false);
+            }
+            // Train: resume from the run's last checkpoint, else from where the run started.
+            let last = self.plan.primary().run_dir.join("checkpoint.safetensors");
+            let resume = match self.plan.mode {
+                Mode::Train if last.is_file() => Some(last),
+                Mode::Train => self.plan.checkpoint.clone(),
+                Mode::Eval => None,
+            };
+            match &resume {
+                Some(path) => println!("{name} died ({status}); restarting it from {}", path.display()),
+                None => println!("{name} died ({status}); restarting it"),
+            }
+            self.start(member, resume)?;
+        } else {
+            println!("{name} died ({status}); restarting it");
+            self.start(member, None)?;
+        }
+        Ok(true)
+    }
+
+    /// Ctrl-C to every sim: each closes its episode and tells its processes the run ended.
+    fn interrupt_sims(&self) {
+        for (member, pid) in &self.running {
+            if matches!(member, Member::Sim { .. }) {
+                signal(*pid, libc::SIGINT);
+            }
+        }
+    }
+
+    /// After the primary sim's end: extra sims get a moment and then Ctrl-C; every member gets
+    /// [`WIND_DOWN`] to end on the end-of-run message.
+    fn wind_down(&mut self) {
+        let extra_sims: Vec<u32> = self
+            .running
+            .iter()
+            .filter(|(member, _)| matches!(member, Member::Sim { .. }))
+            .map(|(_, pid)| *pid)
+            .collect();
+        if !extra_sims.is_empty() {
+            self.wait_for_exits(Instant::now() + EXTRA_SIM_GRACE, |m| !matches!(m, Member::Sim { .. }));
+            self.interrupt_sims();
+        }
+        self.wait_for_exits(Instant::now() + WIND_DOWN, |_| false);
+    }
+
+    /// Collects exits until `deadline`, or until only members `ignore` accepts are running.
+    fn wait_for_exits(&mut self, deadline: Instant, ignore: impl Fn(Member) -> bool) {
+        while self.running.keys().any(|&member| !ignore(member)) {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.events.recv_timeout(left) {
+                Ok(Event::Exited(member, status)) => {
+                    self.running.remove(&member);
+                    self.exits.insert(member, status);
+                }
+                Ok(Event::Interrupted) => {}
+                Err(RecvTimeoutError::Timeout | RecvTimeoutError::Disconnected) => return,
+            }
+        }
+    }
+
+    /// Stops whatever still runs: SIGTERM, a moment, then SIGKILL.
+    fn stop_all(&mut self) {
+        if self.running.is_empty() {
+            return;
+        }
+        for pid in self.running.values() {
+            signal(*pid, libc::SIGTERM);
+        }
+        self.wait_for_exits(Instant::now() + Duration::from_millis(500), |_| false);
+        for pid in self.running.values() {
+            signal(*pid, libc::SIGKILL);
+        }
+        self.wait_for_exits(Instant::now() + Duration::from_secs(5), |_| false);
+    }
+
+    /// Prints what went wrong, if anything; returns the exit code.
+    fn report(&self, code: u8) -> u8 {
+        let primary = self.plan.primary();
+        let sim_status = self.exits.get(&Member::Sim { swarm: 0 });
+        let mut code = code;
+        if let Some(status) = sim_status.filter(|s| !s.success()) {
+            eprintln!("run_swarm.sh: the sim exited with {status}:");
+            eprint!("{}", tail(&self.plan.log_path(Member::Sim { swarm: 0 }), 5));
+            code = code.max(exit_code(status));
+        }
+        for index in (0..primary.n).filter(|i| !primary.external.contains(i)) {
+            let log = tail(&self.plan.log_path(Member::Robot { swarm: 0, index }), 3);
+            if log.contains("error") {
+                eprint!("agent {index} reported:\n{log}");
+            }
+        }
+        if let Some(status) = self.exits.get(&Member::Critic).filter(|s| !s.success()) {
+            eprintln!("run_swarm.sh: the critic exited with {status}");
+            if code == 0 {
+                code = exit_code(status);
+            }
+        }
+        code
+    }
+}
+
+/// The last `lines` lines of a log file.
+fn tail(path: &std::path::Path, lines: usize) -> String {
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    let all: Vec<&str> = text.lines().collect();
+    let mut out = all[all.len().saturating_sub(lines)..].join("\n");
+    if !out.is_empty() {
+        out.push('\n');
+    }
+    out
+}
+
+/// A process's exit as a launcher exit code (a signal counts as 128 + its number).
+fn exit_code(status: &ExitStatus) -> u8 {
+    use std::os::unix::process::ExitStatusExt;
+    let code = status.code().or_else(|| status.signal().map(|s| 128 + s)).unwrap_or(1);
+    u8::try_from(code).unwrap_or(1).max(1)
+}
+
+/// Copies a child's lines to one of the launcher's outputs and to the child's log.
+fn tee_lines(from: impl std::io::Read, mut to: impl Write, mut log: File) {
+    let mut reader = BufReader::new(from);
+    let mut line = Vec::new();
+    while reader.read_until(b'\n', &mut line).is_ok_and(|n| n > 0) {
+        let _ = to.write_all(&line);
+        let _ = log.write_all(&line);
+        line.clear();
+    }
+}
+
+/// Sends `signal` to a member.
+fn signal(pid: u32, signal: i32) {
+    // SAFETY: kill(2) on a child this launcher started and has not yet seen exit.
+    unsafe { libc::kill(pid as libc::pid_t, signal) };
+}
+
+/// Each member runs in its own process group, so a terminal's Ctrl-C reaches only the
+/// launcher (which asks the sim to end the run in order), and dies with the launcher however
+/// the launcher ends (a watchdog's SIGKILL included), so no member outlives its run.
+fn die_with_the_launcher(command: &mut Command) {
+    let launcher = std::process::id() as libc::pid_t;
+    command.process_group(0);
+    // SAFETY: only async-signal-safe calls (prctl, getppid, _exit) between fork and exec.
+    unsafe {
+        command.pre_exec(move || {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            // The launcher died before the prctl: do not start an orphan.
+            if libc::getppid() != launcher {
+                libc::_exit(1);
+            }
+            Ok(())
+        });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn run_ids_name_the_launcher_that_made_them() {
+        assert_eq!(launcher_pid("r123456p4242"), Some(4242));
+        assert_eq!(launcher_pid("r123456p4242x3"), Some(4242));
+        assert_eq!(launcher_pid("default"), None);
+        assert_eq!(launcher_pid("r12p4242"), None);
+        assert_eq!(launcher_pid("rabcdefp1"), None);
+    }
+
+    #[test]
+    fn runs_of_a_dead_launcher_are_swept_and_live_ones_are_not() {
+        // A pid that just ended, and this test's own (alive).
+        let mut child = Command::new("true").spawn().expect("spawn true");
+        let dead = child.id();
+        child.wait().expect("wait");
+        let dir = std::env::temp_dir().join(format!("formation-sweep-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let dead_run = format!("r000001p{dead}");
+        let live_run = format!("r000001p{}", std::process::id());
+        for name in [
+            format!("fc_{dead_run}_state.data"),
+            format!("fc_{dead_run}x1_state.data"),
+            format!("fc_{live_run}_state.data"),
+            "fc_default_state.data".to_string(),
+        ] {
+            std::fs::write(dir.join(name), b"").expect("write");
+        }
+        let swept: Vec<String> = sweep_runs_of_dead_launchers(&dir)
+            .into_iter()
+            .map(|(id, _)| id)
+            .collect();
+        assert_eq!(swept, vec![dead_run.clone(), format!("{dead_run}x1")]);
+        std::fs::remove_dir_all(&dir).expect("cleanup");
+    }
+}
