@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Benchmarks: lockstep tick rate and latency against N (scripted and learned robots, separate
-# processes and all in one process), the process-to-process floor (iceoryx2 events vs a Unix
+# processes and all in one process, and with one robot behind the Zenoh bridges), the
+# process-to-process floor (iceoryx2 events vs a Unix
 # socket) and each lockstep cell's ratio to its N + 1 wake-up floor, the same tick shape in
 # Python (multiprocessing pipes) as a same-machine anchor, real-time deadline misses, training
 # throughput and memory. Prints a table and writes bench.json. Takes about 16 minutes
@@ -49,10 +50,11 @@ done
 
 # 2. Lockstep across processes: sim + N agents + critic (eval), scripted and learned robots,
 #    placed as the launcher does by default; then a few sizes with placement left to the OS.
-lockstep() { # policy n placement
+lockstep() { # policy n placement[-label] [launcher flags...]
   local policy=$1 n=$2 placement=$3 dir
+  shift 3
   dir=$OUT/lockstep-$policy-$n-$placement
-  local args=("$n" --mode eval --episodes 1000000 --minutes "$MINUTES" --seed 7 --viewer off --placement "${placement%-nogate}" --run-dir "$dir")
+  local args=("$n" --mode eval --episodes 1000000 --minutes "$MINUTES" --seed 7 --viewer off --placement "${placement%%-*}" --run-dir "$dir" "$@")
   [[ $policy == scripted ]] && args+=(--scripted all)
   scripts/run_swarm.sh "${args[@]}" >"$dir.log" 2>&1 || { echo "run failed: $dir.log" >&2; exit 1; }
   record "$(python3 - "$dir/summary.json" "$policy" "$n" "$placement" <<'PY'
@@ -73,6 +75,9 @@ OFF_SIZES=(3 12 48); (( QUICK )) && OFF_SIZES=(3)
 for n in "${OFF_SIZES[@]}"; do lockstep scripted "$n" off; done
 # Without the tick gate (every robot's command wakes the sim), for the difference it makes.
 for n in 3 12; do FORMATION_TICK_GATE=off lockstep scripted "$n" auto-nogate; done
+# Through the bridges: robot 0 on a host of its own (own iceoryx2), joined over Zenoh on TCP
+# localhost, so each tick waits for one round trip through both bridges.
+for n in 3 12; do lockstep scripted "$n" auto-remote1 --remote 0; done
 
 # The same tick shape in Python (multiprocessing pipes), placed as the swarm and by the OS.
 for placement in auto off; do

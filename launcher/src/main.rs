@@ -93,6 +93,18 @@ pub struct LaunchArgs {
     /// (configs/any-n.toml).
     #[arg(long, value_name = "N1,N2", value_delimiter = ',', value_parser = extra_swarm_size)]
     pub extra_swarms: Vec<usize>,
+    /// Robots that run as if on another computer: each with its own iceoryx2 (its own prefix and
+    /// root path) and a bridge, joined to the sim's host only over Zenoh on TCP localhost (the
+    /// same binaries a real second computer runs: docs/REMOTE.md).
+    #[arg(long, value_name = "all|i,j")]
+    pub remote: Option<String>,
+    /// With --remote: every message a bridge sends leaves this many milliseconds late (an
+    /// emulated network; the round trip grows by twice this).
+    #[arg(long, value_name = "MS", default_value_t = 0.0, value_parser = non_negative_ms)]
+    pub net_delay_ms: f64,
+    /// With --remote: every message a bridge sends is lost with this probability.
+    #[arg(long, value_name = "P", default_value_t = 0.0, value_parser = probability)]
+    pub net_loss: f64,
     /// Restart an agent or the critic that dies mid-run (a restarted agent rejoins at once with
     /// the latest weights, a restarted critic resumes from the run's last checkpoint).
     #[arg(long, value_enum, default_value_t = Switch::On)]
@@ -122,6 +134,20 @@ fn extra_swarm_size(text: &str) -> Result<usize, String> {
         .ok()
         .filter(|n| validate_agent_count(*n).is_ok())
         .ok_or_else(|| format!("--extra-swarms takes sizes 3 to 64 like 3,8; got {text:?}"))
+}
+
+fn non_negative_ms(text: &str) -> Result<f64, String> {
+    text.parse::<f64>()
+        .ok()
+        .filter(|ms| (0.0..=60_000.0).contains(ms))
+        .ok_or_else(|| format!("--net-delay-ms must be 0 to 60000, got {text:?}"))
+}
+
+fn probability(text: &str) -> Result<f64, String> {
+    text.parse::<f64>()
+        .ok()
+        .filter(|p| (0.0..=1.0).contains(p))
+        .ok_or_else(|| format!("--net-loss must be a probability (0 to 1), got {text:?}"))
 }
 
 fn positive_minutes(text: &str) -> Result<f64, String> {

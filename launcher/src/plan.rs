@@ -34,6 +34,20 @@ pub struct Swarm {
     pub scripted: Vec<usize>,
     /// Robots started by someone else (not members of the process set).
     pub external: Vec<usize>,
+    /// Robots on a host of their own, joined over Zenoh (see [`RemoteHost`]).
+    pub remote: Vec<RemoteHost>,
+}
+
+/// A robot "on another computer": its own iceoryx2 (run id, prefix, root path) and run
+/// directory, where its bridge recreates its services; here the other computer is this one.
+#[derive(Debug)]
+pub struct RemoteHost {
+    /// The robot.
+    pub robot: usize,
+    /// The host's run id, shared-memory prefix and iceoryx2 root path.
+    pub identity: RunIdentity,
+    /// The host's logs and files.
+    pub run_dir: PathBuf,
 }
 
 /// One process of the run.
@@ -45,6 +59,16 @@ pub enum Member {
     Sim {
         /// Index into [`Plan::swarms`].
         swarm: usize,
+    },
+    /// The bridge of the sim's host (`None`) or of remote robot `host`'s host.
+    Bridge {
+        /// The remote robot whose host this bridge is on, if any.
+        host: Option<usize>,
+    },
+    /// Remote robot `index` of the primary swarm, on its own host.
+    RemoteRobot {
+        /// The robot.
+        index: usize,
     },
     /// Robot `index` of swarm `swarm`.
     Robot {
@@ -92,6 +116,12 @@ pub struct Plan {
     pub placement: Placement,
     /// Whether failed members are restarted.
     pub restart: bool,
+    /// The Zenoh endpoint the sim host's bridge listens on (with remote robots).
+    pub bridge_endpoint: Option<String>,
+    /// `--net-delay-ms` and `--net-loss` of the bridges.
+    pub net_delay_ms: f64,
+    /// Loss probability of the emulated network.
+    pub net_loss: f64,
     /// The configuration every member reads (defaults, the file, the shape).
     pub config: RunConfig,
     /// The primary swarm first, then the extra swarms.
@@ -139,6 +169,19 @@ impl Plan {
         if let Some(shape) = args.shape {
             config.env.shape = shape;
         }
+        let remote_flag = args.remote.as_deref().unwrap_or("");
+        let remote = parse_robot_set("--remote", remote_flag, n)?;
+        if let Some(both) = remote.iter().find(|robot| external.contains(robot)) {
+            bail!("robot {both} cannot be both --remote and --external");
+        }
+        ensure!(
+            remote.is_empty() || args.extra_swarms.is_empty(),
+            "--remote is for the primary swarm only; leave out --extra-swarms"
+        );
+        ensure!(
+            !remote.is_empty() || (args.net_delay_ms == 0.0 && args.net_loss == 0.0),
+            "--net-delay-ms and --net-loss emulate the link of --remote robots; name them with --remote"
+        );
         let learned = n - scripted.len() - external.len();
         let checkpoint = match (&args.checkpoint, args.mode) {
             (None, Mode::Eval) if learned > 0 => Some(shipped_model()?),
@@ -146,6 +189,21 @@ impl Plan {
         };
         let run_dir = args.run_dir.clone().unwrap_or_else(default_run_dir);
         let run_id = new_run_id();
+        let remote = remote
+            .into_iter()
+            .map(|robot| {
+                Ok(RemoteHost {
+                    robot,
+                    identity: RunIdentity::new(&format!("{run_id}h{robot}"))?,
+                    run_dir: run_dir.join(format!("host-{robot}")),
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let bridge_endpoint = if remote.is_empty() {
+            None
+        } else {
+            Some(format!("tcp/127.0.0.1:{}", free_local_port()?))
+        };
         let mut swarms = vec![Swarm {
             n,
             identity: RunIdentity::new(&run_id)?,
@@ -153,6 +211,7 @@ impl Plan {
             seed: args.seed,
             scripted,
             external,
+            remote,
         }];
         for (k, &size) in (1..).zip(&args.extra_swarms) {
             swarms.push(Swarm {
@@ -162,6 +221,7 @@ impl Plan {
                 seed: args.seed.wrapping_add(7919 * k as u64),
                 scripted: Vec::new(),
                 external: Vec::new(),
+                remote: Vec::new(),
             });
         }
         Ok(Self {
@@ -175,6 +235,9 @@ impl Plan {
             shape: args.shape,
             placement: args.placement,
             restart: args.restart == Switch::On,
+            bridge_endpoint,
+            net_delay_ms: args.net_delay_ms,
+            net_loss: args.net_loss,
             config,
             swarms,
         })
@@ -185,14 +248,23 @@ impl Plan {
         &self.swarms[0]
     }
 
-    /// The process set, in the order it starts: the critic, then each extra swarm's robots and
-    /// sim, then the primary swarm's robots and last its sim (which starts the first tick).
+    /// The process set, in the order it starts: the critic, the bridges and remote robots (if
+    /// any), each extra swarm's robots and sim, then the primary swarm's robots and last its
+    /// sim (which starts the first tick).
     pub fn members(&self) -> Vec<Member> {
         let mut members = vec![Member::Critic];
+        let remote = &self.primary().remote;
+        if !remote.is_empty() {
+            members.push(Member::Bridge { host: None });
+            for host in remote {
+                members.push(Member::Bridge { host: Some(host.robot) });
+                members.push(Member::RemoteRobot { index: host.robot });
+            }
+        }
         let robots = |swarm: usize| {
-            let external = &self.swarms[swarm].external;
-            (0..self.swarms[swarm].n)
-                .filter(move |index| !external.contains(index))
+            let s = &self.swarms[swarm];
+            (0..s.n)
+                .filter(move |index| !s.external.contains(index) && !s.remote.iter().any(|h| h.robot == *index))
                 .map(move |index| Member::Robot { swarm, index })
         };
         for swarm in 1..self.swarms.len() {
@@ -210,7 +282,7 @@ impl Plan {
             Member::Sim { swarm: 0 } => Restart::EndsTheRun,
             _ if !self.restart => Restart::Never,
             Member::Sim { .. } => Restart::Never,
-            Member::Robot { .. } => Restart::OnFailure,
+            Member::Robot { .. } | Member::RemoteRobot { .. } | Member::Bridge { .. } => Restart::OnFailure,
             Member::Critic => Restart::OnFailureResuming,
         }
     }
@@ -220,7 +292,8 @@ impl Plan {
         match member {
             Member::Critic => "formation-critic",
             Member::Sim { .. } => "formation-sim",
-            Member::Robot { .. } => "formation-agent",
+            Member::Robot { .. } | Member::RemoteRobot { .. } => "formation-agent",
+            Member::Bridge { .. } => "formation-bridge",
         }
     }
 
@@ -230,6 +303,9 @@ impl Plan {
             Member::Critic => self.primary().run_dir.join("logs/critic.log"),
             Member::Sim { swarm } => self.swarms[swarm].run_dir.join("logs/sim.log"),
             Member::Robot { swarm, index } => self.swarms[swarm].run_dir.join(format!("logs/agent-{index}.log")),
+            Member::Bridge { host: None } => self.primary().run_dir.join("logs/bridge.log"),
+            Member::Bridge { host: Some(robot) } => self.host(robot).run_dir.join("logs/bridge.log"),
+            Member::RemoteRobot { index } => self.host(index).run_dir.join(format!("logs/agent-{index}.log")),
         }
     }
 
@@ -243,7 +319,35 @@ impl Plan {
             Member::Critic => "the critic".into(),
             Member::Sim { swarm } => format!("{}the sim", swarm_name(swarm)),
             Member::Robot { swarm, index } => format!("{}agent {index}", swarm_name(swarm)),
+            Member::Bridge { host: None } => "the sim's bridge".into(),
+            Member::Bridge { host: Some(robot) } => format!("robot {robot}'s bridge"),
+            Member::RemoteRobot { index } => format!("agent {index} (remote)"),
         }
+    }
+
+    /// The host of remote robot `robot`.
+    pub fn host(&self, robot: usize) -> &RemoteHost {
+        self.primary()
+            .remote
+            .iter()
+            .find(|host| host.robot == robot)
+            .unwrap_or_else(|| unreachable!("robot {robot} is a member only when remote"))
+    }
+
+    /// Every run identity this run creates: each swarm's and each remote host's.
+    pub fn identities(&self) -> Vec<&RunIdentity> {
+        let hosts = self.primary().remote.iter().map(|host| &host.identity);
+        self.swarms.iter().map(|swarm| &swarm.identity).chain(hosts).collect()
+    }
+
+    /// Every run directory this run writes: each swarm's and each remote host's.
+    pub fn run_dirs(&self) -> Vec<&Path> {
+        let hosts = self.primary().remote.iter().map(|host| host.run_dir.as_path());
+        self.swarms
+            .iter()
+            .map(|swarm| swarm.run_dir.as_path())
+            .chain(hosts)
+            .collect()
     }
 
     /// Whether robot `index` of swarm `swarm` runs the learned actor (if this launcher starts it).
@@ -254,15 +358,25 @@ impl Plan {
     /// Flags every member of swarm `swarm` takes.
     fn common_args(&self, swarm: usize) -> Vec<OsString> {
         let s = &self.swarms[swarm];
+        self.common_args_on(s.n, &s.identity, &s.run_dir, s.seed)
+    }
+
+    /// Flags every member of the primary swarm on remote robot `robot`'s host takes.
+    fn host_args(&self, robot: usize) -> Vec<OsString> {
+        let (primary, host) = (self.primary(), self.host(robot));
+        self.common_args_on(primary.n, &host.identity, &host.run_dir, primary.seed)
+    }
+
+    fn common_args_on(&self, n: usize, identity: &RunIdentity, run_dir: &Path, seed: u64) -> Vec<OsString> {
         let mut args: Vec<OsString> = vec![
             "--agents".into(),
-            s.n.to_string().into(),
+            n.to_string().into(),
             "--run-id".into(),
-            s.identity.run_id.clone().into(),
+            identity.run_id.clone().into(),
             "--run-dir".into(),
-            s.run_dir.clone().into(),
+            run_dir.into(),
             "--seed".into(),
-            s.seed.to_string().into(),
+            seed.to_string().into(),
             "--mode".into(),
             self.mode.as_str().into(),
             "--placement".into(),
@@ -301,17 +415,17 @@ impl Plan {
                 }
                 args
             }
+            Member::Bridge { host } => self.bridge_args(host),
+            Member::RemoteRobot { index } => {
+                let mut args = self.host_args(index);
+                args.extend(["--agent".into(), index.to_string().into()]);
+                args.extend(self.policy_args(0, index));
+                args
+            }
             Member::Robot { swarm, index } => {
                 let mut args = self.common_args(swarm);
                 args.extend(["--agent".into(), index.to_string().into()]);
-                if self.learned(swarm, index) {
-                    args.extend(["--policy".into(), "learned".into()]);
-                    if let (Mode::Eval, Some(path)) = (self.mode, &self.checkpoint) {
-                        args.extend(["--checkpoint".into(), path.into()]);
-                    }
-                } else {
-                    args.extend(["--policy".into(), "scripted".into()]);
-                }
+                args.extend(self.policy_args(swarm, index));
                 args
             }
             Member::Sim { swarm } => {
@@ -341,6 +455,59 @@ impl Plan {
                 args
             }
         }
+    }
+
+    /// A robot's controller flags.
+    fn policy_args(&self, swarm: usize, index: usize) -> Vec<OsString> {
+        let mut args: Vec<OsString> = Vec::new();
+        if self.learned(swarm, index) {
+            args.extend(["--policy".into(), "learned".into()]);
+            if let (Mode::Eval, Some(path)) = (self.mode, &self.checkpoint) {
+                args.extend(["--checkpoint".into(), path.into()]);
+            }
+        } else {
+            args.extend(["--policy".into(), "scripted".into()]);
+        }
+        args
+    }
+
+    /// A bridge's flags: the sim host's listens, each robot host's dials it.
+    fn bridge_args(&self, host: Option<usize>) -> Vec<OsString> {
+        let endpoint = self.bridge_endpoint.clone().unwrap_or_default();
+        let primary = self.primary();
+        let mut args = match host {
+            None => {
+                let robots: Vec<usize> = primary.remote.iter().map(|h| h.robot).collect();
+                let mut args = self.common_args(0);
+                args.extend([
+                    "--side".into(),
+                    "sim".into(),
+                    "--robots".into(),
+                    robot_set_arg(&robots).into(),
+                ]);
+                args.extend(["--listen".into(), endpoint.into()]);
+                args
+            }
+            Some(robot) => {
+                let mut args = self.host_args(robot);
+                args.extend([
+                    "--side".into(),
+                    "robot".into(),
+                    "--robots".into(),
+                    robot.to_string().into(),
+                ]);
+                args.extend(["--swarm".into(), primary.identity.run_id.clone().into()]);
+                args.extend(["--connect".into(), endpoint.into()]);
+                args
+            }
+        };
+        if self.net_delay_ms > 0.0 {
+            args.extend(["--net-delay-ms".into(), self.net_delay_ms.to_string().into()]);
+        }
+        if self.net_loss > 0.0 {
+            args.extend(["--net-loss".into(), self.net_loss.to_string().into()]);
+        }
+        args
     }
 
     /// Checks that need a member's own code (a checkpoint against the config, the critic's
@@ -408,6 +575,12 @@ fn value_name(value: impl ValueEnum) -> String {
         .to_possible_value()
         .map(|v| v.get_name().to_string())
         .unwrap_or_default()
+}
+
+/// A TCP port on 127.0.0.1 that is free now (the OS picks it; the bridge binds it a moment later).
+fn free_local_port() -> Result<u16> {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").context("cannot find a free local port")?;
+    Ok(listener.local_addr()?.port())
 }
 
 /// The model shipped with the repository (one model for any N).

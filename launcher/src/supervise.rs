@@ -21,9 +21,9 @@ use signal_hook::iterator::Signals;
 
 use crate::plan::{Member, Plan, Restart};
 
-/// A critic that dies sooner than this after its start counts as a quick death.
+/// A member that dies sooner than this after its start counts as a quick death.
 const QUICK_DEATH: Duration = Duration::from_secs(5);
-/// Quick deaths in a row after which the critic is not restarted and the run stops.
+/// Quick deaths in a row after which a member is not restarted and the run stops.
 const QUICK_DEATHS_TO_GIVE_UP: u32 = 3;
 /// After the primary sim's end, how long the others get to end on its end-of-run message.
 const WIND_DOWN: Duration = Duration::from_secs(10);
@@ -48,8 +48,8 @@ struct Supervisor<'a> {
     running: HashMap<Member, u32>,
     /// Each member's last exit status.
     exits: HashMap<Member, ExitStatus>,
-    critic_started: Instant,
-    quick_critic_deaths: u32,
+    /// When each member last started, and how many of its deaths in a row came soon after.
+    starts: HashMap<Member, (Instant, u32)>,
     /// When `--minutes` (or train's default 30) is up, for the critic's countdown.
     ends_at: Option<Instant>,
     /// Threads copying the critic's output; they end with its pipes.
@@ -72,8 +72,8 @@ pub fn launch(plan: &Plan) -> Result<u8> {
             return Ok(2);
         }
     }
-    for swarm in &plan.swarms {
-        let logs = swarm.run_dir.join("logs");
+    for run_dir in plan.run_dirs() {
+        let logs = run_dir.join("logs");
         std::fs::create_dir_all(&logs).with_context(|| format!("cannot create {}", logs.display()))?;
     }
     let run_json = serde_json::to_vec_pretty(&plan.run_json())?;
@@ -99,8 +99,7 @@ pub fn launch(plan: &Plan) -> Result<u8> {
         sender,
         running: HashMap::new(),
         exits: HashMap::new(),
-        critic_started: Instant::now(),
-        quick_critic_deaths: 0,
+        starts: HashMap::new(),
         ends_at: minutes.map(|m| Instant::now() + Duration::from_secs_f64(m * 60.0)),
         tees: Vec::new(),
     };
@@ -110,8 +109,8 @@ pub fn launch(plan: &Plan) -> Result<u8> {
     for tee in supervisor.tees.drain(..) {
         let _ = tee.join();
     }
-    for swarm in &plan.swarms {
-        swarm.identity.remove_leftovers();
+    for identity in plan.identities() {
+        identity.remove_leftovers();
     }
     let code = result?;
     println!(
@@ -121,14 +120,15 @@ pub fn launch(plan: &Plan) -> Result<u8> {
     Ok(code)
 }
 
-/// The pid of the launcher that made `run_id` (`r<time>p<pid>`, extra swarms `...x<k>`), if
-/// the id is a launcher's.
+/// The pid of the launcher that made `run_id` (`r<time>p<pid>`, extra swarms `...x<k>`, remote
+/// hosts `...h<i>`), if the id is a launcher's.
 fn launcher_pid(run_id: &str) -> Option<u32> {
     let rest = run_id.strip_prefix('r')?;
-    let (time, pid) = rest.split_once('p')?;
-    let pid = pid.split_once('x').map_or(pid, |(pid, _swarm)| pid);
+    let (time, pid_and_suffix) = rest.split_once('p')?;
+    // An extra swarm (`x<k>`) or a remote robot's host (`h<i>`) follows the pid.
+    let digits = pid_and_suffix.bytes().take_while(u8::is_ascii_digit).count();
     (time.len() == 6 && time.bytes().all(|b| b.is_ascii_digit())).then_some(())?;
-    pid.parse().ok()
+    pid_and_suffix[..digits].parse().ok()
 }
 
 /// Whether process `pid` exists and has not ended (a zombie waiting for its parent has).
@@ -255,9 +255,8 @@ impl Supervisor<'_> {
             self.tees
                 .push(std::thread::spawn(move || tee_lines(stderr, std::io::stderr(), log)));
         }
-        if member == Member::Critic {
-            self.critic_started = Instant::now();
-        }
+        let quick_deaths = self.starts.get(&member).map_or(0, |(_, deaths)| *deaths);
+        self.starts.insert(member, (Instant::now(), quick_deaths));
         self.running.insert(member, child.id());
         let exits = self.sender.clone();
         std::thread::spawn(move || {
@@ -272,7 +271,7 @@ impl Supervisor<'_> {
     /// attach the external robots.
     fn announce(&self) {
         let primary = self.plan.primary();
-        let started = primary.n - primary.external.len();
+        let started = primary.n - primary.external.len() - primary.remote.len();
         println!(
             "run {}: sim, {started} agents and the critic started; results in {} (logs in {}/logs)",
             primary.identity.run_id,
@@ -298,6 +297,15 @@ impl Supervisor<'_> {
                 primary.run_dir.display()
             );
         }
+        for host in &primary.remote {
+            println!(
+                "robot {} runs as if on another computer: its own iceoryx2 (run {}), joined over Zenoh at {}; its logs in {}/logs",
+                host.robot,
+                host.identity.run_id,
+                self.plan.bridge_endpoint.as_deref().unwrap_or("-"),
+                host.run_dir.display()
+            );
+        }
         for (k, swarm) in self.plan.swarms.iter().enumerate().skip(1) {
             println!(
                 "extra swarm {k}: {} robots and their sim, run {}; results in {}",
@@ -316,20 +324,24 @@ impl Supervisor<'_> {
             return Ok(true);
         }
         let name = self.plan.name(member);
+        // A member that dies within seconds of each start (a bad binary, a broken checkpoint, a
+        // port it cannot bind) is not restarted forever.
+        let (started, quick_deaths) = self.starts.get(&member).copied().unwrap_or((Instant::now(), 0));
+        let quick_deaths = if started.elapsed() < QUICK_DEATH {
+            quick_deaths + 1
+        } else {
+            0
+        };
+        self.starts.insert(member, (started, quick_deaths));
+        if quick_deaths >= QUICK_DEATHS_TO_GIVE_UP {
+            eprintln!(
+                "run_swarm.sh: {name} died at start three times in a row (see {}); stopping the run",
+                self.plan.log_path(member).display()
+            );
+            self.interrupt_sims();
+            return Ok(false);
+        }
         if policy == Restart::OnFailureResuming {
-            if self.critic_started.elapsed() < QUICK_DEATH {
-                self.quick_critic_deaths += 1;
-            } else {
-                self.quick_critic_deaths = 0;
-            }
-            if self.quick_critic_deaths >= QUICK_DEATHS_TO_GIVE_UP {
-                eprintln!(
-                    "run_swarm.sh: {name} died at start three times in a row (see {}); stopping the run",
-                    self.plan.log_path(member).display()
-                );
-                self.interrupt_sims();
-                return Ok(false);
-            }
             // Train: resume from the run's last checkpoint, else from where the run started.
             let last = self.plan.primary().run_dir.join("checkpoint.safetensors");
             let resume = match self.plan.mode {
@@ -494,6 +506,7 @@ mod tests {
     fn run_ids_name_the_launcher_that_made_them() {
         assert_eq!(launcher_pid("r123456p4242"), Some(4242));
         assert_eq!(launcher_pid("r123456p4242x3"), Some(4242));
+        assert_eq!(launcher_pid("r123456p4242h2"), Some(4242));
         assert_eq!(launcher_pid("default"), None);
         assert_eq!(launcher_pid("r12p4242"), None);
         assert_eq!(launcher_pid("rabcdefp1"), None);

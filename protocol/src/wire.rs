@@ -21,7 +21,7 @@ pub const FLAG_HELLO: u32 = 8;
 pub const FLAG_EVAL_EPISODE: u32 = 16;
 
 /// Common to every payload: who may read it and which tick it belongs to.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 #[type_name("formation::Header")]
 pub struct Header {
@@ -53,7 +53,7 @@ impl Header {
 }
 
 /// sim -> agent i: what robot i sees at a tick, in its own frame.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 #[type_name("formation::Observation")]
 pub struct ObservationMsg {
@@ -72,7 +72,7 @@ pub struct ObservationMsg {
 }
 
 /// agent i -> sim: the command for one tick.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 #[type_name("formation::Command")]
 pub struct CommandMsg {
@@ -168,7 +168,7 @@ pub struct CriticProgressMsg {
 }
 
 /// critic -> agents: the user header in front of one actor's flat `[f32]` weights.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 #[type_name("formation::WeightsHeader")]
 pub struct WeightsHeader {

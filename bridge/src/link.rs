@@ -1,0 +1,255 @@
+//! The Zenoh side of a bridge: the session (peer mode, only the endpoints given, no discovery),
+//! the keys of one swarm, and the outbox every forwarded message leaves by (with an optional
+//! emulated delay and loss of a real network).
+
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, anyhow};
+use rand::Rng;
+use zenoh::pubsub::Publisher;
+use zenoh::qos::CongestionControl;
+use zenoh::{Config, Session, Wait};
+
+/// How long a silent link takes to be declared lost (Zenoh's lease; its default is 10 s).
+const LEASE_MS: u64 = 2000;
+/// The longest pause between two attempts to reach a `--connect` endpoint.
+const RECONNECT_MAX_MS: u64 = 1000;
+
+/// Where a bridge listens and whom it dials.
+#[derive(Debug, Clone, Default)]
+pub struct Endpoints {
+    /// Zenoh locators this bridge accepts links on, e.g. `tcp/127.0.0.1:7447`.
+    pub listen: Vec<String>,
+    /// Zenoh locators this bridge dials (and redials after a lost link).
+    pub connect: Vec<String>,
+    /// A Zenoh JSON5 configuration (TLS, access control) the endpoints are applied on top of.
+    pub config_file: Option<std::path::PathBuf>,
+}
+
+/// Opens the bridge's Zenoh session: peer mode, listening only on `listen` (never on all
+/// interfaces by default), dialling `connect`, no multicast or gossip discovery.
+pub fn open_session(endpoints: &Endpoints) -> Result<Session> {
+    let mut config = match &endpoints.config_file {
+        Some(path) => Config::from_file(path).map_err(|err| anyhow!("zenoh config {}: {err}", path.display()))?,
+        None => Config::default(),
+    };
+    let set = |config: &mut Config, key: &str, value: String| {
+        config
+            .insert_json5(key, &value)
+            .map_err(|err| anyhow!("zenoh config {key} = {value}: {err}"))
+    };
+    set(&mut config, "mode", "\"peer\"".into())?;
+    // Without a file, exactly the endpoints given (none: listen nowhere, where Zenoh's default
+    // is every interface); with a file, its endpoints unless flags replace them.
+    let from_file = endpoints.config_file.is_some();
+    if !from_file || !endpoints.listen.is_empty() {
+        set(&mut config, "listen/endpoints", json_list(&endpoints.listen))?;
+    }
+    if !from_file || !endpoints.connect.is_empty() {
+        set(&mut config, "connect/endpoints", json_list(&endpoints.connect))?;
+    }
+    set(&mut config, "scouting/multicast/enabled", "false".into())?;
+    set(&mut config, "scouting/gossip/enabled", "false".into())?;
+    set(&mut config, "transport/link/tx/lease", LEASE_MS.to_string())?;
+    set(
+        &mut config,
+        "connect/retry",
+        format!("{{period_init_ms: 250, period_max_ms: {RECONNECT_MAX_MS}, period_increase_factor: 2}}"),
+    )?;
+    zenoh::open(config)
+        .wait()
+        .map_err(|err| anyhow!("cannot open the zenoh session: {err}"))
+}
+
+fn json_list(items: &[String]) -> String {
+    let quoted: Vec<String> = items.iter().map(|item| format!("{item:?}")).collect();
+    format!("[{}]", quoted.join(","))
+}
+
+/// The Zenoh keys of one swarm, named by the run id of its sim's host.
+#[derive(Debug, Clone)]
+pub struct Keys {
+    prefix: String,
+}
+
+impl Keys {
+    /// Keys of the swarm whose sim runs under `swarm_run_id`.
+    pub fn new(swarm_run_id: &str) -> Self {
+        Self {
+            prefix: format!("formation/{swarm_run_id}"),
+        }
+    }
+
+    /// sim -> robot `agent`: its observations.
+    pub fn observation(&self, agent: usize) -> String {
+        format!("{}/agent/{agent}/observation", self.prefix)
+    }
+
+    /// Every robot's observations.
+    pub fn observations(&self) -> String {
+        format!("{}/agent/*/observation", self.prefix)
+    }
+
+    /// robot `agent` -> sim: its commands.
+    pub fn command(&self, agent: usize) -> String {
+        format!("{}/agent/{agent}/command", self.prefix)
+    }
+
+    /// Every robot's commands.
+    pub fn commands(&self) -> String {
+        format!("{}/agent/*/command", self.prefix)
+    }
+
+    /// critic -> robots: actor `index`'s weights.
+    pub fn weights(&self, index: usize) -> String {
+        format!("{}/actor/{index}/weights", self.prefix)
+    }
+
+    /// Every actor's weights.
+    pub fn all_weights(&self) -> String {
+        format!("{}/actor/*/weights", self.prefix)
+    }
+
+    /// Liveliness of the bridge on the sim's host.
+    pub fn sim_host(&self) -> String {
+        format!("{}/hosts/sim", self.prefix)
+    }
+
+    /// Liveliness of a robot host's bridge serving robot `agent`.
+    pub fn robot_host(&self, agent: usize) -> String {
+        format!("{}/hosts/robot/{agent}", self.prefix)
+    }
+
+    /// Every robot host's liveliness.
+    pub fn robot_hosts(&self) -> String {
+        format!("{}/hosts/robot/*", self.prefix)
+    }
+
+    /// The index in `key` after `segment` (`.../agent/2/command` -> 2 for `agent`).
+    pub fn index_after(key: &str, segment: &str) -> Option<usize> {
+        let mut parts = key.split('/');
+        parts.find(|part| *part == segment)?;
+        parts.next()?.parse().ok()
+    }
+}
+
+/// An emulated network between the bridges: each message leaves `delay` late, or is lost with
+/// probability `loss` (both 0: a message leaves at once).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct NetEmulation {
+    /// One-way delay added to every message this bridge sends.
+    pub delay: Duration,
+    /// Probability that a message this bridge sends is dropped.
+    pub loss: f64,
+}
+
+/// A message on the delay line: when it is due, its key's index, its bytes.
+type Delayed = (Instant, usize, Vec<u8>);
+
+/// Where forwarded messages leave: one Zenoh publisher per key, sending at once or through the
+/// emulated network's delay line.
+pub struct Outbox {
+    publishers: Vec<Publisher<'static>>,
+    emulation: NetEmulation,
+    delayed: (Mutex<VecDeque<Delayed>>, Condvar),
+    /// Messages the emulated network lost.
+    pub lost: AtomicU64,
+}
+
+impl Outbox {
+    /// Publishers for `keys` (sent to by index), express (no batching: a tick waits on them) and
+    /// dropping rather than blocking when the link is congested or down.
+    pub fn new(session: &Session, keys: &[String], emulation: NetEmulation) -> Result<Arc<Self>> {
+        let publishers = keys
+            .iter()
+            .map(|key| {
+                session
+                    .declare_publisher(key.clone())
+                    .congestion_control(CongestionControl::Drop)
+                    .express(true)
+                    .wait()
+                    .map_err(|err| anyhow!("cannot declare the zenoh publisher {key}: {err}"))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let outbox = Arc::new(Self {
+            publishers,
+            emulation,
+            delayed: (Mutex::new(VecDeque::new()), Condvar::new()),
+            lost: AtomicU64::new(0),
+        });
+        if !emulation.delay.is_zero() {
+            let line = Arc::clone(&outbox);
+            std::thread::Builder::new()
+                .name("net-delay".into())
+                .spawn(move || deliver_when_due(&line))
+                .context("cannot start the delay line")?;
+        }
+        Ok(outbox)
+    }
+
+    /// Sends `bytes` on the key at `key_index`.
+    pub fn send(&self, key_index: usize, bytes: &[u8]) -> Result<()> {
+        if self.emulation.loss > 0.0 && rand::rng().random_bool(self.emulation.loss.min(1.0)) {
+            self.lost.fetch_add(1, Ordering::Relaxed);
+            return Ok(());
+        }
+        if self.emulation.delay.is_zero() {
+            return self.put(key_index, bytes);
+        }
+        let (queue, ready) = &self.delayed;
+        let due = Instant::now() + self.emulation.delay;
+        queue
+            .lock()
+            .map_err(|_| anyhow!("delay line poisoned"))?
+            .push_back((due, key_index, bytes.to_vec()));
+        ready.notify_one();
+        Ok(())
+    }
+
+    fn put(&self, key_index: usize, bytes: &[u8]) -> Result<()> {
+        self.publishers[key_index]
+            .put(bytes)
+            .wait()
+            .map_err(|err| anyhow!("zenoh put failed: {err}"))
+    }
+}
+
+/// The delay line: sends each queued message when it is due (the delay is constant, so the
+/// queue is in due order), sleeping on a condition variable in between. Lives as long as the
+/// bridge.
+fn deliver_when_due(outbox: &Outbox) {
+    let (queue, ready) = &outbox.delayed;
+    loop {
+        let Ok(mut waiting) = queue.lock() else { return };
+        let now = Instant::now();
+        match waiting.front().map(|(due, _, _)| *due) {
+            Some(due) if due <= now => {
+                let Some((_, key_index, bytes)) = waiting.pop_front() else {
+                    continue;
+                };
+                drop(waiting);
+                let _ = outbox.put(key_index, &bytes);
+            }
+            Some(due) => drop(ready.wait_timeout(waiting, due - now)),
+            None => drop(ready.wait(waiting)),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_name_the_swarm_and_give_their_index_back() {
+        let keys = Keys::new("r123456p42");
+        assert_eq!(keys.command(2), "formation/r123456p42/agent/2/command");
+        assert_eq!(Keys::index_after(&keys.command(2), "agent"), Some(2));
+        assert_eq!(Keys::index_after(&keys.weights(0), "actor"), Some(0));
+        assert_eq!(Keys::index_after("formation/x/agent/two/command", "agent"), None);
+        assert_eq!(json_list(&["tcp/127.0.0.1:7447".into()]), r#"["tcp/127.0.0.1:7447"]"#);
+    }
+}

@@ -1,0 +1,240 @@
+//! A robot "on another computer": its own iceoryx2 (prefix and root path), joined to the sim's
+//! host only through two `formation-bridge` processes over Zenoh on TCP localhost. Real
+//! processes under a watchdog; nothing of either host may be left behind.
+
+use std::time::{Duration, Instant};
+
+use formation_swarm::{
+    RunOutcome, assert_clean, processes_of_run, run_swarm, run_swarm_with, scratch_dir, shm_leftovers,
+};
+
+/// Asserts that neither the sim's host nor remote robot `robot`'s host left anything.
+fn assert_both_hosts_clean(run: &RunOutcome, robot: usize) {
+    assert_clean(run);
+    let host = format!("{}h{robot}", run.run_id.as_deref().expect("run id"));
+    assert!(shm_leftovers(&host).is_empty(), "{:?}", shm_leftovers(&host));
+    let root = std::env::temp_dir().join("formation-iox2").join(&host);
+    assert!(
+        !root.exists(),
+        "the remote host's root path is left: {}",
+        root.display()
+    );
+}
+
+/// The last line of a bridge's log that reports what it forwarded.
+fn bridge_report(log: &std::path::Path) -> String {
+    let text = std::fs::read_to_string(log).unwrap_or_default();
+    text.lines()
+        .rfind(|line| line.contains("forwarded"))
+        .unwrap_or_default()
+        .to_string()
+}
+
+/// The number before `what` in a bridge's report ("forwarded 12 observations").
+fn count(report: &str, what: &str) -> u64 {
+    let words: Vec<&str> = report.split_whitespace().collect();
+    words
+        .windows(2)
+        .find(|w| w[1].trim_end_matches([',', ';']) == what)
+        .and_then(|w| w[0].parse().ok())
+        .unwrap_or(0)
+}
+
+#[test]
+fn a_scripted_swarm_with_a_remote_robot_succeeds_as_a_local_one_does() {
+    let dir = scratch_dir("remote-scripted");
+    let run = run_swarm(
+        &[
+            "3",
+            "--scripted",
+            "all",
+            "--mode",
+            "eval",
+            "--remote",
+            "2",
+            "--episodes",
+            "20",
+            "--seed",
+            "1",
+            "--viewer",
+            "off",
+        ],
+        &dir.join("run"),
+        Duration::from_secs(180),
+    )
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "{}", run.output);
+    assert!(
+        run.output.contains("robot 2 runs as if on another computer"),
+        "{}",
+        run.output
+    );
+    let summary = run.summary().expect("summary");
+    assert!(summary["success_rate"].as_f64().expect("success") >= 0.95, "{summary}");
+    assert_eq!(summary["collision_rate"].as_f64(), Some(0.0), "{summary}");
+    // Robot 2's observations left through the sim's bridge and its commands came back.
+    let sim_bridge = bridge_report(&run.run_dir.join("logs/bridge.log"));
+    let robot_bridge = bridge_report(&run.run_dir.join("host-2/logs/bridge.log"));
+    let steps = summary["env_steps"].as_u64().expect("steps");
+    assert!(
+        count(&sim_bridge, "commands") >= steps - summary["missed_ticks"].as_u64().unwrap_or(0),
+        "{sim_bridge}"
+    );
+    assert!(count(&robot_bridge, "observations") >= steps, "{robot_bridge}");
+    assert_eq!(count(&sim_bridge, "rejected"), 0, "{sim_bridge}");
+    // Robot 2's process ran with the remote host's run id, never the sim's.
+    let agent_log = std::fs::read_to_string(run.run_dir.join("host-2/logs/agent-2.log")).unwrap_or_default();
+    assert!(!agent_log.contains("error"), "{agent_log}");
+    assert_both_hosts_clean(&run, 2);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn killed_bridges_are_restarted_and_the_remote_robot_rejoins() {
+    let dir = scratch_dir("remote-kill-bridge");
+    let run_dir = dir.join("run");
+    let log = run_dir.with_extension("log");
+    let args = [
+        "3",
+        "--scripted",
+        "all",
+        "--mode",
+        "eval",
+        "--remote",
+        "2",
+        "--episodes",
+        "600",
+        "--seed",
+        "2",
+        "--viewer",
+        "off",
+    ];
+    let run = run_swarm_with(&args, &run_dir, Duration::from_secs(240), |_| {
+        let deadline = Instant::now() + Duration::from_secs(60);
+        let run_id = loop {
+            let text = std::fs::read_to_string(&log).unwrap_or_default();
+            if let Some(id) = text
+                .lines()
+                .find_map(|l| l.strip_prefix("run ").and_then(|r| r.split(':').next()))
+            {
+                break id.to_string();
+            }
+            assert!(Instant::now() < deadline, "no run id:\n{text}");
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        for side in ["--side sim", "--side robot"] {
+            std::thread::sleep(Duration::from_millis(1500));
+            let pid = processes_of_run(&run_id)
+                .into_iter()
+                .find(|pid| {
+                    std::fs::read(format!("/proc/{pid}/cmdline"))
+                        .map(|c| String::from_utf8_lossy(&c).replace('\0', " ").contains(side))
+                        .unwrap_or(false)
+                })
+                .unwrap_or_else(|| panic!("no bridge with {side}"));
+            // SAFETY: kill(2) on a process of this test's run.
+            unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+        }
+    })
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "{}", run.output);
+    assert!(run.output.contains("the sim's bridge died"), "{}", run.output);
+    assert!(run.output.contains("robot 2's bridge died"), "{}", run.output);
+    let summary = run.summary().expect("summary");
+    assert_eq!(summary["episodes"].as_u64(), Some(600), "{summary}");
+    // The link's loss is counted as missed ticks, and the robot drives again after it.
+    assert!(summary["missed_ticks"].as_u64().expect("missed") > 0, "{summary}");
+    let csv = std::fs::read_to_string(run.run_dir.join("episodes.csv")).expect("episodes.csv");
+    let last_ten: Vec<&str> = csv.lines().rev().take(10).collect();
+    let successes = last_ten.iter().filter(|line| line.contains("success")).count();
+    assert!(successes >= 9, "after the rejoin:\n{}", last_ten.join("\n"));
+    assert_both_hosts_clean(&run, 2);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn a_learning_remote_robot_gets_the_critics_weights_through_the_bridges() {
+    let dir = scratch_dir("remote-train");
+    let run = run_swarm(
+        &[
+            "3",
+            "--remote",
+            "1",
+            "--minutes",
+            "0.4",
+            "--seed",
+            "5",
+            "--viewer",
+            "off",
+        ],
+        &dir.join("run"),
+        Duration::from_secs(240),
+    )
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "{}", run.output);
+    let robot_bridge = bridge_report(&run.run_dir.join("host-1/logs/bridge.log"));
+    assert!(count(&robot_bridge, "weights") > 0, "{robot_bridge}");
+    let summary = run.summary().expect("summary");
+    assert!(summary["updates"].as_u64().unwrap_or(0) > 0, "{summary}");
+    assert_both_hosts_clean(&run, 1);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn real_time_with_a_remote_robot_misses_no_deadline() {
+    let dir = scratch_dir("remote-realtime");
+    let run = run_swarm(
+        &[
+            "3",
+            "--scripted",
+            "all",
+            "--mode",
+            "eval",
+            "--remote",
+            "1",
+            "--realtime",
+            "--episodes",
+            "2",
+            "--seed",
+            "4",
+            "--viewer",
+            "off",
+        ],
+        &dir.join("run"),
+        Duration::from_secs(240),
+    )
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "{}", run.output);
+    let summary = run.summary().expect("summary");
+    assert_eq!(summary["deadline_misses"].as_u64(), Some(0), "{summary}");
+    assert_eq!(summary["missed_ticks"].as_u64(), Some(0), "{summary}");
+    assert_both_hosts_clean(&run, 1);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn remote_flags_are_checked_before_anything_starts() {
+    let dir = scratch_dir("remote-bad");
+    for (args, needle) in [
+        (vec!["3", "--remote", "3"], "robot 3 does not exist"),
+        (
+            vec!["3", "--remote", "1", "--external", "1"],
+            "both --remote and --external",
+        ),
+        (vec!["3", "--net-delay-ms", "20"], "name them with --remote"),
+        (
+            vec!["3", "--remote", "1", "--net-loss", "2"],
+            "--net-loss must be a probability",
+        ),
+    ] {
+        let run = run_swarm(&args, &dir.join("run"), Duration::from_secs(60)).expect("launch");
+        assert_eq!(run.status, Some(2), "{args:?}:\n{}", run.output);
+        assert!(
+            run.output.contains(needle),
+            "{args:?}: expected {needle:?} in\n{}",
+            run.output
+        );
+        assert!(run.run_id.is_none());
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
