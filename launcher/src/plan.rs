@@ -132,20 +132,11 @@ impl Plan {
     /// Checks every flag and the configuration; nothing is created yet.
     pub fn new(args: LaunchArgs) -> Result<Self> {
         let n = args.n;
-        let external_flag = args.external.as_deref().unwrap_or("");
-        let external = parse_robot_set("--external", external_flag, n)?;
-        ensure!(
-            external_flag.trim().is_empty() || !external.is_empty(),
-            "--external takes 'all' or indices like 0,2; got {external_flag:?}"
-        );
-        let scripted_flag = args.scripted.as_deref().unwrap_or("");
-        let mut scripted = parse_robot_set("--scripted", scripted_flag, n)?;
-        if scripted_flag.trim() == "all" {
-            // `--scripted all --external 2`: every robot this launcher starts is scripted.
-            scripted.retain(|robot| !external.contains(robot));
-        } else if let Some(both) = scripted.iter().find(|robot| external.contains(robot)) {
-            bail!("robot {both} cannot be both --scripted and --external");
-        }
+        let RobotSets {
+            scripted,
+            external,
+            remote,
+        } = RobotSets::new(&args)?;
         if !args.extra_swarms.is_empty() {
             ensure!(
                 args.mode == Mode::Train,
@@ -169,19 +160,6 @@ impl Plan {
         if let Some(shape) = args.shape {
             config.env.shape = shape;
         }
-        let remote_flag = args.remote.as_deref().unwrap_or("");
-        let remote = parse_robot_set("--remote", remote_flag, n)?;
-        if let Some(both) = remote.iter().find(|robot| external.contains(robot)) {
-            bail!("robot {both} cannot be both --remote and --external");
-        }
-        ensure!(
-            remote.is_empty() || args.extra_swarms.is_empty(),
-            "--remote is for the primary swarm only; leave out --extra-swarms"
-        );
-        ensure!(
-            !remote.is_empty() || (args.net_delay_ms == 0.0 && args.net_loss == 0.0),
-            "--net-delay-ms and --net-loss emulate the link of --remote robots; name them with --remote"
-        );
         let learned = n - scripted.len() - external.len();
         let checkpoint = match (&args.checkpoint, args.mode) {
             (None, Mode::Eval) if learned > 0 => Some(shipped_model()?),
@@ -565,6 +543,51 @@ impl Plan {
                 "run_dir": x.run_dir,
             })).collect::<Vec<_>>(),
             "launcher_pid": std::process::id(),
+        })
+    }
+}
+
+/// Which robots are scripted, external and remote, checked against each other.
+struct RobotSets {
+    scripted: Vec<usize>,
+    external: Vec<usize>,
+    remote: Vec<usize>,
+}
+
+impl RobotSets {
+    fn new(args: &LaunchArgs) -> Result<Self> {
+        let n = args.n;
+        let external_flag = args.external.as_deref().unwrap_or("");
+        let external = parse_robot_set("--external", external_flag, n)?;
+        ensure!(
+            external_flag.trim().is_empty() || !external.is_empty(),
+            "--external takes 'all' or indices like 0,2; got {external_flag:?}"
+        );
+        let scripted_flag = args.scripted.as_deref().unwrap_or("");
+        let mut scripted = parse_robot_set("--scripted", scripted_flag, n)?;
+        if scripted_flag.trim() == "all" {
+            // `--scripted all --external 2`: every robot this launcher starts is scripted.
+            scripted.retain(|robot| !external.contains(robot));
+        } else if let Some(both) = scripted.iter().find(|robot| external.contains(robot)) {
+            bail!("robot {both} cannot be both --scripted and --external");
+        }
+        let remote_flag = args.remote.as_deref().unwrap_or("");
+        let remote = parse_robot_set("--remote", remote_flag, n)?;
+        if let Some(both) = remote.iter().find(|robot| external.contains(robot)) {
+            bail!("robot {both} cannot be both --remote and --external");
+        }
+        ensure!(
+            remote.is_empty() || args.extra_swarms.is_empty(),
+            "--remote is for the primary swarm only; leave out --extra-swarms"
+        );
+        ensure!(
+            !remote.is_empty() || (args.net_delay_ms == 0.0 && args.net_loss == 0.0),
+            "--net-delay-ms and --net-loss emulate the link of --remote robots; name them with --remote"
+        );
+        Ok(Self {
+            scripted,
+            external,
+            remote,
         })
     }
 }
