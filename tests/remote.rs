@@ -30,14 +30,19 @@ fn bridge_report(log: &std::path::Path) -> String {
         .to_string()
 }
 
-/// The number before `what` in a bridge's report ("forwarded 12 observations").
+/// The count of `what` in a bridge's report: the number before it ("forwarded 12
+/// observations") or, for "rejected", after it ("rejected 3").
 fn count(report: &str, what: &str) -> u64 {
-    let words: Vec<&str> = report.split_whitespace().collect();
+    let words: Vec<&str> = report
+        .split_whitespace()
+        .map(|w| w.trim_end_matches([',', ';']))
+        .collect();
+    let (number, word) = if what == "rejected" { (1, 0) } else { (0, 1) };
     words
         .windows(2)
-        .find(|w| w[1].trim_end_matches([',', ';']) == what)
-        .and_then(|w| w[0].parse().ok())
-        .unwrap_or(0)
+        .find(|w| w[word] == what)
+        .and_then(|w| w[number].parse().ok())
+        .expect("the bridge reports it")
 }
 
 #[test]
@@ -237,4 +242,92 @@ fn remote_flags_are_checked_before_anything_starts() {
         assert!(run.run_id.is_none());
     }
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_command_injected_by_another_zenoh_peer_for_a_robot_not_carried_is_rejected_and_counted() {
+    use formation_protocol::wire::{CommandMsg, Header};
+    use zenoh::Wait;
+    let dir = scratch_dir("remote-inject");
+    let run_dir = dir.join("run");
+    let log = run_dir.with_extension("log");
+    let args = [
+        "3",
+        "--scripted",
+        "all",
+        "--mode",
+        "eval",
+        "--remote",
+        "2",
+        "--episodes",
+        "300",
+        "--seed",
+        "3",
+        "--viewer",
+        "off",
+    ];
+    let run = run_swarm_with(&args, &run_dir, Duration::from_secs(240), |_| {
+        let deadline = Instant::now() + Duration::from_secs(60);
+        let (run_id, endpoint) = loop {
+            let text = std::fs::read_to_string(&log).unwrap_or_default();
+            let id = text
+                .lines()
+                .find_map(|l| l.strip_prefix("run ").and_then(|r| r.split(':').next()));
+            let endpoint = text
+                .lines()
+                .find_map(|l| l.split("joined over Zenoh at ").nth(1))
+                .and_then(|rest| rest.split(';').next());
+            if let (Some(id), Some(endpoint)) = (id, endpoint) {
+                break (id.to_string(), endpoint.to_string());
+            }
+            assert!(Instant::now() < deadline, "no run id and endpoint:\n{text}");
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        // A stranger dials the sim's bridge and commands robot 0 (local, not carried) and
+        // robot 2 with garbage.
+        let mut config = zenoh::Config::default();
+        for (key, value) in [
+            ("listen/endpoints", "[]".to_string()),
+            ("connect/endpoints", format!("[{endpoint:?}]")),
+            ("scouting/multicast/enabled", "false".to_string()),
+        ] {
+            config.insert_json5(key, &value).expect("zenoh config");
+        }
+        let session = zenoh::open(config).wait().expect("zenoh session");
+        std::thread::sleep(Duration::from_millis(1500));
+        let forged = CommandMsg {
+            header: Header::new(0, 1, 0),
+            agent: 0,
+            v: 0.5,
+            ..CommandMsg::default()
+        };
+        for _ in 0..5 {
+            session
+                .put(
+                    format!("formation/{run_id}/agent/0/command"),
+                    bytemuck::bytes_of(&forged).to_vec(),
+                )
+                .wait()
+                .expect("put");
+            session
+                .put(format!("formation/{run_id}/agent/2/command"), vec![1u8, 2, 3])
+                .wait()
+                .expect("put");
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        session.close().wait().expect("close");
+    })
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "{}", run.output);
+    let sim_bridge = bridge_report(&run.run_dir.join("logs/bridge.log"));
+    assert!(count(&sim_bridge, "rejected") >= 10, "{sim_bridge}");
+    let summary = run.summary().expect("summary");
+    assert_eq!(
+        summary["rejected_commands"].as_u64(),
+        Some(0),
+        "nothing reached the sim: {summary}"
+    );
+    assert!(summary["success_rate"].as_f64().expect("success") >= 0.95, "{summary}");
+    assert_both_hosts_clean(&run, 2);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
 }
