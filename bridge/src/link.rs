@@ -25,7 +25,7 @@ pub struct Endpoints {
     pub listen: Vec<String>,
     /// Zenoh locators this bridge dials (and redials after a lost link).
     pub connect: Vec<String>,
-    /// A Zenoh JSON5 configuration (TLS, access control) the endpoints are applied on top of.
+    /// A Zenoh JSON5 configuration (TLS, access control); its endpoints are replaced by these.
     pub config_file: Option<std::path::PathBuf>,
 }
 
@@ -42,15 +42,10 @@ pub fn open_session(endpoints: &Endpoints) -> Result<Session> {
             .map_err(|err| anyhow!("zenoh config {key} = {value}: {err}"))
     };
     set(&mut config, "mode", "\"peer\"".into())?;
-    // Without a file, exactly the endpoints given (none: listen nowhere, where Zenoh's default
-    // is every interface); with a file, its endpoints unless flags replace them.
-    let from_file = endpoints.config_file.is_some();
-    if !from_file || !endpoints.listen.is_empty() {
-        set(&mut config, "listen/endpoints", json_list(&endpoints.listen))?;
-    }
-    if !from_file || !endpoints.connect.is_empty() {
-        set(&mut config, "connect/endpoints", json_list(&endpoints.connect))?;
-    }
+    // Exactly the endpoints given, whatever a file says (none: listen nowhere, where Zenoh's
+    // default is every interface); a file brings TLS and access control.
+    set(&mut config, "listen/endpoints", json_list(&endpoints.listen))?;
+    set(&mut config, "connect/endpoints", json_list(&endpoints.connect))?;
     set(&mut config, "scouting/multicast/enabled", "false".into())?;
     set(&mut config, "scouting/gossip/enabled", "false".into())?;
     set(&mut config, "transport/link/tx/lease", LEASE_MS.to_string())?;

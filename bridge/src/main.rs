@@ -58,8 +58,8 @@ struct Cli {
     /// Zenoh endpoint to dial, and redial after a lost link (repeatable).
     #[arg(long, value_name = "ENDPOINT")]
     connect: Vec<String>,
-    /// Zenoh JSON5 configuration (TLS, access control); --listen and --connect replace its
-    /// endpoints, discovery stays off.
+    /// Zenoh JSON5 configuration (TLS, access control); the endpoints are always those of
+    /// --listen and --connect, discovery stays off.
     #[arg(long, value_name = "FILE")]
     zenoh_config: Option<PathBuf>,
     /// Emulated network: every message this bridge sends leaves this many milliseconds late.
