@@ -123,6 +123,37 @@ pub fn run_swarm_with(
     })
 }
 
+/// Waits (up to a minute) until the launcher's `log` has a line `find` extracts a value from.
+pub fn announced<T>(log: &Path, what: &str, find: impl Fn(&str) -> Option<T>) -> T {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let text = std::fs::read_to_string(log).unwrap_or_default();
+        if let Some(value) = text.lines().find_map(&find) {
+            return value;
+        }
+        assert!(Instant::now() < deadline, "no {what} announced:\n{text}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// Waits until the launcher has announced its run id in `log`, then returns it.
+pub fn run_id_of(log: &Path) -> String {
+    announced(log, "run id", |line| {
+        line.strip_prefix("run ")
+            .and_then(|rest| rest.split(':').next())
+            .map(str::to_string)
+    })
+}
+
+/// Pid of the process of run `run_id` whose command line contains `needle`.
+pub fn pid_of(run_id: &str, needle: &str) -> Option<u32> {
+    processes_of_run(run_id).into_iter().find(|pid| {
+        std::fs::read(format!("/proc/{pid}/cmdline"))
+            .map(|c| String::from_utf8_lossy(&c).replace('\0', " ").contains(needle))
+            .unwrap_or(false)
+    })
+}
+
 /// Files of run `run_id` still in `/dev/shm`.
 pub fn shm_leftovers(run_id: &str) -> Vec<String> {
     let prefix = format!("fc_{run_id}_");

@@ -1,38 +1,13 @@
 //! Faults with real processes: killed agents, critic and sim, malformed commands, bad files,
 //! two runs at once, and Ctrl-C. Each run is under a watchdog and must leave nothing behind.
 
-use std::path::Path;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
 use formation_swarm::{
-    assert_clean, bin_dir, processes_of_run, repo_root, run_swarm, run_swarm_with, scratch_dir, shm_leftovers,
+    assert_clean, bin_dir, pid_of, processes_of_run, repo_root, run_id_of, run_swarm, run_swarm_with, scratch_dir,
+    shm_leftovers,
 };
-
-/// Waits until the launcher `pid` has announced its run id in `log`, then returns it.
-fn run_id_of(log: &Path) -> String {
-    let deadline = Instant::now() + Duration::from_secs(60);
-    loop {
-        let text = std::fs::read_to_string(log).unwrap_or_default();
-        if let Some(id) = text
-            .lines()
-            .find_map(|l| l.strip_prefix("run ").and_then(|r| r.split(':').next()))
-        {
-            return id.to_string();
-        }
-        assert!(Instant::now() < deadline, "no run id announced:\n{text}");
-        std::thread::sleep(Duration::from_millis(50));
-    }
-}
-
-/// Pid of the process of run `run_id` whose command line contains `needle`.
-fn pid_of(run_id: &str, needle: &str) -> Option<u32> {
-    processes_of_run(run_id).into_iter().find(|pid| {
-        std::fs::read(format!("/proc/{pid}/cmdline"))
-            .map(|c| String::from_utf8_lossy(&c).replace('\0', " ").contains(needle))
-            .unwrap_or(false)
-    })
-}
 
 fn kill(pid: u32, signal: i32) {
     // SAFETY: kill(2) on a pid of our own run.

@@ -2,10 +2,10 @@
 //! host only through two `formation-bridge` processes over Zenoh on TCP localhost. Real
 //! processes under a watchdog; nothing of either host may be left behind.
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use formation_swarm::{
-    RunOutcome, assert_clean, processes_of_run, run_swarm, run_swarm_with, scratch_dir, shm_leftovers,
+    RunOutcome, announced, assert_clean, pid_of, run_id_of, run_swarm, run_swarm_with, scratch_dir, shm_leftovers,
 };
 
 /// Asserts that neither the sim's host nor remote robot `robot`'s host left anything.
@@ -115,28 +115,10 @@ fn killed_bridges_are_restarted_and_the_remote_robot_rejoins() {
         "off",
     ];
     let run = run_swarm_with(&args, &run_dir, Duration::from_secs(240), |_| {
-        let deadline = Instant::now() + Duration::from_secs(60);
-        let run_id = loop {
-            let text = std::fs::read_to_string(&log).unwrap_or_default();
-            if let Some(id) = text
-                .lines()
-                .find_map(|l| l.strip_prefix("run ").and_then(|r| r.split(':').next()))
-            {
-                break id.to_string();
-            }
-            assert!(Instant::now() < deadline, "no run id:\n{text}");
-            std::thread::sleep(Duration::from_millis(50));
-        };
+        let run_id = run_id_of(&log);
         for side in ["--side sim", "--side robot"] {
             std::thread::sleep(Duration::from_millis(1500));
-            let pid = processes_of_run(&run_id)
-                .into_iter()
-                .find(|pid| {
-                    std::fs::read(format!("/proc/{pid}/cmdline"))
-                        .map(|c| String::from_utf8_lossy(&c).replace('\0', " ").contains(side))
-                        .unwrap_or(false)
-                })
-                .unwrap_or_else(|| panic!("no bridge with {side}"));
+            let pid = pid_of(&run_id, side).unwrap_or_else(|| panic!("no bridge with {side}"));
             // SAFETY: kill(2) on a process of this test's run.
             unsafe { libc::kill(pid as i32, libc::SIGKILL) };
         }
@@ -267,22 +249,13 @@ fn a_command_injected_by_another_zenoh_peer_for_a_robot_not_carried_is_rejected_
         "off",
     ];
     let run = run_swarm_with(&args, &run_dir, Duration::from_secs(240), |_| {
-        let deadline = Instant::now() + Duration::from_secs(60);
-        let (run_id, endpoint) = loop {
-            let text = std::fs::read_to_string(&log).unwrap_or_default();
-            let id = text
-                .lines()
-                .find_map(|l| l.strip_prefix("run ").and_then(|r| r.split(':').next()));
-            let endpoint = text
-                .lines()
-                .find_map(|l| l.split("joined over Zenoh at ").nth(1))
-                .and_then(|rest| rest.split(';').next());
-            if let (Some(id), Some(endpoint)) = (id, endpoint) {
-                break (id.to_string(), endpoint.to_string());
-            }
-            assert!(Instant::now() < deadline, "no run id and endpoint:\n{text}");
-            std::thread::sleep(Duration::from_millis(50));
-        };
+        let run_id = run_id_of(&log);
+        let endpoint = announced(&log, "bridge endpoint", |line| {
+            line.split("joined over Zenoh at ")
+                .nth(1)
+                .and_then(|rest| rest.split(';').next())
+                .map(str::to_string)
+        });
         // A stranger dials the sim's bridge and commands robot 0 (local, not carried) and
         // robot 2 with garbage.
         let mut config = zenoh::Config::default();

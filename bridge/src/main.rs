@@ -10,17 +10,18 @@ mod sim_side;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Duration;
 
-use anyhow::{Result, anyhow, ensure};
+use anyhow::{Context, Result, anyhow, ensure};
 use clap::{Parser, ValueEnum};
 use formation_core::observation::Layout;
 use formation_protocol::cli::{Mode, RunArgs, parse_robot_set};
 use formation_protocol::services::{RunIdentity, Sizing};
 use formation_protocol::wire::{FLAG_HELLO, FLAG_RUN_END, Header};
 use iceoryx2::prelude::*;
-use zenoh::Wait;
+use zenoh::{Session, Wait};
 
 use crate::link::{Endpoints, Keys, NetEmulation};
 
@@ -149,6 +150,34 @@ impl Freshness {
         }
         true
     }
+}
+
+/// One direction of a bridge, run on its own thread until `stop` is set.
+pub type CommandDirection = fn(&Bridged, &Session, &Keys, &Counters, &AtomicBool) -> Result<()>;
+
+/// Runs `commands` on a thread of its own beside `observations` on this one; when
+/// `observations` returns, stops and joins `commands`. Returns the first error of the two.
+pub fn beside_the_commands(
+    bridged: &Bridged,
+    session: &Session,
+    keys: &Keys,
+    counters: &Arc<Counters>,
+    commands: CommandDirection,
+    observations: impl FnOnce() -> Result<()>,
+) -> Result<()> {
+    let stop = Arc::new(AtomicBool::new(false));
+    let thread = {
+        let (bridged, session, keys) = (bridged.clone(), session.clone(), keys.clone());
+        let (counters, stop) = (Arc::clone(counters), Arc::clone(&stop));
+        std::thread::Builder::new()
+            .name("commands".into())
+            .spawn(move || commands(&bridged, &session, &keys, &counters, &stop))
+            .context("cannot start the command thread")?
+    };
+    let outcome = observations();
+    stop.store(true, Ordering::Release);
+    let commands = thread.join().map_err(|_| anyhow!("the command thread panicked"))?;
+    outcome.and(commands)
 }
 
 fn main() -> ExitCode {

@@ -5,7 +5,7 @@
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError, sync_channel};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, sync_channel};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
@@ -64,20 +64,10 @@ pub fn run(bridged: &Bridged, session: &Session, keys: &Keys) -> Result<Arc<Coun
         Incoming::Observation,
     )?;
     let weights = subscribe(session, &keys.all_weights(), "actor", sender, Incoming::Weights)?;
-    let stop = Arc::new(AtomicBool::new(false));
-    let commands = {
-        let (bridged, session, keys) = (bridged.clone(), session.clone(), keys.clone());
-        let (counters, stop) = (Arc::clone(&counters), Arc::clone(&stop));
-        std::thread::Builder::new()
-            .name("commands-out".into())
-            .spawn(move || commands_to_the_link(&bridged, &session, &keys, &counters, &stop))
-            .context("cannot start the command thread")?
-    };
-    let outcome = observations_in(bridged, &incoming, &counters, &sim_host_seen);
-    stop.store(true, Ordering::Release);
+    crate::beside_the_commands(bridged, session, keys, &counters, commands_to_the_link, || {
+        observations_in(bridged, &incoming, &counters, &sim_host_seen)
+    })?;
     drop((observations, weights));
-    let commands = commands.join().map_err(|_| anyhow!("the command thread panicked"))?;
-    outcome.and(commands)?;
     Ok(counters)
 }
 
@@ -95,9 +85,8 @@ fn subscribe(
         .callback(move |sample: Sample| {
             if let Some(index) = Keys::index_after(sample.key_expr().as_str(), segment) {
                 let bytes = sample.payload().to_bytes().into_owned();
-                if let Err(TrySendError::Disconnected(_)) = sender.try_send(wrap(index, bytes)) {
-                    // The bridge is ending.
-                }
+                // Full: the robot is behind, the newest is dropped; disconnected: the bridge ends.
+                let _ = sender.try_send(wrap(index, bytes));
             }
         })
         .wait()

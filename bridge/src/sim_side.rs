@@ -44,19 +44,9 @@ pub fn run(bridged: &Bridged, session: &Session, outbox_keys: &Keys) -> Result<A
         })
         .wait()
         .map_err(|err| anyhow!("liveliness subscriber: {err}"))?;
-    let stop = Arc::new(AtomicBool::new(false));
-    let commands = {
-        let (bridged, session, keys) = (bridged.clone(), session.clone(), outbox_keys.clone());
-        let (counters, stop) = (Arc::clone(&counters), Arc::clone(&stop));
-        std::thread::Builder::new()
-            .name("commands-in".into())
-            .spawn(move || commands_to_the_sim(&bridged, &session, &keys, &counters, &stop))
-            .context("cannot start the command thread")?
-    };
-    let outcome = observations_out(bridged, session, outbox_keys, &counters, &resend_weights);
-    stop.store(true, Ordering::Release);
-    let commands = commands.join().map_err(|_| anyhow!("the command thread panicked"))?;
-    outcome.and(commands)?;
+    crate::beside_the_commands(bridged, session, outbox_keys, &counters, commands_to_the_sim, || {
+        observations_out(bridged, session, outbox_keys, &counters, &resend_weights)
+    })?;
     Ok(counters)
 }
 
