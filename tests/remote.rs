@@ -168,6 +168,64 @@ fn a_learning_remote_robot_gets_the_critics_weights_through_the_bridges() {
 }
 
 #[test]
+fn the_weights_reach_a_remote_robot_again_after_its_bridge_reconnects() {
+    let dir = scratch_dir("remote-reconnect-weights");
+    // The critic publishes its weights once (after its first update) and never again, so a
+    // robot host that reconnects later gets them only from the sim bridge's re-send.
+    std::fs::create_dir_all(&dir).expect("scratch dir");
+    let config = dir.join("publish-once.toml");
+    std::fs::write(&config, "[learn]\npublish_every_updates = 1000000000\n").expect("config");
+    let run_dir = dir.join("run");
+    let log = run_dir.with_extension("log");
+    let args = [
+        "3",
+        "--remote",
+        "1",
+        "--minutes",
+        "0.75",
+        "--seed",
+        "6",
+        "--viewer",
+        "off",
+        "--config",
+        config.to_str().expect("utf-8 path"),
+    ];
+    let run = run_swarm_with(&args, &run_dir, Duration::from_secs(240), |_| {
+        let run_id = run_id_of(&log);
+        let published = std::time::Instant::now();
+        // training.csv gets a row every 10 s; wait for one with updates (weights published).
+        while !std::fs::read_to_string(run_dir.join("training.csv"))
+            .unwrap_or_default()
+            .lines()
+            .skip(1)
+            .any(|row| row.split(',').nth(3).is_some_and(|updates| updates != "0"))
+        {
+            assert!(
+                published.elapsed() < Duration::from_secs(120),
+                "no update after 2 minutes"
+            );
+            std::thread::sleep(Duration::from_millis(200));
+        }
+        let pid = pid_of(&run_id, "--side robot").expect("robot 1's bridge");
+        // SAFETY: kill(2) on a process of this test's run.
+        unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+    })
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "{}", run.output);
+    assert!(run.output.contains("robot 1's bridge died"), "{}", run.output);
+    // The killed bridge never reported; the last report is its successor's.
+    let robot_bridge = bridge_report(&run.run_dir.join("host-1/logs/bridge.log"));
+    assert!(count(&robot_bridge, "weights") >= 1, "{robot_bridge}");
+    let sim_bridge = bridge_report(&run.run_dir.join("logs/bridge.log"));
+    assert!(
+        count(&sim_bridge, "weights") >= 2,
+        "published once, re-sent once: {sim_bridge}"
+    );
+    assert_both_hosts_clean(&run, 1);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
 fn real_time_with_a_remote_robot_misses_no_deadline() {
     let dir = scratch_dir("remote-realtime");
     let run = run_swarm(
