@@ -10,12 +10,12 @@ use std::collections::HashMap;
 use std::path::Path;
 
 use anyhow::{Context, Result, bail};
-use candle_core::{DType, Device, Module, Tensor, Var};
+use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{AdamW, Linear, Optimizer, ParamsAdamW, VarBuilder, VarMap};
 use formation_core::baseline::{BaselineGains, ScriptedBaseline};
 use formation_core::features::CriticFeatures;
 use formation_core::observation::Layout;
-use formation_model::actor::{Actor, ActorShape, flatten_parameters};
+use formation_model::actor::{Actor, ActorShape, dense, flatten_parameters};
 use formation_model::checkpoint::{self, CheckpointMeta, actor_prefix};
 use formation_protocol::ACTION_DIM;
 use formation_protocol::config::{Algorithm, CriticArchitecture, EnvConfig, LearnConfig, ObservationModel};
@@ -56,7 +56,7 @@ impl Mlp {
     fn forward(&self, input: &Tensor) -> candle_core::Result<Tensor> {
         let mut x = input.clone();
         for (i, layer) in self.layers.iter().enumerate() {
-            x = layer.forward(&x)?;
+            x = dense(layer, &x)?;
             if self.relu_last || i + 1 < self.layers.len() {
                 x = x.relu()?;
             }
