@@ -20,7 +20,8 @@ pub const ABSENT_AFTER: u32 = 3;
 const REJECTIONS_LOGGED: u64 = 10;
 
 /// Which robots the sim waits for: one that missed [`ABSENT_AFTER`] ticks in a row is treated
-/// as gone (its last command is held without waiting) until it answers or greets again.
+/// as gone (its last command is held without waiting) until it answers (even late, to an
+/// earlier tick: a robot behind a slow or lossy link) or greets again.
 #[derive(Debug, Clone)]
 pub struct Presence {
     consecutive_misses: Vec<u32>,
@@ -59,6 +60,12 @@ impl Presence {
                 );
             }
         }
+    }
+
+    /// A robot answered an earlier tick: it is alive, so its count of silent ticks starts
+    /// again and an absent robot is waited for again from the next tick.
+    fn heard_late(&mut self, agent: usize) {
+        self.consecutive_misses[agent] = 0;
     }
 
     /// The session robot `agent` last greeted with (0: none yet).
@@ -240,6 +247,7 @@ impl CommandRound {
                 }
                 if (cmd.header.episode, cmd.header.tick) < now || self.received[agent] {
                     // A late answer to an earlier tick: already counted as missed.
+                    self.presence.heard_late(agent);
                     continue;
                 }
                 self.last_commands[agent] = (f64::from(cmd.v), f64::from(cmd.w));
@@ -387,6 +395,43 @@ mod tests {
             .collect(&ports, Header::new(0, 9, 0), started + Duration::from_secs(5))
             .expect("collect");
         assert!(started.elapsed() < Duration::from_secs(1));
+        round.settle();
+        // A late answer (to an earlier tick, as over a slow link) proves robot 2 alive: the
+        // next ticks wait for it again, until it is silent for ABSENT_AFTER ticks again.
+        robots.answer(0, command(0, 0, 10, 0.1));
+        robots.answer(1, command(1, 0, 10, 0.1));
+        robots.answer(2, command(2, 0, 8, 0.1));
+        round
+            .collect(
+                &ports,
+                Header::new(0, 10, 0),
+                Instant::now() + Duration::from_millis(30),
+            )
+            .expect("collect");
+        assert_eq!(round.settle(), 1, "the late answer does not count for this tick");
+        assert!(!round.presence.is_absent(2), "but robot 2 is waited for again");
+        // Tick 10 was its first miss since then; absent again after ABSENT_AFTER of them.
+        let last = 10 + ABSENT_AFTER - 1;
+        for tick in 11..last {
+            round
+                .collect(
+                    &ports,
+                    Header::new(0, tick, 0),
+                    Instant::now() + Duration::from_millis(30),
+                )
+                .expect("collect");
+            round.settle();
+            assert!(!round.presence.is_absent(2), "tick {tick}");
+        }
+        round
+            .collect(
+                &ports,
+                Header::new(0, last, 0),
+                Instant::now() + Duration::from_millis(30),
+            )
+            .expect("collect");
+        round.settle();
+        assert!(round.presence.is_absent(2), "silent again for {ABSENT_AFTER} ticks");
         // A greeting from a new process of robot 2 brings it back.
         assert!(!round.presence.greeted(2, 0), "same (empty) session: not a rejoin");
         round.presence.greeted(2, 11);
