@@ -15,6 +15,7 @@ use formation_protocol::wire::{CommandMsg, FLAG_RUN_END, ObservationMsg, Weights
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::prelude::*;
+use zenoh::bytes::ZBytes;
 use zenoh::sample::{Locality, Sample, SampleKind};
 use zenoh::{Session, Wait};
 
@@ -28,8 +29,8 @@ const LINGER: Duration = Duration::from_millis(500);
 
 /// What arrives from the sim's host.
 enum Incoming {
-    Observation(usize, Vec<u8>),
-    Weights(usize, Vec<u8>),
+    Observation(usize, ZBytes),
+    Weights(usize, ZBytes),
 }
 
 /// Runs a robot host's bridge until the run ends; returns what it forwarded and dropped.
@@ -77,16 +78,16 @@ fn subscribe(
     key: &str,
     segment: &'static str,
     sender: SyncSender<Incoming>,
-    wrap: fn(usize, Vec<u8>) -> Incoming,
+    wrap: fn(usize, ZBytes) -> Incoming,
 ) -> Result<zenoh::pubsub::Subscriber<()>> {
     session
         .declare_subscriber(key.to_string())
         .allowed_origin(Locality::Remote)
         .callback(move |sample: Sample| {
             if let Some(index) = Keys::index_after(sample.key_expr().as_str(), segment) {
-                let bytes = sample.payload().to_bytes().into_owned();
-                // Full: the robot is behind, the newest is dropped; disconnected: the bridge ends.
-                let _ = sender.try_send(wrap(index, bytes));
+                // A reference to Zenoh's buffer, not a copy. Full: the robot is behind, the
+                // newest is dropped; disconnected: the bridge ends.
+                let _ = sender.try_send(wrap(index, sample.payload().clone()));
             }
         })
         .wait()
@@ -166,7 +167,9 @@ fn observations_in(
             return Ok(());
         }
         match message {
-            Some(Incoming::Observation(agent, bytes)) => {
+            Some(Incoming::Observation(agent, payload)) => {
+                // Borrowed when Zenoh received the message in one piece (it does at this size).
+                let bytes = payload.to_bytes();
                 let Some(slot) = ports.observations.iter().position(|(a, ..)| *a == agent) else {
                     continue; // another host's robot
                 };
@@ -186,7 +189,8 @@ fn observations_in(
                 counters.observations.fetch_add(1, Ordering::Relaxed);
                 ended[slot] |= msg.header.has(FLAG_RUN_END);
             }
-            Some(Incoming::Weights(actor, bytes)) => {
+            Some(Incoming::Weights(actor, payload)) => {
+                let bytes = payload.to_bytes();
                 let Some((_, publisher)) = ports.weights.iter().find(|(a, _)| *a == actor) else {
                     continue;
                 };
