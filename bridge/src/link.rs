@@ -247,4 +247,97 @@ mod tests {
         assert_eq!(Keys::index_after("formation/x/agent/two/command", "agent"), None);
         assert_eq!(json_list(&["tcp/127.0.0.1:7447".into()]), r#"["tcp/127.0.0.1:7447"]"#);
     }
+
+    /// Whether the access control of the Zenoh config `file` lets `subject` (a certificate's
+    /// common name) exchange `message` on `key` in `flow`, as Zenoh decides it: deny by default,
+    /// allowed when a policy naming the subject has an allow rule with that flow and message
+    /// whose key expressions include the key (a subscriber's declared key, wildcards and all).
+    fn acl_allows(file: &str, subject: &str, flow: &str, message: &str, key: &str) -> bool {
+        use zenoh::key_expr::KeyExpr;
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../configs/zenoh")
+            .join(file);
+        let config = Config::from_file(&path).unwrap_or_else(|err| panic!("{}: {err}", path.display()));
+        let get = |what: &str| -> serde_json::Value {
+            serde_json::from_str(&config.get_json(&format!("access_control/{what}")).expect(what)).expect("json")
+        };
+        assert_eq!(get("enabled"), true);
+        assert_eq!(get("default_permission"), "deny");
+        let (rules, subjects, policies) = (get("rules"), get("subjects"), get("policies"));
+        let list = |value: &serde_json::Value| -> Vec<String> {
+            value.as_array().map_or_else(Vec::new, |items| {
+                items
+                    .iter()
+                    .filter_map(|item| item.as_str().map(str::to_string))
+                    .collect()
+            })
+        };
+        let key = KeyExpr::new(key.to_string()).expect("key");
+        let subject_ids: Vec<String> = subjects
+            .as_array()
+            .expect("subjects")
+            .iter()
+            .filter(|s| list(&s["cert_common_names"]).iter().any(|cn| cn == subject))
+            .map(|s| s["id"].as_str().expect("id").to_string())
+            .collect();
+        let rule_ids: Vec<String> = policies
+            .as_array()
+            .expect("policies")
+            .iter()
+            .filter(|p| list(&p["subjects"]).iter().any(|id| subject_ids.contains(id)))
+            .flat_map(|p| list(&p["rules"]))
+            .collect();
+        rules.as_array().expect("rules").iter().any(|rule| {
+            let flows = list(&rule["flows"]);
+            rule_ids.iter().any(|id| rule["id"] == id.as_str())
+                && rule["permission"] == "allow"
+                && (flows.is_empty() || flows.iter().any(|f| f == flow))
+                && list(&rule["messages"]).iter().any(|m| m == message)
+                && list(&rule["key_exprs"])
+                    .iter()
+                    .any(|k| KeyExpr::new(k.clone()).expect("rule key").includes(&key))
+        })
+    }
+
+    #[test]
+    fn the_access_control_example_gives_each_robot_host_only_its_own_robots_keys() {
+        let keys = Keys::new("r123456p42");
+        let sim = |subject: &str, flow: &str, message: &str, key: &str| {
+            acl_allows("sim-host.json5", subject, flow, message, key)
+        };
+        // What the sim's bridge exchanges with robot 2's host (sim_side.rs, robot_side.rs).
+        for (flow, message, key) in [
+            ("egress", "put", keys.observation(2)),
+            ("egress", "put", keys.weights(0)),
+            ("egress", "declare_subscriber", keys.commands()),
+            ("egress", "liveliness_token", keys.sim_host()),
+            ("ingress", "put", keys.command(2)),
+            ("ingress", "declare_subscriber", keys.observations()),
+            ("ingress", "declare_subscriber", keys.all_weights()),
+            ("ingress", "liveliness_token", keys.robot_host(2)),
+        ] {
+            assert!(sim("robot-2", flow, message, &key), "{flow} {message} {key}");
+        }
+        // Robot 2's host cannot command robot 0 nor get its observations; robot 0's can.
+        assert!(!sim("robot-2", "ingress", "put", &keys.command(0)));
+        assert!(!sim("robot-2", "egress", "put", &keys.observation(0)));
+        assert!(sim("robot-0", "ingress", "put", &keys.command(0)));
+        assert!(!sim("robot-0", "ingress", "put", &keys.command(2)));
+        assert!(!sim("stranger", "ingress", "put", &keys.command(2)));
+        // Robot 2's host, towards the sim's host.
+        let robot = |flow: &str, message: &str, key: &str| acl_allows("robot-2.json5", "sim-host", flow, message, key);
+        for (flow, message, key) in [
+            ("ingress", "put", keys.observation(2)),
+            ("ingress", "put", keys.weights(0)),
+            ("ingress", "declare_subscriber", keys.commands()),
+            ("ingress", "liveliness_token", keys.sim_host()),
+            ("egress", "put", keys.command(2)),
+            ("egress", "declare_subscriber", keys.observations()),
+            ("egress", "declare_subscriber", keys.all_weights()),
+            ("egress", "liveliness_token", keys.robot_host(2)),
+        ] {
+            assert!(robot(flow, message, &key), "{flow} {message} {key}");
+        }
+        assert!(!robot("egress", "put", &keys.command(0)));
+    }
 }
