@@ -292,6 +292,18 @@ mod tests {
         }
     }
 
+    /// One round of tick `tick` of episode 0 that waits at most `wait_ms`; returns the misses.
+    fn play_tick(round: &mut CommandRound, ports: &SimPorts<local::Service>, tick: u32, wait_ms: u64) -> u32 {
+        round
+            .collect(
+                ports,
+                Header::new(0, tick, 0),
+                Instant::now() + Duration::from_millis(wait_ms),
+            )
+            .expect("collect");
+        round.settle()
+    }
+
     fn test_identity(run: &str) -> RunIdentity {
         RunIdentity::new(&format!("{run}{}", std::process::id())).expect("identity")
     }
@@ -377,14 +389,7 @@ mod tests {
         for tick in 0..ABSENT_AFTER {
             robots.answer(0, command(0, 0, tick, 0.1));
             robots.answer(1, command(1, 0, tick, 0.1));
-            round
-                .collect(
-                    &ports,
-                    Header::new(0, tick, 0),
-                    Instant::now() + Duration::from_millis(30),
-                )
-                .expect("collect");
-            round.settle();
+            play_tick(&mut round, &ports, tick, 30);
         }
         assert!(round.presence.is_absent(2));
         // Robot 2 is absent: a round with 0 and 1 in returns at once, not at the deadline.
@@ -401,36 +406,19 @@ mod tests {
         robots.answer(0, command(0, 0, 10, 0.1));
         robots.answer(1, command(1, 0, 10, 0.1));
         robots.answer(2, command(2, 0, 8, 0.1));
-        round
-            .collect(
-                &ports,
-                Header::new(0, 10, 0),
-                Instant::now() + Duration::from_millis(30),
-            )
-            .expect("collect");
-        assert_eq!(round.settle(), 1, "the late answer does not count for this tick");
+        assert_eq!(
+            play_tick(&mut round, &ports, 10, 30),
+            1,
+            "the late answer does not count for this tick"
+        );
         assert!(!round.presence.is_absent(2), "but robot 2 is waited for again");
         // Tick 10 was its first miss since then; absent again after ABSENT_AFTER of them.
         let last = 10 + ABSENT_AFTER - 1;
         for tick in 11..last {
-            round
-                .collect(
-                    &ports,
-                    Header::new(0, tick, 0),
-                    Instant::now() + Duration::from_millis(30),
-                )
-                .expect("collect");
-            round.settle();
+            play_tick(&mut round, &ports, tick, 30);
             assert!(!round.presence.is_absent(2), "tick {tick}");
         }
-        round
-            .collect(
-                &ports,
-                Header::new(0, last, 0),
-                Instant::now() + Duration::from_millis(30),
-            )
-            .expect("collect");
-        round.settle();
+        play_tick(&mut round, &ports, last, 30);
         assert!(round.presence.is_absent(2), "silent again for {ABSENT_AFTER} ticks");
         // A greeting from a new process of robot 2 brings it back.
         assert!(!round.presence.greeted(2, 0), "same (empty) session: not a rejoin");
@@ -447,14 +435,7 @@ mod tests {
         let (_node, ports, robots) = sim_and_robots(2, "cmdallabsent");
         let mut round = CommandRound::new(2);
         for tick in 0..ABSENT_AFTER {
-            round
-                .collect(
-                    &ports,
-                    Header::new(0, tick, 0),
-                    Instant::now() + Duration::from_millis(10),
-                )
-                .expect("collect");
-            round.settle();
+            play_tick(&mut round, &ports, tick, 10);
         }
         assert!(round.presence.is_absent(0) && round.presence.is_absent(1));
         // Nobody is waited for, yet the answers that came in count.
