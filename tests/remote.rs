@@ -2,11 +2,27 @@
 //! host only through two `formation-bridge` processes over Zenoh on TCP localhost. Real
 //! processes under a watchdog; nothing of either host may be left behind.
 
+use std::sync::{RwLock, RwLockReadGuard, RwLockWriteGuard};
 use std::time::Duration;
 
 use formation_swarm::{
     RunOutcome, announced, assert_clean, pid_of, run_id_of, run_swarm, run_swarm_with, scratch_dir, shm_leftovers,
 };
+
+/// The machine, as the tests of this file share it: each swarm holds it shared, the real-time
+/// test alone (its deadlines are the machine's; two swarms with four bridges on two cores are
+/// not the condition it checks).
+static MACHINE: RwLock<()> = RwLock::new(());
+
+/// Holds the machine shared with the other swarms of this file.
+fn machine_shared() -> RwLockReadGuard<'static, ()> {
+    MACHINE.read().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// Holds the machine alone among the tests of this file.
+fn machine_alone() -> RwLockWriteGuard<'static, ()> {
+    MACHINE.write().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
 
 /// Asserts that neither the sim's host nor remote robot `robot`'s host left anything.
 fn assert_both_hosts_clean(run: &RunOutcome, robot: usize) {
@@ -47,6 +63,7 @@ fn count(report: &str, what: &str) -> u64 {
 
 #[test]
 fn a_scripted_swarm_with_a_remote_robot_succeeds_as_a_local_one_does() {
+    let _machine = machine_shared();
     let dir = scratch_dir("remote-scripted");
     let run = run_swarm(
         &[
@@ -96,6 +113,7 @@ fn a_scripted_swarm_with_a_remote_robot_succeeds_as_a_local_one_does() {
 
 #[test]
 fn killed_bridges_are_restarted_and_the_remote_robot_rejoins() {
+    let _machine = machine_shared();
     let dir = scratch_dir("remote-kill-bridge");
     let run_dir = dir.join("run");
     let log = run_dir.with_extension("log");
@@ -141,6 +159,7 @@ fn killed_bridges_are_restarted_and_the_remote_robot_rejoins() {
 
 #[test]
 fn a_learning_remote_robot_gets_the_critics_weights_through_the_bridges() {
+    let _machine = machine_shared();
     let dir = scratch_dir("remote-train");
     let run = run_swarm(
         &[
@@ -169,6 +188,7 @@ fn a_learning_remote_robot_gets_the_critics_weights_through_the_bridges() {
 
 #[test]
 fn the_weights_reach_a_remote_robot_again_after_its_bridge_reconnects() {
+    let _machine = machine_shared();
     let dir = scratch_dir("remote-reconnect-weights");
     // The critic publishes its weights once (after its first update) and never again, so a
     // robot host that reconnects later gets them only from the sim bridge's re-send.
@@ -227,6 +247,7 @@ fn the_weights_reach_a_remote_robot_again_after_its_bridge_reconnects() {
 
 #[test]
 fn real_time_with_a_remote_robot_misses_no_deadline() {
+    let _machine = machine_alone();
     let dir = scratch_dir("remote-realtime");
     let run = run_swarm(
         &[
@@ -259,6 +280,7 @@ fn real_time_with_a_remote_robot_misses_no_deadline() {
 
 #[test]
 fn remote_flags_are_checked_before_anything_starts() {
+    let _machine = machine_shared();
     let dir = scratch_dir("remote-bad");
     for (args, needle) in [
         (vec!["3", "--remote", "3"], "robot 3 does not exist"),
@@ -286,6 +308,7 @@ fn remote_flags_are_checked_before_anything_starts() {
 
 #[test]
 fn a_command_injected_by_another_zenoh_peer_for_a_robot_not_carried_is_rejected_and_counted() {
+    let _machine = machine_shared();
     use formation_protocol::wire::{CommandMsg, Header};
     use zenoh::Wait;
     let dir = scratch_dir("remote-inject");

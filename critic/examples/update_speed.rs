@@ -2,8 +2,10 @@
 //! on a replay filled with random-action episodes (no IPC), and sets the update against its
 //! compute floor: the matrix-product FLOPs of one update (counted from the layer shapes)
 //! divided by the rate candle's matmul reaches on the critic's widest layer on this core:
-//! `cargo run --release -p formation-critic --example update_speed -- [BATCH] [UPDATES] [HISTORY] [ROBOTS] [mlp|pooled]`.
-//! Threads: `RAYON_NUM_THREADS` (as the critic's `learn.threads` sets it).
+//! `cargo run --release -p formation-critic --example update_speed -- [BATCH] [UPDATES] [HISTORY] [ROBOTS] [mlp|pooled] [parallel|serial]`.
+//! Threads: `RAYON_NUM_THREADS` (as the critic's `learn.threads` sets it) for each matrix
+//! product; `parallel` (the default, `learn.parallel_critics`) runs TD3's twin critics on two
+//! threads, `serial` one after the other. The floor is one core's.
 
 use std::time::Instant;
 
@@ -31,6 +33,11 @@ fn main() -> anyhow::Result<()> {
         Some("pooled") => CriticArchitecture::Pooled,
         Some(other) => anyhow::bail!("critic must be mlp or pooled, got {other}"),
     };
+    let parallel_critics = match args.next().as_deref() {
+        None | Some("parallel") => true,
+        Some("serial") => false,
+        Some(other) => anyhow::bail!("the twin critics run parallel or serial, got {other}"),
+    };
     let env = EnvConfig {
         history,
         ..EnvConfig::default()
@@ -38,6 +45,7 @@ fn main() -> anyhow::Result<()> {
     let learn = LearnConfig {
         batch_size,
         critic,
+        parallel_critics,
         ..LearnConfig::default()
     };
     let mut rng = StdRng::seed_from_u64(1);
@@ -74,7 +82,12 @@ fn main() -> anyhow::Result<()> {
         updating += t1.elapsed().as_secs_f64();
     }
     println!(
-        "N = {n}, H = {history}, B = {batch_size}, {critic:?} critic: sample {:.2} ms, update {:.2} ms, {:.0} updates/s",
+        "N = {n}, H = {history}, B = {batch_size}, {critic:?} critic, twin critics {}: sample {:.2} ms, update {:.2} ms, {:.0} updates/s",
+        if parallel_critics {
+            "on two threads"
+        } else {
+            "on one thread"
+        },
         1e3 * sampling / updates as f64,
         1e3 * updating / updates as f64,
         updates as f64 / (sampling + updating)

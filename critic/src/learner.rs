@@ -19,6 +19,7 @@ use formation_model::actor::{Actor, ActorShape, dense, flatten_parameters};
 use formation_model::checkpoint::{self, CheckpointMeta, actor_prefix};
 use formation_protocol::ACTION_DIM;
 use formation_protocol::config::{Algorithm, CriticArchitecture, EnvConfig, LearnConfig, ObservationModel};
+use formation_protocol::placement;
 use formation_replay::sample::Batch;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -124,7 +125,9 @@ pub struct Learner {
     critics: Vec<CriticNet>,
     critic_targets: Vec<CriticNet>,
     actor_optimizer: AdamW,
-    critic_optimizer: AdamW,
+    /// One per critic (Adam is per parameter: the same steps as one over all of them), so that
+    /// each critic can step on its own thread.
+    critic_optimizers: Vec<AdamW>,
     updates: u64,
     rng: StdRng,
     /// The scripted baseline and the environment it commands, when `imitation_alpha` > 0.
@@ -192,6 +195,53 @@ pub fn soft_update(online: &VarMap, target: &VarMap, tau: f64) -> Result<()> {
     Ok(())
 }
 
+/// The variable-name prefix of critic `index`.
+fn critic_prefix(index: usize) -> String {
+    format!("critic{index}")
+}
+
+/// The variables of `vars` named under `prefix` (`prefix.`...).
+fn vars_under(vars: &VarMap, prefix: &str) -> Result<Vec<Var>> {
+    let data = vars
+        .data()
+        .lock()
+        .map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+    let stem = format!("{prefix}.");
+    let mut named: Vec<(&String, &Var)> = data.iter().filter(|(name, _)| name.starts_with(&stem)).collect();
+    named.sort_by_key(|(name, _)| *name);
+    Ok(named.into_iter().map(|(_, var)| var.clone()).collect())
+}
+
+/// `work` on each item, in order: on its own thread per item when `parallel` (the later
+/// threads free to use any CPU, [`placement::widen`]), else one after the other.
+fn per_critic<I: Send, T: Send>(parallel: bool, items: Vec<I>, work: impl Fn(I) -> Result<T> + Sync) -> Result<Vec<T>> {
+    if !parallel || items.len() < 2 {
+        return items.into_iter().map(work).collect();
+    }
+    let work = &work;
+    std::thread::scope(|scope| {
+        let mut items = items.into_iter();
+        let first = items.next().expect("at least two items");
+        let others: Vec<_> = items
+            .map(|item| {
+                scope.spawn(move || {
+                    placement::widen();
+                    work(item)
+                })
+            })
+            .collect();
+        let mut results = vec![work(first)];
+        for handle in others {
+            results.push(
+                handle
+                    .join()
+                    .map_err(|_| anyhow::anyhow!("a critic's thread panicked"))?,
+            );
+        }
+        results.into_iter().collect()
+    })
+}
+
 fn adam(vars: Vec<Var>, lr: f64) -> Result<AdamW> {
     // The paper's Adam: candle's AdamW defaults weight_decay to 0.01.
     Ok(AdamW::new(
@@ -234,7 +284,7 @@ impl Learner {
         let build_critics = |vars: &VarMap| -> Result<Vec<CriticNet>> {
             let vb = VarBuilder::from_varmap(vars, DType::F32, &device);
             (0..n_critics)
-                .map(|j| Ok(CriticNet::new(vb.pp(format!("critic{j}")), config, critic_input)?))
+                .map(|j| Ok(CriticNet::new(vb.pp(critic_prefix(j)), config, critic_input)?))
                 .collect()
         };
         let actor_vars = VarMap::new();
@@ -251,7 +301,9 @@ impl Learner {
         copy_vars(&critic_vars, &critic_target_vars)?;
         Ok(Self {
             actor_optimizer: adam(actor_vars.all_vars(), config.actor_lr)?,
-            critic_optimizer: adam(critic_vars.all_vars(), config.critic_lr)?,
+            critic_optimizers: (0..n_critics)
+                .map(|j| adam(vars_under(&critic_vars, &critic_prefix(j))?, config.critic_lr))
+                .collect::<Result<_>>()?,
             config: config.clone(),
             n_agents,
             observation: env.observation,
@@ -374,22 +426,33 @@ impl Learner {
         let joint = n * ACTION_DIM;
         let next_window = Tensor::cat(&[actions.narrow(1, joint, (h - 1) * joint)?, next_actions], 1)?;
         let next_input = self.critic_input(batch, next_states, next_window)?;
-        let mut q_next = self.critic_targets[0].forward(&next_input)?;
-        for target in &self.critic_targets[1..] {
-            q_next = q_next.minimum(&target.forward(&next_input)?)?;
+        let q_targets = per_critic(
+            self.config.parallel_critics,
+            self.critic_targets.iter().collect(),
+            |target| Ok(target.forward(&next_input)?),
+        )?;
+        let mut q_next = q_targets[0].clone();
+        for q in &q_targets[1..] {
+            q_next = q_next.minimum(q)?;
         }
         let not_done = terminals.affine(-1.0, 1.0)?;
         let y = (rewards + (q_next * not_done)?.affine(self.config.gamma, 0.0)?)?;
         Ok(y.detach())
     }
 
-    /// The critic loss on a batch against a given target (used by tests on a fixed batch).
-    pub fn critic_loss(&self, batch: &Batch, target: &Tensor) -> Result<Tensor> {
+    /// The critics' input for the batch's states and actions as played.
+    fn played_input(&self, batch: &Batch) -> Result<Tensor> {
         let device = Device::Cpu;
         let b = batch.batch_size;
         let states = Tensor::from_slice(&batch.states, (b, batch.state_window_dim()), &device)?;
         let actions = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?;
-        let input = self.critic_input(batch, states, actions)?;
+        self.critic_input(batch, states, actions)
+    }
+
+    /// The critic loss on a batch against a given target, summed over the critics (used by
+    /// tests on a fixed batch).
+    pub fn critic_loss(&self, batch: &Batch, target: &Tensor) -> Result<Tensor> {
+        let input = self.played_input(batch)?;
         let mut loss: Option<Tensor> = None;
         for critic in &self.critics {
             let l = candle_nn::loss::mse(&critic.forward(&input)?, target)?;
@@ -399,6 +462,21 @@ impl Learner {
             });
         }
         loss.context("no critic")
+    }
+
+    /// One gradient step of every critic towards `target`; returns the summed loss.
+    fn critic_steps(&mut self, batch: &Batch, target: &Tensor) -> Result<f64> {
+        let input = self.played_input(batch)?;
+        let losses = per_critic(
+            self.config.parallel_critics,
+            self.critics.iter().zip(self.critic_optimizers.iter_mut()).collect(),
+            |(critic, optimizer)| {
+                let loss = candle_nn::loss::mse(&critic.forward(&input)?, target)?;
+                optimizer.backward_step(&loss)?;
+                Ok(f64::from(loss.to_scalar::<f32>()?))
+            },
+        )?;
+        Ok(losses.iter().sum())
     }
 
     /// Q_1 of the current policy on a batch (each robot's action at t replaced by its actor's
@@ -458,10 +536,8 @@ impl Learner {
             );
         }
         let target = self.td_target(batch)?;
-        let critic_loss = self.critic_loss(batch, &target)?;
-        self.critic_optimizer.backward_step(&critic_loss)?;
         let mut losses = Losses {
-            critic: f64::from(critic_loss.to_scalar::<f32>()?),
+            critic: self.critic_steps(batch, &target)?,
             ..Losses::default()
         };
         self.updates += 1;

@@ -58,13 +58,34 @@ impl Selector {
         let sizes = self
             .sizes
             .iter()
-            .map(|&n| play(&self.env, n, self.seed, self.episodes, &mut actors, shape))
+            .map(|&n| play(&self.env, n, self.seed, self.episodes, &mut actors, shape, None))
             .collect::<Result<_>>()?;
         Ok(SelectionScore {
             seed: self.seed,
             episodes: self.episodes,
             sizes,
         })
+    }
+}
+
+/// A neighbour's sudden turn, to measure robustness: robot `robot` ignores its actor for
+/// `ticks` ticks from step `at_step` and drives at full speed on a full-rate turn instead
+/// (v and w at their limits), as a robot that swerves would.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SuddenTurn {
+    /// The robot that turns.
+    pub robot: usize,
+    /// The step (0 = the episode's first) it starts turning.
+    pub at_step: u32,
+    /// How many ticks it turns.
+    pub ticks: u32,
+}
+
+impl SuddenTurn {
+    /// The command it imposes on `agent` at step `step`, if any.
+    fn command(&self, env: &EnvConfig, agent: usize, step: u32) -> Option<(f64, f64)> {
+        (agent == self.robot && (self.at_step..self.at_step.saturating_add(self.ticks)).contains(&step))
+            .then_some((env.v_max, env.w_max))
     }
 }
 
@@ -95,14 +116,21 @@ impl Game {
     }
 
     /// One tick: each robot's action from its window (its own actor, or the shared one) scaled
-    /// to (v, w) as an agent does and rounded to the f32 of the wire; the world clamps and
-    /// integrates as in the sim.
-    fn step(&mut self, actors: &mut [FrozenActor], commands: &mut Vec<(f64, f64)>) -> Result<()> {
+    /// to (v, w) as an agent does and rounded to the f32 of the wire, but for a robot in a
+    /// sudden turn; the world clamps and integrates as in the sim.
+    fn step(
+        &mut self,
+        actors: &mut [FrozenActor],
+        turn: Option<SuddenTurn>,
+        commands: &mut Vec<(f64, f64)>,
+    ) -> Result<()> {
         commands.clear();
+        let step = self.world.steps;
         for (agent, window) in self.windows.iter().enumerate() {
             let actor = &mut actors[agent % actors.len()];
             let (v, w) = self.world.env.command_from_action(actor.act(window.as_flat())?);
-            commands.push((f64::from(v as f32), f64::from(w as f32)));
+            let imposed = turn.and_then(|turn| turn.command(&self.world.env, agent, step));
+            commands.push(imposed.unwrap_or((f64::from(v as f32), f64::from(w as f32))));
         }
         let result = self.world.step(commands);
         self.outcome = result.outcome;
@@ -117,7 +145,8 @@ impl Game {
 }
 
 /// Plays the first `episodes` episodes of `n` robots that `seed` starts, noise-free, with
-/// `actors` (one shared, or one per robot), and scores them.
+/// `actors` (one shared, or one per robot) and, if given, a robot's sudden turn in each; scores
+/// them.
 pub fn play(
     env: &EnvConfig,
     n: usize,
@@ -125,6 +154,7 @@ pub fn play(
     episodes: usize,
     actors: &mut [FrozenActor],
     shape: &ActorShape,
+    turn: Option<SuddenTurn>,
 ) -> Result<SizeScore> {
     let dim = Layout::of(env.observation).dim();
     ensure!(
@@ -137,6 +167,11 @@ pub fn play(
         "selection: {} independent actors cannot drive {n} robots",
         actors.len()
     );
+    ensure!(
+        turn.is_none_or(|turn| turn.robot < n),
+        "a sudden turn of robot {} in a swarm of {n}",
+        turn.map_or(0, |turn| turn.robot)
+    );
     let mut games: Vec<Game> = Episodes::new(n, env, seed)
         .take(episodes)
         .map(|init| Game::new(World::new(env, init), env.history, dim))
@@ -144,7 +179,7 @@ pub fn play(
     let mut commands = Vec::with_capacity(n);
     for game in &mut games {
         while game.outcome == Outcome::Running {
-            game.step(actors, &mut commands)?;
+            game.step(actors, turn, &mut commands)?;
         }
     }
     let count = games.len().max(1) as f64;

@@ -257,6 +257,50 @@ fn td3_bootstraps_from_the_smaller_of_its_twin_critics() {
 }
 
 #[test]
+fn twin_critics_on_two_threads_learn_exactly_what_one_thread_learns() {
+    let (env, mut config) = small_config(Algorithm::Td3);
+    config.target_noise = 0.2;
+    let learners: Vec<Learner> = [false, true]
+        .into_iter()
+        .map(|parallel| {
+            let config = LearnConfig {
+                parallel_critics: parallel,
+                ..config.clone()
+            };
+            let mut learner = Learner::new(3, &env, &config, 5).expect("learner");
+            for step in 0..6 {
+                learner.update(&random_batch(&env, 3, 32, 100 + step)).expect("update");
+            }
+            learner
+        })
+        .collect();
+    let [mut sequential, mut parallel] = <[Learner; 2]>::try_from(learners).ok().expect("two learners");
+    let probe = random_batch(&env, 3, 32, 7);
+    let target = td_targets(&mut sequential, &probe);
+    assert_eq!(target, td_targets(&mut parallel, &probe), "target critics differ");
+    let fixed = Tensor::from_slice(&target, (32, 1), &Device::Cpu).expect("target");
+    let loss = |learner: &Learner| {
+        learner
+            .critic_loss(&probe, &fixed)
+            .expect("loss")
+            .to_scalar::<f32>()
+            .expect("scalar")
+    };
+    assert_eq!(loss(&sequential), loss(&parallel), "online critics differ");
+    assert_eq!(
+        sequential.actor_weights(0).expect("actor"),
+        parallel.actor_weights(0).expect("actor"),
+        "actors differ"
+    );
+    // And the updates did something: a fresh learner's actor is not the trained one.
+    let fresh = Learner::new(3, &env, &config, 5).expect("learner");
+    assert_ne!(
+        fresh.actor_weights(0).expect("actor"),
+        parallel.actor_weights(0).expect("actor")
+    );
+}
+
+#[test]
 fn an_actor_step_raises_q_and_leaves_the_critic_alone() {
     let (env, learn) = small_config(Algorithm::Td3);
     let mut learner = Learner::new(3, &env, &learn, 40).expect("learner");

@@ -3,7 +3,8 @@
 use std::path::PathBuf;
 
 use formation_critic::learner::Learner;
-use formation_critic::selection::Selector;
+use formation_critic::selection::{Selector, SuddenTurn, play};
+use formation_model::actor::FrozenActor;
 use formation_model::checkpoint::{self, SelectionScore};
 use formation_protocol::config::{EnvConfig, LearnConfig};
 
@@ -100,4 +101,31 @@ fn the_score_travels_with_the_saved_weights() {
         .expect("score");
     assert_eq!(again, scored);
     std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn a_neighbours_sudden_turn_is_played_and_costs_formation() {
+    let env = EnvConfig::default();
+    let model = shipped_model();
+    let play_with = |turn: Option<SuddenTurn>| {
+        let mut actors =
+            [FrozenActor::from_flat(&model.actor_weights(0).expect("weights"), &model.meta.actor).expect("actor")];
+        play(&env, 3, 1000, 20, &mut actors, &model.meta.actor, turn).expect("play")
+    };
+    let calm = play_with(None);
+    let turn = |ticks| SuddenTurn {
+        robot: 1,
+        at_step: 10,
+        ticks,
+    };
+    assert_eq!(play_with(Some(turn(0))), calm, "a turn of no ticks changes nothing");
+    let swerved = play_with(Some(turn(8)));
+    assert!(
+        swerved.formation_held < calm.formation_held - 0.02 && swerved.mean_steps > calm.mean_steps,
+        "8 ticks of a full turn should break the formation and delay the goal: {swerved:?} vs {calm:?}"
+    );
+    let mut actors =
+        [FrozenActor::from_flat(&model.actor_weights(0).expect("weights"), &model.meta.actor).expect("actor")];
+    let outside = SuddenTurn { robot: 3, ..turn(5) };
+    assert!(play(&env, 3, 1000, 1, &mut actors, &model.meta.actor, Some(outside)).is_err());
 }

@@ -340,6 +340,9 @@ pub struct LearnConfig {
     pub checkpoint_every_s: u64,
     /// Threads the critic's matrix products may use.
     pub threads: usize,
+    /// TD3's twin critics take their gradient steps (and compute their target values) on two
+    /// threads, the second free to run on any CPU: the same numbers as one after the other.
+    pub parallel_critics: bool,
     /// In train mode, every this many episodes is played without noise to measure the policy.
     pub eval_every_episodes: u32,
     /// Seed of the model-selection episodes, scored at every checkpoint. Episode k of a run is
@@ -380,6 +383,7 @@ impl Default for LearnConfig {
             publish_every_updates: 50,
             checkpoint_every_s: 120,
             threads: 1,
+            parallel_critics: true,
             eval_every_episodes: 10,
             selection_seed: 0x5E1EC7,
             selection_episodes: 50,

@@ -97,6 +97,22 @@ pub fn apply(placement: Placement, role: Role) -> Result<Option<Vec<usize>>> {
     }
 }
 
+/// Lets the calling thread run on every CPU the process started with, whatever placement it
+/// inherited from the thread that started it: for work that would otherwise leave a CPU idle
+/// (the critic's second training thread, while the sim waits for the learner). A refusal is
+/// reported once and changes nothing else.
+pub fn widen() {
+    static REPORTED: std::sync::Once = std::sync::Once::new();
+    let widened = process_cpus().and_then(|cpus| {
+        ThreadHandle::from_self()
+            .set_affinity(cpus)
+            .map_err(|err| anyhow::anyhow!("{err:?}"))
+    });
+    if let Err(err) = widened {
+        REPORTED.call_once(|| eprintln!("cannot let a thread use every CPU ({err:#}); it stays where it was placed"));
+    }
+}
+
 /// Puts the calling thread (and those it starts) under `SCHED_BATCH`: woken, it does not
 /// preempt the thread that woke it. A refusal is reported and changes nothing else.
 fn wait_for_the_waker() {
