@@ -4,8 +4,8 @@
 //! divided by the rate candle's matmul reaches on the critic's widest layer on this core:
 //! `cargo run --release -p formation-critic --example update_speed -- [BATCH] [UPDATES] [HISTORY] [ROBOTS] [mlp|pooled] [parallel|serial]`.
 //! Threads: `RAYON_NUM_THREADS` (as the critic's `learn.threads` sets it) for each matrix
-//! product; `parallel` (the default, `learn.parallel_critics`) runs TD3's twin critics on two
-//! threads, `serial` one after the other. The floor is one core's.
+//! product; `parallel` (the default here; `learn.parallel_critics` in a run) runs TD3's twin
+//! critics on two threads, `serial` one after the other. The floor is one core's.
 
 use std::time::Instant;
 

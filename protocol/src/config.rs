@@ -342,6 +342,8 @@ pub struct LearnConfig {
     pub threads: usize,
     /// TD3's twin critics take their gradient steps (and compute their target values) on two
     /// threads, the second free to run on any CPU: the same numbers as one after the other.
+    /// Off by default: an update alone is 1.4x as fast, but on two CPUs a whole training run
+    /// got 6 % fewer updates/s with it (docs/RESULTS.md); turn it on where CPUs are spare.
     pub parallel_critics: bool,
     /// In train mode, every this many episodes is played without noise to measure the policy.
     pub eval_every_episodes: u32,
@@ -383,7 +385,7 @@ impl Default for LearnConfig {
             publish_every_updates: 50,
             checkpoint_every_s: 120,
             threads: 1,
-            parallel_critics: true,
+            parallel_critics: false,
             eval_every_episodes: 10,
             selection_seed: 0x5E1EC7,
             selection_episodes: 50,
