@@ -61,6 +61,8 @@ fn main() -> anyhow::Result<()> {
     let sampler = Sampler {
         history: env.history,
         her_probability: learn.her_probability,
+        n_step: learn.n_step,
+        gamma: learn.gamma,
         env: env.clone(),
         critic: learn.critic,
     };

@@ -1,7 +1,8 @@
 //! Central training: actor(s) and critic(s) in candle, DDPG (the paper) or TD3.
 //!
 //! * critic target y = r + gamma (1 - terminal) min_j Q'_j(s', [u_{t-H+2..t}, pi'(o')]); a
-//!   time-limit truncation is not terminal;
+//!   time-limit truncation is not terminal; with n-step returns r is the discounted sum of k <= n
+//!   rewards, s' the state k ticks on and gamma is gamma^k (the batch carries both);
 //! * actor step on -Q_1(s, [u_{t-H+1..t-1}, pi(o_t)]): each robot's last action replaced by its
 //!   current policy's output, earlier actions as executed;
 //! * target networks follow by polyak averaging with tau.
@@ -410,8 +411,9 @@ impl Learner {
         let h = self.history;
         let next_obs = Tensor::from_slice(&batch.next_observations, (b, n, batch.window_dim()), &device)?;
         let next_states = Tensor::from_slice(&batch.next_states, (b, batch.state_window_dim()), &device)?;
-        let actions = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?;
+        let played = Tensor::from_slice(&batch.bootstrap_actions, (b, batch.action_window_dim()), &device)?;
         let rewards = (Tensor::from_slice(&batch.rewards, (b, 1), &device)? * self.config.reward_scale)?;
+        let discounts = Tensor::from_slice(&batch.discounts, (b, 1), &device)?;
         let terminals = Tensor::from_slice(&batch.terminals, (b, 1), &device)?;
         let mut next_actions = Self::joint_actions(&self.actor_targets, &next_obs)?;
         if self.config.algorithm == Algorithm::Td3 && self.config.target_noise > 0.0 {
@@ -424,7 +426,7 @@ impl Learner {
             next_actions = (next_actions + noise)?.clamp(-1f32, 1f32)?;
         }
         let joint = n * ACTION_DIM;
-        let next_window = Tensor::cat(&[actions.narrow(1, joint, (h - 1) * joint)?, next_actions], 1)?;
+        let next_window = Tensor::cat(&[played.narrow(1, joint, (h - 1) * joint)?, next_actions], 1)?;
         let next_input = self.critic_input(batch, next_states, next_window)?;
         let q_targets = per_critic(
             self.config.parallel_critics,
@@ -436,7 +438,7 @@ impl Learner {
             q_next = q_next.minimum(q)?;
         }
         let not_done = terminals.affine(-1.0, 1.0)?;
-        let y = (rewards + (q_next * not_done)?.affine(self.config.gamma, 0.0)?)?;
+        let y = (rewards + ((q_next * not_done)? * discounts)?)?;
         Ok(y.detach())
     }
 

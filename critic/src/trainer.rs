@@ -112,6 +112,8 @@ impl<S: Service> Trainer<S> {
             sampler: Sampler {
                 history: config.env.history,
                 her_probability: learn.her_probability,
+                n_step: learn.n_step,
+                gamma: learn.gamma,
                 env: config.env.clone(),
                 critic: learn.critic,
             },

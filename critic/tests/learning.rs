@@ -49,7 +49,9 @@ fn random_batch_for(env: &EnvConfig, critic: CriticArchitecture, n: usize, b: us
         states: fill(b * h * sd),
         next_states: fill(b * h * sd),
         actions: fill(b * h * n * ACTION_DIM),
+        bootstrap_actions: fill(b * h * n * ACTION_DIM),
         rewards: fill(b),
+        discounts: vec![LearnConfig::default().gamma as f32; b],
         terminals: vec![0.0; b],
         origins: vec![(0, 0); b],
         goals: vec![[0.0; 2]; b],
@@ -87,13 +89,13 @@ fn terminal_masks_the_target_and_truncation_does_not() {
             );
         }
     }
-    // Bootstrapped part scales with gamma: y - r = gamma * Q'(s', pi'(o')) for non-terminals.
-    let learn_half = LearnConfig {
-        gamma: learn.gamma / 2.0,
-        ..learn.clone()
+    // The bootstrapped part scales with the sample's discount (gamma^k with k rewards summed):
+    // y - r = discount * Q'(s', pi'(o')) for non-terminals.
+    let halved_discounts = Batch {
+        discounts: batch.discounts.iter().map(|d| d / 2.0).collect(),
+        ..batch.clone()
     };
-    let mut half = Learner::new(3, &env, &learn_half, 1).expect("learner");
-    let y_half = td_targets(&mut half, &batch);
+    let y_half = td_targets(&mut learner, &halved_discounts);
     for b in (1..8).step_by(2) {
         let full = y[b] - batch.rewards[b];
         let halved = y_half[b] - batch.rewards[b];

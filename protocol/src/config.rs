@@ -299,6 +299,9 @@ pub struct LearnConfig {
     pub tau: f64,
     /// Probability that a sampled sequence gets its goal relabelled (HER).
     pub her_probability: f64,
+    /// Steps of reward summed before the critic bootstraps (n-step returns, uncorrected; 1 =
+    /// the paper's one-step target). The sum stops at a terminal tick and at the episode's end.
+    pub n_step: usize,
     /// Exploration noise std (in normalised action units) at the start of training.
     pub noise_std: f64,
     /// Exploration noise std it decays to.
@@ -366,6 +369,7 @@ impl Default for LearnConfig {
             critic_lr: 1e-3,
             tau: 5e-3,
             her_probability: 0.8,
+            n_step: 1,
             noise_std: 0.2,
             noise_std_min: 0.2,
             noise_decay_episodes: 3000,
@@ -640,6 +644,12 @@ impl LearnConfig {
             "must be in [0, 1]",
         )?;
         check(
+            (1..=64).contains(&l.n_step),
+            "learn.n_step",
+            l.n_step,
+            "must be in 1..=64",
+        )?;
+        check(
             l.noise_std.is_finite() && l.noise_std >= 0.0,
             "learn.noise_std",
             l.noise_std,
@@ -776,6 +786,7 @@ mod tests {
             ("[env]\neps_goal_m = 0.0\n", "env.eps_goal_m"),
             ("[env]\nedge_min_m = 0.1\n", "env.edge_min_m"),
             ("[learn]\ngamma = 1.5\n", "learn.gamma"),
+            ("[learn]\nn_step = 0\n", "learn.n_step"),
             ("[learn]\ncritic_encoder = []\n", "learn.critic_encoder"),
             ("[learn]\ncritic = \"attention\"\n", "critic"),
             ("[learn]\nselection_seed = 1000\n", "learn.selection_seed"),

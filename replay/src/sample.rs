@@ -1,8 +1,9 @@
 //! Concurrent sequence sampling (CERT) with HER goal relabelling.
 //!
-//! A sample is one transition t -> t+1 of one episode seen through windows of H ticks: the
-//! window ending at t and the one ending at t+1, for every robot at the same ticks. Ticks before
-//! the episode's start repeat tick 0 (the padding the agents use too).
+//! A sample is one stretch t -> t+k of one episode (k = 1, or up to n with n-step returns) seen
+//! through windows of H ticks: the window ending at t and the one ending at t+k, for every robot
+//! at the same ticks. Ticks before the episode's start repeat tick 0 (the padding the agents use
+//! too).
 
 use formation_core::features::{CriticFeatures, centroid, observation, transition_reward};
 use formation_core::observation::Observer;
@@ -27,17 +28,23 @@ pub struct Batch {
     pub state_dim: usize,
     /// [B, N, H * obs_dim]: each robot's observation window ending at t.
     pub observations: Vec<f32>,
-    /// [B, N, H * obs_dim]: windows ending at t+1.
+    /// [B, N, H * obs_dim]: windows ending at t+k.
     pub next_observations: Vec<f32>,
     /// [B, H * state_dim]: critic state window ending at t.
     pub states: Vec<f32>,
-    /// [B, H * state_dim]: window ending at t+1.
+    /// [B, H * state_dim]: window ending at t+k.
     pub next_states: Vec<f32>,
     /// [B, H * N * 2]: executed normalised actions of ticks t-H+1..=t, tick-major.
     pub actions: Vec<f32>,
-    /// [B]: shared reward of t -> t+1 (recomputed when relabelled).
+    /// [B, H * N * 2]: executed actions of ticks t+k-H..=t+k-1, the window the target's action
+    /// history comes from (its last H - 1 ticks; equal to `actions` when k = 1).
+    pub bootstrap_actions: Vec<f32>,
+    /// [B]: shared reward of t -> t+k, discounted within the stretch (recomputed when
+    /// relabelled).
     pub rewards: Vec<f32>,
-    /// [B]: 1 when t+1 is terminal (success or collision); a time limit is not terminal.
+    /// [B]: gamma^k, the discount of the bootstrapped value.
+    pub discounts: Vec<f32>,
+    /// [B]: 1 when t+k is terminal (success or collision); a time limit is not terminal.
     pub terminals: Vec<f32>,
     /// [B]: where each sample came from (episode number, t).
     pub origins: Vec<(u32, usize)>,
@@ -71,6 +78,11 @@ pub struct Sampler {
     pub history: usize,
     /// Probability of relabelling a sample's goal with a centroid reached later (HER "future").
     pub her_probability: f64,
+    /// Rewards summed per sample (n-step returns; 1 = one-step), fewer at a terminal tick or
+    /// the episode's end.
+    pub n_step: usize,
+    /// Discount of the rewards within a sample and of its bootstrapped value.
+    pub gamma: f64,
     /// The environment (for rewards of relabelled samples).
     pub env: EnvConfig,
     /// The critic the batches are for (it decides the state's layout).
@@ -108,7 +120,9 @@ impl Sampler {
             states: vec![0.0; batch_size * h * sd],
             next_states: vec![0.0; batch_size * h * sd],
             actions: vec![0.0; batch_size * h * n * ACTION_DIM],
+            bootstrap_actions: vec![0.0; batch_size * h * n * ACTION_DIM],
             rewards: vec![0.0; batch_size],
+            discounts: vec![0.0; batch_size],
             terminals: vec![0.0; batch_size],
             origins: Vec::with_capacity(batch_size),
             goals: Vec::with_capacity(batch_size),
@@ -148,10 +162,29 @@ impl Sampler {
         } else {
             episode.goal
         };
+        // The rewards of t -> t+1, t+1 -> t+2, ... up to n of them, the episode's end or a
+        // terminal tick, whichever comes first.
+        let (mut reward, mut discount, mut terminal, mut steps) = (0.0f64, 1.0f64, false, 0);
+        while steps < self.n_step.max(1) && t + steps < last {
+            let s = t + steps;
+            let (r, done) = if relabel {
+                transition_reward(&episode.state(s + 1, goal), (s + 1) as u32, &self.env)
+            } else {
+                (episode.ticks[s].reward, episode.is_terminal_transition(s))
+            };
+            reward += discount * f64::from(r);
+            discount *= self.gamma;
+            steps += 1;
+            if done {
+                terminal = true;
+                break;
+            }
+        }
+        let next = t + steps;
         let window_tick = |end: usize, k: usize| (end + k + 1).saturating_sub(h);
         for (end, observations, states) in [
             (t, &mut batch.observations, &mut batch.states),
-            (t + 1, &mut batch.next_observations, &mut batch.next_states),
+            (next, &mut batch.next_observations, &mut batch.next_states),
         ] {
             let frame = episode.ticks[end].poses[0][2];
             for k in 0..h {
@@ -170,19 +203,17 @@ impl Sampler {
                 features.write(&mut states[offset..offset + sd], &state, frame);
             }
         }
-        for k in 0..h {
-            let tick = &episode.ticks[window_tick(t, k)];
-            for agent in 0..n {
-                let offset = ((b * h + k) * n + agent) * ACTION_DIM;
-                batch.actions[offset..offset + ACTION_DIM].copy_from_slice(&tick.actions[agent]);
+        for (end, actions) in [(t, &mut batch.actions), (next - 1, &mut batch.bootstrap_actions)] {
+            for k in 0..h {
+                let tick = &episode.ticks[window_tick(end, k)];
+                for agent in 0..n {
+                    let offset = ((b * h + k) * n + agent) * ACTION_DIM;
+                    actions[offset..offset + ACTION_DIM].copy_from_slice(&tick.actions[agent]);
+                }
             }
         }
-        let (reward, terminal) = if relabel {
-            transition_reward(&episode.state(t + 1, goal), (t + 1) as u32, &self.env)
-        } else {
-            (episode.ticks[t].reward, episode.is_terminal_transition(t))
-        };
-        batch.rewards[b] = reward;
+        batch.rewards[b] = reward as f32;
+        batch.discounts[b] = discount as f32;
         batch.terminals[b] = if terminal { 1.0 } else { 0.0 };
         batch.origins.push((episode.number, t));
         batch.goals.push(goal);

@@ -47,6 +47,8 @@ fn sequences_never_cross_episodes_and_share_ticks() {
     let sampler = Sampler {
         history: h,
         her_probability: 0.0,
+        n_step: 1,
+        gamma: 0.98,
         env: env.clone(),
         critic: CriticArchitecture::Mlp,
     };
@@ -76,11 +78,16 @@ fn sequences_never_cross_episodes_and_share_ticks() {
             }
         }
         assert_eq!(batch.rewards[b], episode.ticks[t].reward);
+        assert_eq!(batch.discounts[b], 0.98);
         assert_eq!(
             batch.terminals[b] == 1.0,
             episode.terminal && t + 2 == episode.ticks.len()
         );
     }
+    assert_eq!(
+        batch.bootstrap_actions, batch.actions,
+        "one step: the target's history is t's"
+    );
     assert_eq!(batch.states.len(), batch.batch_size * h * sampler.features(n).dim());
 }
 
@@ -110,6 +117,8 @@ fn her_relabelling_matches(env: &EnvConfig) {
     let sampler = Sampler {
         history: h,
         her_probability: 1.0,
+        n_step: 1,
+        gamma: 0.98,
         env: env.clone(),
         critic: CriticArchitecture::Mlp,
     };
@@ -191,4 +200,78 @@ fn eviction_keeps_capacity() {
         assert!(buffer.transitions() <= 100 || buffer.episodes().len() == 1);
     }
     assert_eq!(buffer.episodes().back().map(|e| e.number), Some(19));
+}
+
+#[test]
+fn n_step_samples_sum_discounted_rewards_up_to_a_terminal_or_the_end() {
+    let (n, h, steps, gamma) = (3, 4, 5, 0.9);
+    let env = EnvConfig::default();
+    let od = batch_obs_dim(&env);
+    let episodes = recorded_episodes(&env, 12, n, 7);
+    let buffer = buffer_of(&episodes);
+    for her_probability in [0.0, 1.0] {
+        let sampler = Sampler {
+            history: h,
+            her_probability,
+            n_step: steps,
+            gamma,
+            env: env.clone(),
+            critic: CriticArchitecture::Mlp,
+        };
+        let mut rng = StdRng::seed_from_u64(8);
+        let batch = sampler.sample(&buffer, 512, &mut rng).expect("batch");
+        let (mut full, mut cut) = (0, 0);
+        for b in 0..batch.batch_size {
+            let (number, t) = batch.origins[b];
+            let episode = &episodes[number as usize];
+            let goal = batch.goals[b];
+            // The reference: one reward per tick, from the sim or recomputed for the goal.
+            let step = |s: usize| {
+                if batch.relabelled[b] {
+                    transition_reward(&episode.state(s + 1, goal), (s + 1) as u32, &env)
+                } else {
+                    (episode.ticks[s].reward, episode.is_terminal_transition(s))
+                }
+            };
+            let (mut reward, mut k, mut terminal) = (0.0f64, 0, false);
+            while k < steps && t + k + 1 < episode.ticks.len() && !terminal {
+                let (r, done) = step(t + k);
+                reward += gamma.powi(k as i32) * f64::from(r);
+                terminal = done;
+                k += 1;
+            }
+            if k == steps {
+                full += 1
+            } else {
+                cut += 1
+            }
+            assert!(
+                (f64::from(batch.rewards[b]) - reward).abs() < 1e-4,
+                "sample {b}: {} vs {reward}",
+                batch.rewards[b]
+            );
+            assert!((f64::from(batch.discounts[b]) - gamma.powi(k as i32)).abs() < 1e-6);
+            assert_eq!(batch.terminals[b] == 1.0, terminal);
+            for agent in 0..n {
+                for w in 0..h {
+                    // The next window ends k ticks on; the target's action history one before.
+                    let next_tick = (t + k + w + 1).saturating_sub(h);
+                    let offset = ((b * n + agent) * h + w) * od;
+                    let expected = observation(&sampler.observer(), agent, &episode.state(next_tick, goal));
+                    let got = &batch.next_observations[offset..offset + od];
+                    assert!(got.iter().zip(&expected[..od]).all(|(g, e)| (g - e).abs() < 1e-4));
+                    let acted = (t + k + w).saturating_sub(h);
+                    let a = ((b * h + w) * n + agent) * ACTION_DIM;
+                    assert_eq!(
+                        &batch.bootstrap_actions[a..a + ACTION_DIM],
+                        &episode.ticks[acted].actions[agent]
+                    );
+                }
+            }
+        }
+        assert!(
+            full > 0 && cut > 0,
+            "both whole and shortened sums were drawn ({full}, {cut})"
+        );
+    }
 }
