@@ -4,8 +4,8 @@
 //! divided by the rate candle's matmul reaches on the critic's widest layer on this core:
 //! `cargo run --release -p formation-critic --example update_speed -- [BATCH] [UPDATES] [HISTORY] [ROBOTS] [mlp|pooled] [parallel|serial]`.
 //! Threads: `RAYON_NUM_THREADS` (as the critic's `learn.threads` sets it) for each matrix
-//! product; `parallel` (the default here; `learn.parallel_critics` in a run) runs TD3's twin
-//! critics on two threads, `serial` one after the other. The floor is one core's.
+//! product; `parallel` runs TD3's twin critics on two threads, `serial` one after the other
+//! (default: as `learn.parallel_critics` defaults). The floor is one core's.
 
 use std::time::Instant;
 
@@ -34,7 +34,8 @@ fn main() -> anyhow::Result<()> {
         Some(other) => anyhow::bail!("critic must be mlp or pooled, got {other}"),
     };
     let parallel_critics = match args.next().as_deref() {
-        None | Some("parallel") => true,
+        None => LearnConfig::default().parallel_critics,
+        Some("parallel") => true,
         Some("serial") => false,
         Some(other) => anyhow::bail!("the twin critics run parallel or serial, got {other}"),
     };
