@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Benchmarks: lockstep tick rate and latency against N (scripted and learned robots, separate
 # processes and all in one process, and with one robot behind the Zenoh bridges), the
-# process-to-process floor (iceoryx2 events vs a Unix
+# process-to-process floor (iceoryx2 events, the tick bell's futex, a Unix
 # socket) and each lockstep cell's ratio to its N + 1 wake-up floor, the same tick shape in
 # Python (multiprocessing pipes) as a same-machine anchor, real-time deadline misses, training
 # throughput and memory. Prints a table and writes bench.json. Takes about 16 minutes
@@ -42,7 +42,7 @@ summary_field() { # file key
 
 # 1. The floor: one round trip between two processes, on one CPU and placed by the OS.
 for placement in auto off; do
-  for transport in iceoryx2 uds; do
+  for transport in iceoryx2 bell uds; do
     line=$("$FORMATION_BIN_DIR/formation-pingpong" --transport "$transport" --placement "$placement" --round-trips 20000)
     record "$(python3 -c "import json,sys; d=json.loads(sys.argv[1]); d['kind']='round_trip'; print(json.dumps(d))" "$line")"
   done
@@ -63,7 +63,8 @@ s = json.load(open(sys.argv[1]))
 print(json.dumps({"kind": "lockstep", "processes": "separate", "placement": sys.argv[4], "policy": sys.argv[2],
                   "n": int(sys.argv[3]), "ticks_per_s": round(s["env_steps_per_s"]), "p50_us": s["tick_p50_us"],
                   "p99_us": s["tick_p99_us"], "missed_ticks": s["missed_ticks"], "lost_transitions": s["lost_transitions"],
-                  "sim_wakeups_per_tick": s["sim_wakeups_per_tick"], "machine_switches_per_tick": s["machine_switches_per_tick"]}))
+                  "sim_wakeups_per_tick": s["sim_wakeups_per_tick"], "machine_switches_per_tick": s["machine_switches_per_tick"],
+                  "bell_robots_per_tick": s.get("bell_robots_per_tick")}))
 PY
 )"
 }
@@ -75,6 +76,8 @@ OFF_SIZES=(3 12 48); (( QUICK )) && OFF_SIZES=(3)
 for n in "${OFF_SIZES[@]}"; do lockstep scripted "$n" off; done
 # Without the tick gate (every robot's command wakes the sim), for the difference it makes.
 for n in 3 12; do FORMATION_TICK_GATE=off lockstep scripted "$n" auto-nogate; done
+# Robots on their own events instead of the tick bell, for the difference the bell makes.
+for n in 3 12; do FORMATION_TICK_BELL=off lockstep scripted "$n" auto-nobell; done
 # Through the bridges: robot 0 on a host of its own (own iceoryx2), joined over Zenoh on TCP
 # localhost, so each tick waits for one round trip through both bridges.
 for n in 3 12; do lockstep scripted "$n" auto-remote1 --remote 0; done
@@ -148,9 +151,11 @@ rows = [json.loads(l) for l in open(sys.argv[1]) if l.strip()]
 cpu = next((l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name")), "?")
 print(f"machine: {cpu}, {os.cpu_count()} cores")
 # The N + 1 floor: one wake-up is half an iceoryx2 round trip on one CPU; a tick needs N + 1.
-wake_us = next((r["p50_us"] / 2 for r in rows if r["kind"] == "round_trip" and r["transport"].lower() == "iceoryx2" and r["placement"].lower() == "auto"), None)
+def half_round_trip(transport):
+    return next((r["p50_us"] / 2 for r in rows if r["kind"] == "round_trip" and r["transport"].lower() == transport and r["placement"].lower() == "auto"), None)
+wake_us, bell_us = half_round_trip("iceoryx2"), half_round_trip("bell")
 python = max((r["ticks_per_s"] for r in rows if r["kind"] == "python_pipes"), default=None)
-print(f"floor: one wake-up {wake_us} us (half the iceoryx2 round trip on one CPU); Python pipes, N = 3, best placement: {python} ticks/s")
+print(f"floor: one wake-up {wake_us} us (half the iceoryx2 round trip on one CPU; by the tick bell: {bell_us} us); Python pipes, N = 3, best placement: {python} ticks/s")
 print(f"{'kind':<14} {'processes':<16} {'placement':<12} {'policy':<9} {'N':>3} {'ticks/s':>9} {'p50 us':>8} {'p99 us':>8} {'floor':>6} {'us/robot':>8}  other")
 for r in rows:
     if r["kind"] == "lockstep":
@@ -159,6 +164,11 @@ for r in rows:
         per_robot = 1e6 / r["ticks_per_s"] / r["n"]
         r["us_per_robot"] = round(per_robot, 2)
         other = f"missed {r['missed_ticks']} lost {r['lost_transitions']}"
+        if bell_us:
+            r["of_bell_floor"] = round(bell_us * (r["n"] + 1) * r["ticks_per_s"] / 1e6, 2)
+            other += f" of bell floor {r['of_bell_floor']:.2f}"
+        if r.get("bell_robots_per_tick") is not None:
+            other += f" bell {r['bell_robots_per_tick']:.2f}/tick"
         if r.get("sim_wakeups_per_tick") is not None:
             other += f" sim wake-ups/tick {r['sim_wakeups_per_tick']:.2f} switches/tick {r['machine_switches_per_tick']:.1f}"
         if python and r["n"] == 3:

@@ -1,6 +1,7 @@
 //! The agent's ends of the services: its own observation stream and wake-up event, its command
 //! stream and the sim's command event, the tick gate (so that only a tick's last robot wakes
-//! the sim), and (when learning) its actor's weights stream.
+//! the sim, and the robot sleeps on the gate's bell instead of its event), and (when learning)
+//! its actor's weights stream.
 
 use std::time::Duration;
 
@@ -27,6 +28,10 @@ pub struct AgentPorts<S: Service> {
     /// The sim's tick gate, once it is found (a sim on another host has none here).
     gate: Option<TickGate>,
     looked_for_gate: bool,
+    /// Whether to sleep on the gate's bell once attached (`FORMATION_TICK_BELL=off`: no).
+    join_bell: bool,
+    /// The bell's count read before the last look for observations.
+    bell_seen: u32,
     /// Random per process start, so the sim tells a restarted robot from its predecessor.
     pub session: u32,
 }
@@ -75,13 +80,25 @@ where
             identity: identity.clone(),
             gate: None,
             looked_for_gate: false,
+            join_bell: !std::env::var("FORMATION_TICK_BELL").is_ok_and(|v| v == "off"),
+            bell_seen: 0,
             session: rand::random_range(1..u32::MAX),
         })
     }
 
-    /// Sleeps until the sim signals an observation or `timeout` passes.
-    pub fn wait(&self, timeout: Duration) -> Result<()> {
-        services::wait_for_event(&self.wake, timeout)
+    /// Sleeps until the sim signals an observation (on the bell once this robot joined it, on
+    /// its own event before) or `timeout` passes; look for observations after it returns.
+    pub fn wait(&mut self, timeout: Duration) -> Result<()> {
+        match &self.gate {
+            Some(gate) if self.join_bell => {
+                gate.wait_for_bell(self.bell_seen, timeout)?;
+                // Read before the caller looks for observations: a ring after this read makes
+                // the next wait return at once.
+                self.bell_seen = gate.bell_count();
+                Ok(())
+            }
+            _ => services::wait_for_event(&self.wake, timeout),
+        }
     }
 
     /// The next observation received, if any.
@@ -117,8 +134,10 @@ where
         if self.gate.is_none() && (command.header.tick == 0 || !self.looked_for_gate) {
             // Looked for with the first answer and at each episode's start (a sim on another
             // host, behind a bridge, has none here).
-            self.gate = TickGate::attach(&self.identity, self.agent, self.session)?;
+            self.gate = TickGate::attach(&self.identity, self.agent, self.session, self.join_bell)?;
             self.looked_for_gate = true;
+            // This tick's observation is taken; the sim rings for this robot from a later one.
+            self.bell_seen = self.gate.as_ref().map_or(0, TickGate::bell_count);
         }
         let answer = match &self.gate {
             Some(gate) => gate.answer(command.header.episode, command.header.tick),

@@ -202,7 +202,7 @@ mod tests {
     }
 
     #[test]
-    fn an_agent_answers_each_tick_counts_itself_in_the_gate_and_leaves_at_the_run_end() {
+    fn an_agent_answers_each_tick_counts_itself_in_the_gate_sleeps_on_the_bell_and_leaves_at_the_run_end() {
         let identity = RunIdentity::new(&format!("agentloop{}", std::process::id())).expect("id");
         let config = RunConfig::default();
         let dim = Layout::of(config.env.observation).dim();
@@ -239,7 +239,8 @@ mod tests {
             let identity = identity.clone();
             std::thread::spawn(move || run::<local::Service>(&identity, &options, AgentPolicy::Fixed(Box::new(Echo))))
         };
-        let send = |tick: u32, flags: u32, first: f32| {
+        // Wakes the robot with its event, or with the bell once it sleeps on it.
+        let send = |tick: u32, flags: u32, first: f32, bell: bool| {
             let mut obs = [0.0; MAX_OBS_DIM];
             obs[0] = first;
             observations
@@ -251,7 +252,11 @@ mod tests {
                     obs,
                 })
                 .expect("observation");
-            wake.notify().expect("wake");
+            if bell {
+                gate.ring().expect("ring");
+            } else {
+                wake.notify().expect("wake");
+            }
         };
 
         // As the sim does: wait for the greeting, so the robot's subscriber exists.
@@ -268,25 +273,31 @@ mod tests {
         // Tick 0: the robot finds the gate with its first answer; the round expected nobody,
         // so its answer wakes the sim with the all-answered id.
         gate.open_round(0, 0, 0);
-        send(0, FLAG_EPISODE_START, 0.5);
+        send(0, FLAG_EPISODE_START, 0.5, false);
         let command = next_command(&commands);
         assert_eq!((command.header.episode, command.header.tick, command.agent), (0, 0, 1));
         assert_eq!((command.v, command.w, command.policy_version), (0.3, 0.5, 7));
         assert_eq!(gate.member_session(1), command.session, "attached with its session");
+        assert_eq!(
+            gate.bell_session(1),
+            command.session,
+            "and sleeps on the bell from now on"
+        );
         let ids = raised(&ready, Duration::from_secs(5));
         assert!(ids.contains(&ALL_ANSWERED_EVENT_ID), "{ids:?}");
 
-        // Tick 1: another robot's answer is still expected, so this one wakes nobody.
+        // Tick 1, rung with the bell: another robot's answer is still expected, so this one
+        // wakes nobody.
         gate.open_round(0, 1, 2);
-        send(1, 0, -0.25);
+        send(1, 0, -0.25, true);
         let command = next_command(&commands);
         assert_eq!((command.header.tick, command.w), (1, -0.25));
         let ids = raised(&ready, Duration::from_millis(100));
         assert!(ids.is_empty(), "a quiet answer raised {ids:?}");
 
         // The episode's last state is not answered; the run's end ends the agent.
-        send(2, FLAG_EPISODE_END, 0.0);
-        send(0, FLAG_RUN_END | FLAG_EPISODE_END, 0.0);
+        send(2, FLAG_EPISODE_END, 0.0, true);
+        send(0, FLAG_RUN_END | FLAG_EPISODE_END, 0.0, true);
         let stats = agent.join().expect("thread").expect("agent");
         assert_eq!(stats.commands, 2);
         assert_eq!(stats.policy_version, 7);

@@ -64,6 +64,10 @@ pub struct Summary {
     /// anything else running).
     #[serde(default)]
     pub machine_switches_per_tick: Option<f64>,
+    /// Robots woken by the tick bell per tick (one futex wake for all of them); the others
+    /// were woken by their own event.
+    #[serde(default)]
+    pub bell_robots_per_tick: Option<f64>,
     /// Ticks the critic took into its replay.
     pub transitions_received: Option<u64>,
     /// Ticks the critic should have seen but did not (gaps, missing observations).
@@ -118,6 +122,7 @@ impl Summary {
             ("rejoined robots", self.rejoined_agents.to_string()),
             ("sim wake-ups / tick", opt(self.sim_wakeups_per_tick, 2)),
             ("machine switches / tick", opt(self.machine_switches_per_tick, 1)),
+            ("robots woken by the bell / tick", opt(self.bell_robots_per_tick, 2)),
             (
                 "transitions received",
                 self.transitions_received.map_or("-".into(), |v| v.to_string()),

@@ -14,15 +14,26 @@
 //! an extra wake-up, never a missed one: a robot that finds another round in the gate (a late
 //! answer) raises its own id, and every answer at or past the expected count raises the event.
 //!
-//! iceoryx2 0.10 has no shared counter (its subscribers map payloads read-only), hence one
-//! mapped file and atomics, through `memmap2`.
+//! The gate also carries the *tick bell*: a word the sim bumps once it has published a tick's
+//! observations, and a robot that joined the bell sleeps on (a futex). One `FUTEX_WAKE` wakes
+//! every such robot, where iceoryx2's events would cost the sim a socket send per robot and
+//! each robot a poll and a receive: the bell halves the cost of a robot's wake-up (docs/
+//! BENCHMARKS.md). The sim rings the bell for the robots whose bell session is the one that
+//! greeted it, and notifies every other robot's own event as before, so clients that never
+//! join the bell (Python, a bridge) are woken as they always were.
+//!
+//! iceoryx2 0.10 has no shared counter (its subscribers map payloads read-only) and its events
+//! have no cheaper wake-up than a socket, hence one mapped file (`memmap2`), atomics, and
+//! `rustix`'s futex calls.
 
 use std::fs::{File, OpenOptions};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 use memmap2::MmapMut;
+use rustix::thread::futex;
 
 use crate::MAX_AGENTS;
 use crate::services::{RunIdentity, SHM_DIR};
@@ -33,11 +44,14 @@ pub const ALL_ANSWERED_EVENT_ID: usize = MAX_AGENTS;
 /// Identifies a gate file.
 const MAGIC: u32 = 0x6761_7465;
 /// The layout below; a gate of another layout is not attached to.
-const LAYOUT_VERSION: u32 = 1;
-/// Bytes: magic, layout version, the round word, one session per robot.
-const SIZE: usize = 16 + 4 * MAX_AGENTS;
+const LAYOUT_VERSION: u32 = 2;
+/// Bytes: magic, layout version, the round word, the bell (and 4 spare), one counting session
+/// per robot, one bell session per robot.
+const SIZE: usize = 24 + 8 * MAX_AGENTS;
 const ROUND_OFFSET: usize = 8;
-const MEMBERS_OFFSET: usize = 16;
+const BELL_OFFSET: usize = 16;
+const MEMBERS_OFFSET: usize = 24;
+const BELL_MEMBERS_OFFSET: usize = MEMBERS_OFFSET + 4 * MAX_AGENTS;
 /// The round word: tick key (48 bits) | expected answers (8 bits) | answers counted (8 bits).
 const KEY_SHIFT: u32 = 16;
 const EXPECTED_SHIFT: u32 = 8;
@@ -96,9 +110,10 @@ impl TickGate {
         Ok(gate)
     }
 
-    /// A robot's view of the sim's gate, with `session` recorded as robot `agent`'s; `None`
+    /// A robot's view of the sim's gate, with `session` recorded as robot `agent`'s (and as
+    /// its bell session when it will sleep on the bell: [`TickGate::wait_for_bell`]); `None`
     /// while the sim has not created it (or it is of another layout).
-    pub fn attach(identity: &RunIdentity, agent: usize, session: u32) -> Result<Option<Self>> {
+    pub fn attach(identity: &RunIdentity, agent: usize, session: u32, join_bell: bool) -> Result<Option<Self>> {
         let path = Self::path(identity);
         let file = match OpenOptions::new().read(true).write(true).open(&path) {
             Ok(file) => file,
@@ -119,6 +134,8 @@ impl TickGate {
             return Ok(None);
         }
         gate.member(agent).store(session, Ordering::Release);
+        gate.bell_member(agent)
+            .store(if join_bell { session } else { 0 }, Ordering::Release);
         Ok(Some(gate))
     }
 
@@ -146,9 +163,59 @@ impl TickGate {
         self.header(MEMBERS_OFFSET + 4 * agent)
     }
 
+    fn bell_member(&self, agent: usize) -> &AtomicU32 {
+        self.header(BELL_MEMBERS_OFFSET + 4 * agent)
+    }
+
+    fn bell(&self) -> &AtomicU32 {
+        self.header(BELL_OFFSET)
+    }
+
     /// The session robot `agent` attached with (0: none).
     pub fn member_session(&self, agent: usize) -> u32 {
         self.member(agent).load(Ordering::Acquire)
+    }
+
+    /// The session robot `agent` sleeps on the bell with (0: it waits on its own event).
+    pub fn bell_session(&self, agent: usize) -> u32 {
+        self.bell_member(agent).load(Ordering::Acquire)
+    }
+
+    /// The sim, once a tick's observations are out: wakes every robot asleep on the bell
+    /// (one system call for all of them).
+    pub fn ring(&self) -> Result<()> {
+        self.bell().fetch_add(1, Ordering::AcqRel);
+        futex::wake(self.bell(), futex::Flags::empty(), i32::MAX as u32).context("tick bell: futex wake")?;
+        Ok(())
+    }
+
+    /// The bell's count now: read it before looking for observations, then sleep with
+    /// [`TickGate::wait_for_bell`] on what was read, so that a ring in between is not missed.
+    pub fn bell_count(&self) -> u32 {
+        self.bell().load(Ordering::Acquire)
+    }
+
+    /// A robot: sleeps until the bell rings past `seen` (at once if it already has), `timeout`
+    /// passes, or a signal arrives.
+    pub fn wait_for_bell(&self, seen: u32, timeout: Duration) -> Result<()> {
+        let timeout = futex::Timespec {
+            tv_sec: timeout.as_secs() as i64,
+            tv_nsec: i64::from(timeout.subsec_nanos()),
+        };
+        match futex::wait(self.bell(), futex::Flags::empty(), seen, Some(&timeout)) {
+            Ok(()) => Ok(()),
+            Err(err)
+                if [
+                    rustix::io::Errno::AGAIN,
+                    rustix::io::Errno::TIMEDOUT,
+                    rustix::io::Errno::INTR,
+                ]
+                .contains(&err) =>
+            {
+                Ok(())
+            }
+            Err(err) => Err(err).context("tick bell: futex wait"),
+        }
     }
 
     /// The sim, before publishing tick (`episode`, `tick`): the round now counts that tick's
@@ -206,7 +273,7 @@ mod tests {
         let sim = TickGate::create(&id).expect("create");
         let robots: Vec<TickGate> = (0..3)
             .map(|agent| {
-                TickGate::attach(&id, agent, 100 + agent as u32)
+                TickGate::attach(&id, agent, 100 + agent as u32, false)
                     .expect("attach")
                     .expect("gate")
             })
@@ -229,18 +296,60 @@ mod tests {
     }
 
     #[test]
+    fn the_bell_wakes_a_sleeping_robot_and_a_ring_before_it_sleeps_is_not_missed() {
+        let id = identity("gatebell");
+        let sim = TickGate::create(&id).expect("create");
+        let robot = TickGate::attach(&id, 2, 42, true).expect("attach").expect("gate");
+        assert_eq!((sim.bell_session(2), sim.bell_session(1)), (42, 0));
+        let quiet = TickGate::attach(&id, 1, 43, false).expect("attach").expect("gate");
+        assert_eq!((quiet.member_session(1), quiet.bell_session(1)), (43, 0));
+
+        // Rung between the robot's read and its sleep: the wait returns at once.
+        let seen = robot.bell_count();
+        sim.ring().expect("ring");
+        let started = std::time::Instant::now();
+        robot.wait_for_bell(seen, Duration::from_secs(60)).expect("wait");
+        assert!(started.elapsed() < Duration::from_secs(30), "slept through a ring");
+
+        // Asleep first, rung from another thread.
+        let seen = robot.bell_count();
+        let (ready, asleep) = std::sync::mpsc::channel();
+        let sleeper = std::thread::spawn(move || {
+            ready.send(()).expect("ready");
+            let started = std::time::Instant::now();
+            robot.wait_for_bell(seen, Duration::from_secs(60)).expect("wait");
+            (started.elapsed(), robot.bell_count())
+        });
+        asleep.recv().expect("asleep");
+        std::thread::sleep(Duration::from_millis(50));
+        sim.ring().expect("ring");
+        let (slept, count) = sleeper.join().expect("join");
+        assert!(slept < Duration::from_secs(30), "woken by the ring, not the timeout");
+        assert_eq!(count, seen.wrapping_add(1));
+
+        // Nothing rings: the wait ends at its timeout.
+        let quiet_seen = quiet.bell_count();
+        quiet
+            .wait_for_bell(quiet_seen, Duration::from_millis(20))
+            .expect("timeout is not an error");
+    }
+
+    #[test]
     fn the_gate_file_is_the_sims_and_goes_with_it() {
         let id = identity("gatefile");
-        assert!(TickGate::attach(&id, 0, 1).expect("attach").is_none(), "no sim yet");
+        assert!(
+            TickGate::attach(&id, 0, 1, false).expect("attach").is_none(),
+            "no sim yet"
+        );
         let sim = TickGate::create(&id).expect("create");
         assert!(TickGate::path(&id).exists());
         assert!(
-            TickGate::attach(&id, MAX_AGENTS, 1).expect("attach").is_none(),
+            TickGate::attach(&id, MAX_AGENTS, 1, false).expect("attach").is_none(),
             "no such robot"
         );
         drop(sim);
         assert!(!TickGate::path(&id).exists(), "removed with the sim");
-        assert!(TickGate::attach(&id, 0, 1).expect("attach").is_none());
+        assert!(TickGate::attach(&id, 0, 1, false).expect("attach").is_none());
     }
 
     #[test]
@@ -255,7 +364,7 @@ mod tests {
                     .map(|agent| {
                         let id = &id;
                         scope.spawn(move || {
-                            let robot = TickGate::attach(id, agent, 1).expect("attach").expect("gate");
+                            let robot = TickGate::attach(id, agent, 1, false).expect("attach").expect("gate");
                             usize::from(robot.answer(0, tick) == Answer::WakeSim)
                         })
                     })

@@ -108,6 +108,8 @@ pub struct CommandCounters {
     pub rejected: u64,
     /// Robots that greeted again from a new process.
     pub rejoins: u64,
+    /// Robot wake-ups by the tick bell (the others were by each robot's own event).
+    pub belled: u64,
 }
 
 /// Collects the commands of one tick after another; allocation-free after construction.
@@ -116,8 +118,10 @@ pub struct CommandRound {
     received: Vec<bool>,
     notified: Vec<usize>,
     last_commands: Vec<(f64, f64)>,
-    /// The shared answer counter, when the sim could create it.
+    /// The shared answer counter and tick bell, when the sim could create them.
     gate: Option<TickGate>,
+    /// The robots this round wakes with the bell, not their own event.
+    belled: Vec<bool>,
     /// Who is waited for.
     pub presence: Presence,
     /// Counted so far.
@@ -132,6 +136,7 @@ impl CommandRound {
             notified: Vec::with_capacity(n),
             last_commands: vec![(0.0, 0.0); n],
             gate: None,
+            belled: vec![false; n],
             presence: Presence::new(n),
             counters: CommandCounters::default(),
         }
@@ -144,16 +149,37 @@ impl CommandRound {
     }
 
     /// Before tick `header` is published: the gate expects an answer from every robot that is
-    /// waited for and counts itself in with the session it greeted with.
-    pub fn open_round(&self, header: Header) {
+    /// waited for and counts itself in with the session it greeted with, and the bell is for
+    /// the robots asleep on it with that session.
+    pub fn open_round(&mut self, header: Header) {
         if let Some(gate) = &self.gate {
-            let counted = (0..self.received.len())
-                .filter(|&agent| {
-                    let session = self.presence.session(agent);
-                    !self.presence.is_absent(agent) && session != 0 && gate.member_session(agent) == session
-                })
-                .count();
+            let mut counted = 0;
+            for (agent, belled) in self.belled.iter_mut().enumerate() {
+                let session = self.presence.session(agent);
+                let greeted = session != 0;
+                if greeted && !self.presence.is_absent(agent) && gate.member_session(agent) == session {
+                    counted += 1;
+                }
+                *belled = greeted && gate.bell_session(agent) == session;
+            }
             gate.open_round(header.episode, header.tick, counted);
+        }
+    }
+
+    /// Which robots the bell wakes this round (the others need their own event).
+    pub fn belled(&self) -> &[bool] {
+        &self.belled
+    }
+
+    /// Once the round's observations are out: wakes the robots asleep on the bell.
+    pub fn ring_bell(&mut self) -> Result<()> {
+        let belled = self.belled.iter().filter(|&&b| b).count();
+        match &self.gate {
+            Some(gate) if belled > 0 => {
+                self.counters.belled += belled as u64;
+                gate.ring()
+            }
+            _ => Ok(()),
         }
     }
 
@@ -366,7 +392,8 @@ mod tests {
             CommandCounters {
                 missed: 1,
                 rejected: 1,
-                rejoins: 0
+                rejoins: 0,
+                belled: 0
             }
         );
 
@@ -451,17 +478,19 @@ mod tests {
     }
 
     #[test]
-    fn with_the_gate_only_the_last_expected_answer_wakes_the_sim_and_every_answer_is_read() {
+    fn with_the_gate_only_the_last_expected_answer_wakes_the_sim_and_every_answer_is_read_and_the_bell_is_for_its_members()
+     {
         use formation_protocol::tick_gate::{ALL_ANSWERED_EVENT_ID, Answer, TickGate};
         let (_node, ports, robots) = sim_and_robots(3, "cmdgate");
         let identity = test_identity("cmdgate");
         let mut round = CommandRound::new(3).with_gate(TickGate::create(&identity).expect("gate"));
-        // Robots 0 and 1 count themselves in; robot 2 has no gate (a Python robot, say).
+        // Robots 0 and 1 count themselves in, robot 0 also sleeps on the bell; robot 2 has no
+        // gate (a Python robot, say).
         let gates: Vec<TickGate> = (0..2)
             .map(|agent| {
                 let session = 10 + agent as u32;
                 round.presence.greeted(agent, session);
-                TickGate::attach(&identity, agent, session)
+                TickGate::attach(&identity, agent, session, agent == 0)
                     .expect("attach")
                     .expect("gate")
             })
@@ -469,6 +498,15 @@ mod tests {
         round.presence.greeted(2, 12);
         let header = Header::new(1, 3, 0);
         round.open_round(header);
+        assert_eq!(
+            round.belled(),
+            [true, false, false],
+            "only robot 0 is woken by the bell"
+        );
+        let rung = gates[0].bell_count();
+        round.ring_bell().expect("ring");
+        assert_eq!(gates[0].bell_count(), rung.wrapping_add(1));
+        assert_eq!(round.counters.belled, 1);
         let counted = |agent: usize| {
             robots.commands[agent]
                 .send_copy(CommandMsg {
@@ -519,6 +557,16 @@ mod tests {
             Answer::WakeSim,
             "robot 1 is the only one counted"
         );
+        assert!(
+            round.belled()[0],
+            "an absent robot still sleeps on the bell: it is rung"
+        );
+
+        // A new process in robot 0's place greets with another session: until it attaches,
+        // it is woken by its event, not by the bell of its predecessor's session.
+        round.presence.greeted(0, 99);
+        round.open_round(Header::new(1, tick + 1, 0));
+        assert_eq!(round.belled(), [false, false, false]);
     }
 
     #[test]

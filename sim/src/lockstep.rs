@@ -332,7 +332,7 @@ where
         if transition.outcome == Outcome::Running {
             transition.outcome = Outcome::Aborted;
         }
-        self.ports.publish_observations(world, header)?;
+        self.ports.publish_observations(world, header, self.round.belled())?;
         self.published += 1;
         self.ports
             .publish_state(world, header, &transition, self.published, false)?;
@@ -351,7 +351,10 @@ where
         tally: &EpisodeTally,
         log_world: bool,
     ) -> Result<()> {
-        self.ports.publish_observations(world, header)?;
+        self.ports.publish_observations(world, header, self.round.belled())?;
+        if !header.has(FLAG_EPISODE_END) {
+            self.round.ring_bell()?;
+        }
         self.published += 1;
         let state = self
             .ports
@@ -407,7 +410,7 @@ where
 
     /// Writes the figures and `summary.json`, then tells everyone the run is over (after
     /// `summary.json` exists, so the critic can extend it).
-    fn finish(self, stop: Stop) -> Result<Summary> {
+    fn finish(mut self, stop: Stop) -> Result<Summary> {
         let options = self.options;
         let counters = self.round.counters;
         let mut summary = Summary {
@@ -424,6 +427,7 @@ where
             rejected_commands: counters.rejected,
             rejoined_agents: counters.rejoins,
             deadline_misses: self.deadline_misses,
+            bell_robots_per_tick: (self.env_steps > 0).then(|| counters.belled as f64 / self.env_steps as f64),
             wall_s: self.started.elapsed().as_secs_f64(),
             ..Summary::default()
         };
@@ -449,6 +453,8 @@ where
         let path = options.run_dir.join("summary.json");
         write_atomically(&path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
         self.ports.announce_run_end()?;
+        // Robots asleep on the bell (they also find the end with their next timed-out wait).
+        self.round.ring_bell()?;
         if stop == Stop::Signal {
             eprintln!("sim: stopped by signal after {} episodes", self.log.records().len());
         }

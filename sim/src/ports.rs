@@ -99,8 +99,9 @@ impl<S: Service> SimPorts<S> {
     }
 
     /// Sends every robot its observation of `world` (written in place) and, unless the
-    /// episode ends here, wakes it.
-    pub fn publish_observations(&self, world: &World, header: Header) -> Result<()> {
+    /// episode ends here, wakes it with its event, except the robots `belled` (the caller
+    /// rings the tick bell for them).
+    pub fn publish_observations(&self, world: &World, header: Header, belled: &[bool]) -> Result<()> {
         let n = world.n_agents() as u32;
         for (agent, agent_ports) in self.agents.iter().enumerate() {
             let mut sample = agent_ports.observation.loan().context("loan observation")?;
@@ -111,7 +112,7 @@ impl<S: Service> SimPorts<S> {
             msg.dim = world.observer.dim() as u32;
             msg.obs = world.observation(agent);
             sample.send().context("send observation")?;
-            if !header.has(FLAG_EPISODE_END) {
+            if !header.has(FLAG_EPISODE_END) && !belled[agent] {
                 agent_ports
                     .wake
                     .notify()

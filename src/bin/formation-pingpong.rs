@@ -1,6 +1,6 @@
-//! Benchmark floor: the round trip between two processes, over an iceoryx2 event pair (what a
-//! lockstep tick costs at least) and over a Unix domain datagram socket for comparison.
-//! Benchmark code only; the product has one transport. Prints one JSON line per transport.
+//! Benchmark floor: the round trip between two processes, over an iceoryx2 event pair, over a
+//! pair of tick bells (the futex with which the sim wakes the Rust robots) and over a Unix
+//! domain datagram socket for comparison. Benchmark code only. Prints one JSON line per run.
 
 use std::os::unix::net::UnixDatagram;
 use std::path::PathBuf;
@@ -11,12 +11,15 @@ use anyhow::{Context, Result};
 use clap::{Parser, ValueEnum};
 use formation_protocol::placement::{self, Placement, Role};
 use formation_protocol::services::RunIdentity;
+use formation_protocol::tick_gate::TickGate;
 use iceoryx2::prelude::*;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 enum Transport {
     /// iceoryx2 events (Unix datagrams under the hood, plus shared-memory bookkeeping).
     Iceoryx2,
+    /// Two tick gates' bells (a futex each way), as the sim wakes the robots.
+    Bell,
     /// A bare Unix domain datagram socket.
     Uds,
 }
@@ -72,6 +75,16 @@ fn child(cli: &Cli, name: &str) -> Result<()> {
                 notifier.notify().map_err(anyhow::Error::from)?;
             }
         }
+        Transport::Bell => {
+            let theirs = attach_bell(&format!("{name}a"))?;
+            let mut seen = theirs.bell_count();
+            // Created only after `seen` is read: the parent rings once this exists.
+            let ours = TickGate::create(&RunIdentity::new(&format!("{name}b"))?)?;
+            for _ in 0..total {
+                seen = wait_past(&theirs, seen)?;
+                ours.ring()?;
+            }
+        }
         Transport::Uds => {
             let dir = PathBuf::from(name);
             let socket = UnixDatagram::bind(dir.join("child"))?;
@@ -85,6 +98,30 @@ fn child(cli: &Cli, name: &str) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// The gate another process created for `name`, waited for up to 10 s.
+fn attach_bell(name: &str) -> Result<TickGate> {
+    let identity = RunIdentity::new(name)?;
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        if let Some(gate) = TickGate::attach(&identity, 0, 1, true)? {
+            return Ok(gate);
+        }
+        anyhow::ensure!(Instant::now() < deadline, "no tick gate {name} after 10 s");
+        std::thread::sleep(Duration::from_millis(1));
+    }
+}
+
+/// Sleeps on `gate`'s bell until it rings past `seen`; returns its new count.
+fn wait_past(gate: &TickGate, seen: u32) -> Result<u32> {
+    loop {
+        gate.wait_for_bell(seen, Duration::from_secs(1))?;
+        let now = gate.bell_count();
+        if now != seen {
+            return Ok(now);
+        }
+    }
 }
 
 fn quantile(sorted: &[Duration], q: f64) -> f64 {
@@ -106,6 +143,7 @@ fn main() -> Result<()> {
                 "--transport",
                 match cli.transport {
                     Transport::Iceoryx2 => "iceoryx2",
+                    Transport::Bell => "bell",
                     Transport::Uds => "uds",
                 },
             ])
@@ -125,6 +163,21 @@ fn main() -> Result<()> {
                 let start = Instant::now();
                 notifier.notify().map_err(anyhow::Error::from)?;
                 listener.blocking_wait(|_| {}).map_err(anyhow::Error::from)?;
+                if i >= WARMUP {
+                    samples.push(start.elapsed());
+                }
+            }
+            echo.wait()?;
+        }
+        Transport::Bell => {
+            let ours = TickGate::create(&RunIdentity::new(&format!("{name}a"))?)?;
+            let mut echo = spawn_child(&name)?;
+            let theirs = attach_bell(&format!("{name}b"))?;
+            let mut seen = theirs.bell_count();
+            for i in 0..cli.round_trips + WARMUP {
+                let start = Instant::now();
+                ours.ring()?;
+                seen = wait_past(&theirs, seen)?;
                 if i >= WARMUP {
                     samples.push(start.elapsed());
                 }
