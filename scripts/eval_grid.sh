@@ -15,7 +15,7 @@ Flags:
   --episodes E            episodes per cell (default 100)
   --seed S                episode seed (default 1000; no training run of this project uses it)
   --config FILE           configuration of every run (e.g. configs/paper-observation.toml)
-  --out DIR               where the run directories go (default runs/eval-grid-<timestamp>)
+  --out DIR               where the run directories go (default runs/eval-grid-<timestamp>-<pid>: two grids started in the same second do not share it)
   -h, --help              this help
 
 Every cell is a real multi-process run of scripts/run_swarm.sh --mode eval --viewer off.
@@ -44,7 +44,7 @@ done
 [[ "$TEAM" == scripted || -f "$TEAM" ]] || die "no checkpoint file '$TEAM' (or say 'scripted')"
 
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
-OUT=${OUT:-runs/eval-grid-$(date +%Y%m%d-%H%M%S)}
+OUT=${OUT:-runs/eval-grid-$(date +%Y%m%d-%H%M%S)-$$}
 mkdir -p "$OUT"
 declare -a TEAM_ARGS
 if [[ "$TEAM" == scripted ]]; then TEAM_ARGS=(--scripted all); else TEAM_ARGS=(--checkpoint "$TEAM"); fi

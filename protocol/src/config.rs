@@ -773,6 +773,25 @@ mod tests {
     }
 
     #[test]
+    fn every_shipped_config_loads_and_the_paper_teacher_differs_from_the_paper_only_in_its_teacher() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs");
+        let mut loaded = 0;
+        for entry in std::fs::read_dir(&dir).expect("configs/") {
+            let path = entry.expect("entry").path();
+            if path.extension().is_some_and(|e| e == "toml") {
+                RunConfig::from_toml_file(&path).unwrap_or_else(|err| panic!("{}: {err}", path.display()));
+                loaded += 1;
+            }
+        }
+        assert!(loaded >= 7, "only {loaded} configs in {}", dir.display());
+        let paper = RunConfig::from_toml_file(&dir.join("paper.toml")).expect("paper");
+        let mut taught = RunConfig::from_toml_file(&dir.join("paper-teacher.toml")).expect("paper-teacher");
+        assert_eq!((paper.learn.imitation_alpha, taught.learn.imitation_alpha), (0.0, 2.5));
+        taught.learn.imitation_alpha = 0.0;
+        assert_eq!(taught, paper);
+    }
+
+    #[test]
     fn overrides_keep_other_defaults() {
         let config = RunConfig::from_toml_str("[env]\ndt_s = 0.05\n").expect("parses");
         assert_eq!(config.env.dt_s, 0.05);
