@@ -15,10 +15,13 @@
 
 use crate::observation::{Layout, ObservationView};
 use formation_protocol::NEIGHBOURS;
-use formation_protocol::config::EnvConfig;
+use formation_protocol::config::{ConfigError, EnvConfig};
+use serde::{Deserialize, Serialize};
 
-/// Gains of the baseline. The defaults were tuned on random 3-robot episodes (see the tests).
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// Gains of the baseline, the `[baseline]` section (unknown keys rejected, missing ones keep
+/// their defaults). The defaults were tuned on random 3-robot episodes (see the tests).
+#[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq)]
+#[serde(deny_unknown_fields, default)]
 pub struct BaselineGains {
     /// Formation (edge error) gain, 1/s.
     pub k_form: f64,
@@ -41,6 +44,39 @@ impl Default for BaselineGains {
             repulsion_range: 0.5,
             k_repulsion: 3.0,
         }
+    }
+}
+
+impl BaselineGains {
+    /// Refuses gains the controller cannot use, naming the field: every gain finite and >= 0,
+    /// `k_turn` > 0 (a robot that never turns never arrives).
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        for (field, value, ok, reason) in [
+            ("baseline.k_form", self.k_form, self.k_form >= 0.0, "must be >= 0"),
+            ("baseline.k_goal", self.k_goal, self.k_goal >= 0.0, "must be >= 0"),
+            ("baseline.k_turn", self.k_turn, self.k_turn > 0.0, "must be > 0"),
+            (
+                "baseline.repulsion_range",
+                self.repulsion_range,
+                self.repulsion_range >= 0.0,
+                "must be >= 0",
+            ),
+            (
+                "baseline.k_repulsion",
+                self.k_repulsion,
+                self.k_repulsion >= 0.0,
+                "must be >= 0",
+            ),
+        ] {
+            if !(value.is_finite() && ok) {
+                return Err(ConfigError::Invalid {
+                    field,
+                    value: value.to_string(),
+                    reason,
+                });
+            }
+        }
+        Ok(())
     }
 }
 
@@ -145,6 +181,40 @@ mod tests {
         obs[10] = goal[0];
         obs[11] = goal[1];
         obs
+    }
+
+    #[derive(Deserialize)]
+    struct BaselineFile {
+        baseline: BaselineGains,
+    }
+
+    #[test]
+    fn gains_parse_from_a_baseline_section_and_bad_ones_are_refused_naming_the_field() {
+        BaselineGains::default().validate().expect("defaults are valid");
+        let parse = |text: &str| toml::from_str::<BaselineFile>(text).map(|file| file.baseline);
+        let soft = parse("[baseline]\nk_form = 0.75\nk_goal = 0.3\nk_turn = 1.25\n").expect("parses");
+        assert_eq!(
+            soft,
+            BaselineGains {
+                k_form: 0.75,
+                k_goal: 0.3,
+                k_turn: 1.25,
+                ..BaselineGains::default()
+            },
+            "missing keys keep their defaults"
+        );
+        assert!(parse("[baseline]\nk_gaol = 0.3\n").is_err(), "unknown keys are refused");
+        for (text, field) in [
+            ("k_form = -0.1", "baseline.k_form"),
+            ("k_goal = nan", "baseline.k_goal"),
+            ("k_turn = 0.0", "baseline.k_turn"),
+            ("repulsion_range = -0.5", "baseline.repulsion_range"),
+            ("k_repulsion = inf", "baseline.k_repulsion"),
+        ] {
+            let gains = parse(&format!("[baseline]\n{text}\n")).expect("parses");
+            let message = gains.validate().expect_err(text).to_string();
+            assert!(message.contains(field), "{text}: {message}");
+        }
     }
 
     #[test]

@@ -6,6 +6,8 @@
 //! * [`formation`]: formation shapes (random and named) and random episodes;
 //! * [`observation`]: the observation models, their named layout and what a robot sees;
 //! * [`task`]: conditions C1-C3, the paper's reward and the episode [`task::Outcome`];
+//! * [`reality`]: sensor noise, lost messages, actuation delay, motor lag and dying
+//!   controllers between the truth and the robots (the `[reality]` section, off by default);
 //! * [`world`]: one episode's true state and the step that applies the robots' commands;
 //! * [`features`]: the critic's view of a tick (poses relative to the centroid).
 
@@ -14,5 +16,6 @@ pub mod features;
 pub mod formation;
 pub mod observation;
 pub mod physics;
+pub mod reality;
 pub mod task;
 pub mod world;
