@@ -159,13 +159,15 @@ print(f"floor: one wake-up {wake_us} us (half the iceoryx2 round trip on one CPU
 print(f"{'kind':<14} {'processes':<16} {'placement':<12} {'policy':<9} {'N':>3} {'ticks/s':>9} {'p50 us':>8} {'p99 us':>8} {'floor':>6} {'us/robot':>8}  other")
 for r in rows:
     if r["kind"] == "lockstep":
-        floor = f"{wake_us * (r['n'] + 1) * r['ticks_per_s'] / 1e6:.2f}" if wake_us else "-"
-        r["of_floor"] = float(floor) if wake_us else None
+        # A cell's share of its N + 1 floor at a given cost of one wake-up.
+        of_floor = lambda wake: round(wake * (r["n"] + 1) * r["ticks_per_s"] / 1e6, 2)
+        r["of_floor"] = of_floor(wake_us) if wake_us else None
+        floor = f"{r['of_floor']:.2f}" if wake_us else "-"
         per_robot = 1e6 / r["ticks_per_s"] / r["n"]
         r["us_per_robot"] = round(per_robot, 2)
         other = f"missed {r['missed_ticks']} lost {r['lost_transitions']}"
         if bell_us:
-            r["of_bell_floor"] = round(bell_us * (r["n"] + 1) * r["ticks_per_s"] / 1e6, 2)
+            r["of_bell_floor"] = of_floor(bell_us)
             other += f" of bell floor {r['of_bell_floor']:.2f}"
         if r.get("bell_robots_per_tick") is not None:
             other += f" bell {r['bell_robots_per_tick']:.2f}/tick"

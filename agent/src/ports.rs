@@ -130,15 +130,16 @@ where
     /// Sends the command for a tick and counts it in the tick gate; wakes the sim only when
     /// this is the tick's last answer the gate expects (or when there is no gate).
     pub fn send(&mut self, command: CommandMsg) -> Result<()> {
-        self.publish(command)?;
         if self.gate.is_none() && (command.header.tick == 0 || !self.looked_for_gate) {
             // Looked for with the first answer and at each episode's start (a sim on another
-            // host, behind a bridge, has none here).
+            // host, behind a bridge, has none here), before the answer goes out: once the sim
+            // has it, it may ring the next tick's bell, which must find this robot on it.
             self.gate = TickGate::attach(&self.identity, self.agent, self.session, self.join_bell)?;
             self.looked_for_gate = true;
             // This tick's observation is taken; the sim rings for this robot from a later one.
             self.bell_seen = self.gate.as_ref().map_or(0, TickGate::bell_count);
         }
+        self.publish(command)?;
         let answer = match &self.gate {
             Some(gate) => gate.answer(command.header.episode, command.header.tick),
             None => Answer::NotCounted,
@@ -169,5 +170,43 @@ where
             .notify_with_custom_event_id(id)
             .with_context(|| format!("agent {agent}: notify"))?;
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_robot_is_on_the_gate_and_its_bell_before_its_first_command_can_reach_the_sim() {
+        let identity = RunIdentity::new(&format!("agentports{}", std::process::id())).expect("id");
+        let sizing = Sizing::new(3, 8, 12);
+        let node = services::create_node::<local::Service>(&identity, "sim").expect("node");
+        let gate = TickGate::create(&identity).expect("gate");
+        let sim_side = services::command_stream(&node, &sizing, 1)
+            .expect("stream")
+            .subscriber_builder()
+            .create()
+            .expect("subscriber");
+        let mut ports = AgentPorts::open(&node, &identity, &sizing, 1, None).expect("ports");
+        let first = CommandMsg {
+            header: Header::new(0, 0, 0),
+            v: 0.2,
+            ..CommandMsg::default()
+        };
+        // Every sample of the robot's publisher is on loan, so its first command cannot go
+        // out: whatever `send` did before publishing is all it did.
+        let held: Vec<_> = (0..64).map_while(|_| ports.commands.loan().ok()).collect();
+        assert!(ports.send(first).is_err(), "published with every sample on loan");
+        assert!(sim_side.receive().expect("receive").is_none());
+        assert_eq!(gate.member_session(1), ports.session, "counts in the gate already");
+        assert_eq!(gate.bell_session(1), ports.session, "sleeps on the bell already");
+        // Published for real, the first command the sim receives finds the robot on both.
+        drop(held);
+        ports.send(first).expect("send");
+        let received = sim_side.receive().expect("receive").expect("the first command");
+        assert_eq!(received.payload().v, 0.2);
+        assert_eq!(gate.member_session(1), received.payload().session);
+        assert_eq!(gate.bell_session(1), received.payload().session);
     }
 }

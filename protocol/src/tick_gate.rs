@@ -33,6 +33,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 use memmap2::MmapMut;
+use rustix::io::Errno;
 use rustix::thread::futex;
 
 use crate::MAX_AGENTS;
@@ -203,17 +204,8 @@ impl TickGate {
             tv_nsec: i64::from(timeout.subsec_nanos()),
         };
         match futex::wait(self.bell(), futex::Flags::empty(), seen, Some(&timeout)) {
-            Ok(()) => Ok(()),
-            Err(err)
-                if [
-                    rustix::io::Errno::AGAIN,
-                    rustix::io::Errno::TIMEDOUT,
-                    rustix::io::Errno::INTR,
-                ]
-                .contains(&err) =>
-            {
-                Ok(())
-            }
+            // Rung already (AGAIN), timed out, or a signal: the caller looks and decides.
+            Ok(()) | Err(Errno::AGAIN | Errno::TIMEDOUT | Errno::INTR) => Ok(()),
             Err(err) => Err(err).context("tick bell: futex wait"),
         }
     }

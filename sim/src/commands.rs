@@ -195,7 +195,10 @@ impl CommandRound {
 
     /// Waits until every present robot has answered `header` or `deadline` passes, reading
     /// only the robots whose event id arrived (every robot after the gate's all-answered id,
-    /// or any id that is not a robot's).
+    /// or any id that is not a robot's) while it waits. At the deadline, and when some robot
+    /// is absent, it reads every robot's stream once more without waiting: a robot counted in
+    /// the gate answers without an event of its own, so an on-time answer that went out
+    /// quietly would otherwise be lost with a tick that one late robot never completed.
     pub fn collect<S: Service>(&mut self, ports: &SimPorts<S>, header: Header, deadline: Instant) -> Result<()>
     where
         Listener<S>: FileDescriptorBased,
@@ -203,23 +206,17 @@ impl CommandRound {
         let n = self.received.len();
         self.received.iter_mut().for_each(|r| *r = false);
         loop {
-            if self.presence.all_present_answered(&self.received) {
+            let now = Instant::now();
+            let answered = self.presence.all_present_answered(&self.received);
+            if answered || now >= deadline {
                 // Absent robots are not waited for, but what they sent is taken in: an answer
                 // makes a robot present again, even when every robot was absent.
-                if (0..n).any(|agent| self.presence.is_absent(agent)) {
+                if !answered || (0..n).any(|agent| self.presence.is_absent(agent)) {
+                    services::wait_for_events(&ports.command_ready, Duration::ZERO, |_| {})?;
                     self.notified.clear();
-                    let notified = &mut self.notified;
-                    services::wait_for_events(&ports.command_ready, Duration::ZERO, |id| {
-                        if id < n {
-                            notified.push(id);
-                        }
-                    })?;
+                    self.notified.extend(0..n);
                     self.drain(ports, header);
                 }
-                return Ok(());
-            }
-            let now = Instant::now();
-            if now >= deadline {
                 return Ok(());
             }
             self.notified.clear();
@@ -478,8 +475,7 @@ mod tests {
     }
 
     #[test]
-    fn with_the_gate_only_the_last_expected_answer_wakes_the_sim_and_every_answer_is_read_and_the_bell_is_for_its_members()
-     {
+    fn with_the_gate_only_the_last_answer_wakes_the_sim_every_answer_is_read_and_the_bell_is_for_members() {
         use formation_protocol::tick_gate::{ALL_ANSWERED_EVENT_ID, Answer, TickGate};
         let (_node, ports, robots) = sim_and_robots(3, "cmdgate");
         let identity = test_identity("cmdgate");
@@ -567,6 +563,63 @@ mod tests {
         round.presence.greeted(0, 99);
         round.open_round(Header::new(1, tick + 1, 0));
         assert_eq!(round.belled(), [false, false, false]);
+    }
+
+    #[test]
+    fn at_the_deadline_the_quiet_answers_of_gate_members_are_read() {
+        use formation_protocol::tick_gate::{ALL_ANSWERED_EVENT_ID, Answer, TickGate};
+        let (_node, ports, robots) = sim_and_robots(3, "cmddeadline");
+        let identity = test_identity("cmddeadline");
+        let mut round = CommandRound::new(3).with_gate(TickGate::create(&identity).expect("gate"));
+        let gates: Vec<TickGate> = (0..3)
+            .map(|agent| {
+                let session = 20 + agent as u32;
+                round.presence.greeted(agent, session);
+                TickGate::attach(&identity, agent, session, true)
+                    .expect("attach")
+                    .expect("gate")
+            })
+            .collect();
+        // Every tick robots 0 and 1 answer in time and count themselves in quietly; robot 2
+        // (killed, stopped) never answers, so the tick is never complete and nobody raises an
+        // event: only the deadline ends the wait.
+        for tick in 0..ABSENT_AFTER + 2 {
+            let header = Header::new(0, tick, 0);
+            round.open_round(header);
+            for (agent, gate) in gates.iter().enumerate().take(2) {
+                robots.commands[agent]
+                    .send_copy(CommandMsg {
+                        session: 20 + agent as u32,
+                        ..command(agent as u32, 0, tick, 0.1 * (tick + 1) as f32)
+                    })
+                    .expect("send");
+                match gate.answer(0, tick) {
+                    // Once robot 2 is absent the gate expects two answers: robot 1 completes
+                    // the tick and wakes the sim.
+                    Answer::WakeSim => {
+                        robots
+                            .ready
+                            .notify_with_custom_event_id(EventId::new(ALL_ANSWERED_EVENT_ID))
+                            .expect("notify");
+                    }
+                    answer => assert_eq!(answer, Answer::Quiet, "tick {tick}"),
+                }
+            }
+            round
+                .collect(&ports, header, Instant::now() + Duration::from_millis(30))
+                .expect("collect");
+            assert_eq!(round.settle(), 1, "tick {tick}: only robot 2 missed it");
+            for agent in 0..2 {
+                assert_eq!(
+                    round.commands()[agent].0,
+                    f64::from(0.1 * (tick + 1) as f32),
+                    "tick {tick}: robot {agent}'s fresh command is applied"
+                );
+            }
+        }
+        assert!(round.presence.is_absent(2));
+        assert!(!round.presence.is_absent(0) && !round.presence.is_absent(1));
+        assert_eq!(round.counters.missed, u64::from(ABSENT_AFTER + 2));
     }
 
     #[test]
