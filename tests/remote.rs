@@ -279,6 +279,59 @@ fn real_time_with_a_remote_robot_misses_no_deadline() {
 }
 
 #[test]
+fn over_a_delayed_or_lossy_link_the_remote_robot_ends_on_the_runs_end_by_itself() {
+    let _machine = machine_shared();
+    let dir = scratch_dir("remote-run-end");
+    std::fs::create_dir_all(&dir).expect("scratch dir");
+    // Short episodes: at a loss of 0.5 three ticks in four wait out the command timeout.
+    let config = dir.join("short.toml");
+    std::fs::write(&config, "[env]\nmax_steps = 40\n").expect("config");
+    for (flag, value) in [("--net-delay-ms", "50"), ("--net-loss", "0.5")] {
+        let run = run_swarm(
+            &[
+                "3",
+                "--scripted",
+                "all",
+                "--mode",
+                "eval",
+                "--remote",
+                "2",
+                "--episodes",
+                "2",
+                "--seed",
+                "8",
+                "--viewer",
+                "off",
+                "--config",
+                config.to_str().expect("utf-8 path"),
+                flag,
+                value,
+            ],
+            &dir.join(flag.trim_start_matches('-')),
+            Duration::from_secs(180),
+        )
+        .expect("launch");
+        assert_eq!(run.status, Some(0), "{flag} {value}:\n{}", run.output);
+        assert_eq!(run.summary().expect("summary")["episodes"].as_u64(), Some(2));
+        // The remote robot and its bridge heard the run's end and left by themselves: the
+        // launcher had nobody to stop after its wind-down.
+        assert!(
+            !run.output.contains("still running at the end of the run"),
+            "{flag} {value}:\n{}",
+            run.output
+        );
+        assert!(!run.output.contains("died"), "{flag} {value}:\n{}", run.output);
+        let agent_log = std::fs::read_to_string(run.run_dir.join("host-2/logs/agent-2.log")).unwrap_or_default();
+        assert!(
+            !agent_log.contains("error") && !agent_log.contains("panicked"),
+            "{flag} {value}: {agent_log}"
+        );
+        assert_both_hosts_clean(&run, 2);
+    }
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
 fn remote_flags_are_checked_before_anything_starts() {
     let _machine = machine_shared();
     let dir = scratch_dir("remote-bad");

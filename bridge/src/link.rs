@@ -144,12 +144,25 @@ pub struct NetEmulation {
 /// A message on the delay line: when it is due, its key's index, its bytes.
 type Delayed = (Instant, usize, Vec<u8>);
 
+/// The emulated network's messages in flight.
+#[derive(Default)]
+struct DelayLine {
+    /// Messages not yet due, in due order.
+    queue: VecDeque<Delayed>,
+    /// Messages queued or being put: [`Outbox::flush`] waits for 0.
+    pending: usize,
+}
+
 /// Where forwarded messages leave: one Zenoh publisher per key, sending at once or through the
 /// emulated network's delay line.
 pub struct Outbox {
     publishers: Vec<Publisher<'static>>,
     emulation: NetEmulation,
-    delayed: (Mutex<VecDeque<Delayed>>, Condvar),
+    line: Mutex<DelayLine>,
+    /// Wakes the delay line: a message was queued.
+    queued: Condvar,
+    /// Wakes [`Outbox::flush`]: the delay line is empty.
+    drained: Condvar,
     /// Messages the emulated network lost.
     pub lost: AtomicU64,
 }
@@ -172,7 +185,9 @@ impl Outbox {
         let outbox = Arc::new(Self {
             publishers,
             emulation,
-            delayed: (Mutex::new(VecDeque::new()), Condvar::new()),
+            line: Mutex::new(DelayLine::default()),
+            queued: Condvar::new(),
+            drained: Condvar::new(),
             lost: AtomicU64::new(0),
         });
         if !emulation.delay.is_zero() {
@@ -194,13 +209,29 @@ impl Outbox {
         if self.emulation.delay.is_zero() {
             return self.put(key_index, bytes);
         }
-        let (queue, ready) = &self.delayed;
         let due = Instant::now() + self.emulation.delay;
-        queue
-            .lock()
-            .map_err(|_| anyhow!("delay line poisoned"))?
-            .push_back((due, key_index, bytes.to_vec()));
-        ready.notify_one();
+        let mut line = self.line.lock().map_err(|_| anyhow!("delay line poisoned"))?;
+        line.queue.push_back((due, key_index, bytes.to_vec()));
+        line.pending += 1;
+        self.queued.notify_one();
+        Ok(())
+    }
+
+    /// Waits until every message on the delay line has left (at once without a delay), or
+    /// until the delay and a second more have passed.
+    pub fn flush(&self) -> Result<()> {
+        let line = self.line.lock().map_err(|_| anyhow!("delay line poisoned"))?;
+        let bound = self.emulation.delay + Duration::from_secs(1);
+        let (line, _) = self
+            .drained
+            .wait_timeout_while(line, bound, |line| line.pending > 0)
+            .map_err(|_| anyhow!("delay line poisoned"))?;
+        anyhow::ensure!(
+            line.pending == 0,
+            "{} messages still on the delay line after {:.1} s",
+            line.pending,
+            bound.as_secs_f64()
+        );
         Ok(())
     }
 
@@ -213,23 +244,27 @@ impl Outbox {
 }
 
 /// The delay line: sends each queued message when it is due (the delay is constant, so the
-/// queue is in due order), sleeping on a condition variable in between. Lives as long as the
-/// bridge.
+/// queue is in due order), sleeping on a condition variable in between, and wakes a flush once
+/// nothing is pending. Lives as long as the bridge.
 fn deliver_when_due(outbox: &Outbox) {
-    let (queue, ready) = &outbox.delayed;
     loop {
-        let Ok(mut waiting) = queue.lock() else { return };
+        let Ok(mut line) = outbox.line.lock() else { return };
         let now = Instant::now();
-        match waiting.front().map(|(due, _, _)| *due) {
+        match line.queue.front().map(|(due, _, _)| *due) {
             Some(due) if due <= now => {
-                let Some((_, key_index, bytes)) = waiting.pop_front() else {
+                let Some((_, key_index, bytes)) = line.queue.pop_front() else {
                     continue;
                 };
-                drop(waiting);
+                drop(line);
                 let _ = outbox.put(key_index, &bytes);
+                let Ok(mut line) = outbox.line.lock() else { return };
+                line.pending = line.pending.saturating_sub(1);
+                if line.pending == 0 {
+                    outbox.drained.notify_all();
+                }
             }
-            Some(due) => drop(ready.wait_timeout(waiting, due - now)),
-            None => drop(ready.wait(waiting)),
+            Some(due) => drop(outbox.queued.wait_timeout(line, due - now)),
+            None => drop(outbox.queued.wait(line)),
         }
     }
 }
@@ -246,6 +281,31 @@ mod tests {
         assert_eq!(Keys::index_after(&keys.weights(0), "actor"), Some(0));
         assert_eq!(Keys::index_after("formation/x/agent/two/command", "agent"), None);
         assert_eq!(json_list(&["tcp/127.0.0.1:7447".into()]), r#"["tcp/127.0.0.1:7447"]"#);
+    }
+
+    #[test]
+    fn a_flush_returns_once_every_delayed_message_has_left() {
+        let session = open_session(&Endpoints::default()).expect("session");
+        let key = "formation/flush-test/agent/0/observation".to_string();
+        let received = session.declare_subscriber(key.clone()).wait().expect("subscriber");
+        let emulation = NetEmulation {
+            delay: Duration::from_millis(50),
+            loss: 0.0,
+        };
+        let outbox = Outbox::new(&session, std::slice::from_ref(&key), emulation).expect("outbox");
+        for byte in 0..3u8 {
+            outbox.send(0, &[byte]).expect("send");
+        }
+        assert!(
+            received.try_recv().expect("open").is_none(),
+            "nothing leaves before its delay"
+        );
+        outbox.flush().expect("flush");
+        let got: Vec<Vec<u8>> = std::iter::from_fn(|| received.try_recv().expect("open"))
+            .map(|sample| sample.payload().to_bytes().to_vec())
+            .collect();
+        assert_eq!(got, [[0], [1], [2]]);
+        session.close().wait().expect("close");
     }
 
     /// Whether the access control of the Zenoh config `file` lets `subject` (a certificate's

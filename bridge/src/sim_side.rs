@@ -22,6 +22,13 @@ use zenoh::{Session, Wait};
 use crate::link::{Keys, Outbox};
 use crate::{Bridged, Counters, Freshness};
 
+/// Copies of the run's end each bridged robot is sent: on a link that loses a message with
+/// probability p, all are lost with p^20 (1e-6 at p = 0.5).
+pub const RUN_END_COPIES: usize = 20;
+/// Between two copies of the run's end (19 gaps: the last leaves 190 ms after the first), so a
+/// short burst of loss does not take them all.
+pub const RUN_END_SPACING: Duration = Duration::from_millis(10);
+
 /// Runs the sim host's bridge until the run ends; returns what it forwarded and rejected.
 pub fn run(bridged: &Bridged, session: &Session, outbox_keys: &Keys) -> Result<Arc<Counters>> {
     let counters = Arc::new(Counters::default());
@@ -91,7 +98,8 @@ fn open_out_ports(node: &Node<ipc::Service>, bridged: &Bridged, sizing: &Sizing)
 }
 
 /// Local observations (and weights) to Zenoh, on each observation's wake-up. Returns when every
-/// bridged robot was told the run ended, or the sim is gone.
+/// bridged robot was told the run ended ([`RUN_END_COPIES`] times, [`RUN_END_SPACING`] apart,
+/// the delay line flushed), or the sim is gone.
 fn observations_out(
     bridged: &Bridged,
     session: &Session,
@@ -106,10 +114,10 @@ fn observations_out(
     let outbox = Outbox::new(session, &key_list, bridged.emulation)?;
     let listeners: Vec<&Listener<ipc::Service>> = ports.observations.iter().map(|(_, _, l)| l).collect();
     let mut latest_weights: Vec<Option<Vec<u8>>> = vec![None; ports.weights.len()];
-    let mut ended = vec![false; bridged.robots.len()];
+    let mut ended: Vec<Option<Vec<u8>>> = vec![None; bridged.robots.len()];
     let mut sim_watch = SimWatch::new(bridged.sim_silence, bridged.startup_timeout);
     let mut bytes = Vec::new();
-    while !ended.iter().all(|&e| e) {
+    while !ended.iter().all(Option::is_some) {
         services::wait_for_any_event(&listeners, Duration::from_millis(100))?;
         for (slot, (_, subscriber, _)) in ports.observations.iter().enumerate() {
             while let Some(sample) = subscriber.receive().context("bridge: receive observation")? {
@@ -117,7 +125,9 @@ fn observations_out(
                 let msg = sample.payload();
                 outbox.send(slot, bytemuck::bytes_of(msg))?;
                 counters.observations.fetch_add(1, Ordering::Relaxed);
-                ended[slot] |= msg.header.has(FLAG_RUN_END);
+                if msg.header.has(FLAG_RUN_END) {
+                    ended[slot] = Some(bytemuck::bytes_of(msg).to_vec());
+                }
             }
         }
         let weights_base = ports.observations.len();
@@ -146,6 +156,20 @@ fn observations_out(
             );
         }
     }
+    // The run's end again (the robot's bridge drops the duplicates): one lost copy would
+    // leave the robot to wait out the launcher's wind-down.
+    for _ in 1..RUN_END_COPIES {
+        if !ended.iter().all(Option::is_some) {
+            break; // interrupted: the launcher stops everyone
+        }
+        std::thread::sleep(RUN_END_SPACING);
+        for (slot, end) in ended.iter().enumerate() {
+            if let Some(bytes) = end {
+                outbox.send(slot, bytes)?;
+            }
+        }
+    }
+    outbox.flush()?;
     counters
         .lost
         .fetch_add(outbox.lost.load(Ordering::Relaxed), Ordering::Relaxed);

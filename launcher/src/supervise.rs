@@ -401,11 +401,17 @@ impl Supervisor<'_> {
         }
     }
 
-    /// Stops whatever still runs: SIGTERM, a moment, then SIGKILL.
+    /// Stops whatever still runs, naming it: SIGTERM, a moment, then SIGKILL.
     fn stop_all(&mut self) {
         if self.running.is_empty() {
             return;
         }
+        let mut names: Vec<String> = self.running.keys().map(|&member| self.plan.name(member)).collect();
+        names.sort();
+        eprintln!(
+            "run_swarm.sh: still running at the end of the run: {}; stopping them",
+            names.join(", ")
+        );
         for pid in self.running.values() {
             signal(*pid, libc::SIGTERM);
         }
