@@ -1,5 +1,4 @@
-//! What the critic sees of a tick, and the recomputations HER needs (observations and rewards
-//! for a new goal) on the replay's `f32` copy of the true state.
+//! What the critic sees of a tick: a [`Scene`], written as the critic network's floats.
 //!
 //! The critic state of a tick: each robot's position relative to that tick's centroid and its
 //! heading (cos, sin), the goal relative to the centroid, the desired edge lengths, and for
@@ -10,26 +9,17 @@
 //! For N = 3 and the paper's observation that is 4 * 3 + 2 + 2 * 3 = 20 floats a tick; the
 //! paper's critic sees every robot's observation instead (3 * 12 = 36 floats), which holds the
 //! same relative geometry in three frames.
+//!
+//! The arithmetic is `f32`, the precision of the state stream the replay's scenes come from
+//! (their values are that stream's `f32`s, widened exactly), so the features are the same
+//! floats whether a scene is read from the replay or from a `World`'s stream.
 
-use formation_protocol::config::{CriticArchitecture, EnvConfig, ObservationModel};
-use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS, neighbours};
+use formation_protocol::config::{CriticArchitecture, ObservationModel};
+use formation_protocol::{NEIGHBOURS, neighbours};
 
-use crate::observation::{Layout, Observer, Scene};
+use crate::observation::Layout;
 use crate::physics::Pose;
-use crate::task::{conditions, reward};
-
-/// One tick of the true state as the replay stores it.
-#[derive(Debug, Clone, Copy)]
-pub struct TickState<'a> {
-    /// World poses (x, y, theta).
-    pub poses: &'a [[f32; 3]],
-    /// Desired length of each robot's observed edges.
-    pub desired: &'a [[f32; NEIGHBOURS]],
-    /// Each robot's offset from the goal in the goal formation, world frame.
-    pub slots: &'a [[f32; 2]],
-    /// Goal of the centroid, world frame.
-    pub goal: [f32; 2],
-}
+use crate::scene::Scene;
 
 /// Layout of one tick of critic state for a swarm of `n_agents`.
 ///
@@ -73,124 +63,109 @@ impl CriticFeatures {
     }
 
     /// Writes one tick into `out` (length [`CriticFeatures::dim`]), rotated by `-frame`.
-    pub fn write(&self, out: &mut [f32], tick: &TickState, frame: f32) {
+    pub fn write(&self, out: &mut [f32], scene: &Scene, frame: f32) {
         debug_assert_eq!(out.len(), self.dim());
         if self.per_robot {
-            self.write_tokens(out, tick, frame);
+            self.write_tokens(out, scene, frame);
         } else {
-            self.write_team(out, tick, frame);
+            self.write_team(out, scene, frame);
         }
     }
 
-    fn write_tokens(&self, out: &mut [f32], tick: &TickState, frame: f32) {
+    fn write_tokens(&self, out: &mut [f32], scene: &Scene, frame: f32) {
         let n = self.n_agents;
-        let c = centroid(tick.poses);
+        let c = centroid(scene.poses);
         let (s, co) = frame.sin_cos();
         let rotate = |dx: f32, dy: f32| [co * dx + s * dy, -s * dx + co * dy];
-        let goal = rotate(tick.goal[0] - c[0], tick.goal[1] - c[1]);
+        let goal = narrow(scene.goal);
+        let goal = rotate(goal[0] - c[0], goal[1] - c[1]);
         for (i, token) in out.chunks_exact_mut(self.token_dim()).enumerate() {
-            let p = tick.poses[i];
-            let (hs, hc) = (p[2] - frame).sin_cos();
-            let [a, b] = neighbours(i, n).map(|j| rotate(tick.poses[j][0] - p[0], tick.poses[j][1] - p[1]));
+            let p = position(&scene.poses[i]);
+            let (hs, hc) = (scene.poses[i].theta as f32 - frame).sin_cos();
+            let [a, b] = neighbours(i, n).map(|j| {
+                let q = position(&scene.poses[j]);
+                rotate(q[0] - p[0], q[1] - p[1])
+            });
             let r = rotate(p[0] - c[0], p[1] - c[1]);
-            let [d1, d2] = tick.desired[i];
+            let [d1, d2] = narrow(scene.desired[i]);
             token[..12].copy_from_slice(&[r[0], r[1], hc, hs, a[0], a[1], b[0], b[1], d1, d2, goal[0], goal[1]]);
             if self.slots {
-                token[12..14].copy_from_slice(&rotate(tick.slots[i][0], tick.slots[i][1]));
+                let slot = narrow(scene.slots[i]);
+                token[12..14].copy_from_slice(&rotate(slot[0], slot[1]));
             }
         }
     }
 
-    fn write_team(&self, out: &mut [f32], tick: &TickState, frame: f32) {
+    fn write_team(&self, out: &mut [f32], scene: &Scene, frame: f32) {
         let n = self.n_agents;
-        let c = centroid(tick.poses);
+        let c = centroid(scene.poses);
         let (s, co) = frame.sin_cos();
         let rotate = |dx: f32, dy: f32| [co * dx + s * dy, -s * dx + co * dy];
-        for (i, p) in tick.poses.iter().enumerate() {
+        for (i, pose) in scene.poses.iter().enumerate() {
+            let p = position(pose);
             let r = rotate(p[0] - c[0], p[1] - c[1]);
-            let (hs, hc) = (p[2] - frame).sin_cos();
+            let (hs, hc) = (pose.theta as f32 - frame).sin_cos();
             out[4 * i..4 * i + 4].copy_from_slice(&[r[0], r[1], hc, hs]);
         }
-        let g = rotate(tick.goal[0] - c[0], tick.goal[1] - c[1]);
+        let goal = narrow(scene.goal);
+        let g = rotate(goal[0] - c[0], goal[1] - c[1]);
         out[4 * n..4 * n + 2].copy_from_slice(&g);
         let desired_at = 4 * n + 2;
-        for (i, d) in tick.desired.iter().enumerate() {
-            out[desired_at + NEIGHBOURS * i..desired_at + NEIGHBOURS * (i + 1)].copy_from_slice(d);
+        for (i, d) in scene.desired.iter().enumerate() {
+            out[desired_at + NEIGHBOURS * i..desired_at + NEIGHBOURS * (i + 1)].copy_from_slice(&narrow(*d));
         }
         if self.slots {
             let slots_at = desired_at + NEIGHBOURS * n;
-            for (i, slot) in tick.slots.iter().enumerate() {
+            for (i, slot) in scene.slots.iter().enumerate() {
+                let slot = narrow(*slot);
                 out[slots_at + 2 * i..slots_at + 2 * i + 2].copy_from_slice(&rotate(slot[0], slot[1]));
             }
         }
     }
 }
 
-/// Converts wire poses to physics poses.
-pub fn to_poses(poses: &[[f32; 3]]) -> Vec<Pose> {
-    poses
-        .iter()
-        .map(|p| Pose {
-            x: f64::from(p[0]),
-            y: f64::from(p[1]),
-            theta: f64::from(p[2]),
-        })
-        .collect()
+/// `f64` values in the features' `f32`.
+fn narrow<const K: usize>(values: [f64; K]) -> [f32; K] {
+    values.map(|v| v as f32)
 }
 
-fn widen<const K: usize>(values: &[[f32; K]]) -> Vec<[f64; K]> {
-    values.iter().map(|v| v.map(f64::from)).collect()
+/// A pose's position in `f32`.
+fn position(pose: &Pose) -> [f32; 2] {
+    [pose.x as f32, pose.y as f32]
 }
 
-/// The centroid of a tick's poses.
-pub fn centroid(poses: &[[f32; 3]]) -> [f32; 2] {
+/// The centroid of a tick's positions, in `f32`.
+fn centroid(poses: &[Pose]) -> [f32; 2] {
     let n = poses.len() as f32;
-    let (sx, sy) = poses.iter().fold((0.0, 0.0), |(sx, sy), p| (sx + p[0], sy + p[1]));
+    let (sx, sy) = poses.iter().fold((0.0f32, 0.0f32), |(sx, sy), p| {
+        let [x, y] = position(p);
+        (sx + x, sy + y)
+    });
     [sx / n, sy / n]
-}
-
-/// What robot `agent` observes in `tick`: the sim's own observation model.
-pub fn observation(observer: &Observer, agent: usize, tick: &TickState) -> [f32; MAX_OBS_DIM] {
-    let poses = to_poses(tick.poses);
-    let desired = widen(tick.desired);
-    let slots = widen(tick.slots);
-    let scene = Scene {
-        poses: &poses,
-        desired: &desired,
-        goal: tick.goal.map(f64::from),
-        slots: &slots,
-    };
-    observer.observation(agent, &scene)
-}
-
-/// Reward and terminal flag of reaching `tick` after `steps` steps: the sim's own reward code.
-pub fn transition_reward(tick: &TickState, steps: u32, env: &EnvConfig) -> (f32, bool) {
-    let c = conditions(
-        &to_poses(tick.poses),
-        &widen(tick.desired),
-        tick.goal.map(f64::from),
-        env,
-    );
-    let (r, outcome) = reward(&c, steps, env);
-    (r as f32, outcome.is_terminal())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    const POSES: [[f32; 3]; 3] = [
-        [1.0, 0.0, std::f32::consts::FRAC_PI_2],
-        [2.0, 2.0, 0.0],
-        [0.0, 1.0, std::f32::consts::PI],
+    const fn pose(x: f64, y: f64, theta: f64) -> Pose {
+        Pose { x, y, theta }
+    }
+
+    const POSES: [Pose; 3] = [
+        pose(1.0, 0.0, std::f64::consts::FRAC_PI_2),
+        pose(2.0, 2.0, 0.0),
+        pose(0.0, 1.0, std::f64::consts::PI),
     ];
-    const DESIRED: [[f32; NEIGHBOURS]; 3] = [[1.0, 1.5], [1.2, 1.3], [1.4, 1.6]];
-    const SLOTS: [[f32; 2]; 3] = [[0.0, -1.0], [1.0, 1.0], [-1.0, 0.0]];
+    const COMMANDS: [(f64, f64); 3] = [(0.1, 0.2), (0.3, -0.4), (0.0, 0.0)];
+    const DESIRED: [[f64; NEIGHBOURS]; 3] = [[1.0, 1.5], [1.2, 1.3], [1.4, 1.6]];
+    const SLOTS: [[f64; 2]; 3] = [[0.0, -1.0], [1.0, 1.0], [-1.0, 0.0]];
 
     /// Robot 0 faces +y; the centroid is (1, 1); the goal is 2 m along +y from it.
-    fn three_robots() -> TickState<'static> {
-        TickState {
+    fn three_robots() -> Scene<'static> {
+        Scene {
             poses: &POSES,
+            commands: &COMMANDS,
             desired: &DESIRED,
             slots: &SLOTS,
             goal: [1.0, 3.0],

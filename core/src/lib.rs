@@ -3,13 +3,15 @@
 //!
 //! * [`baseline`]: the scripted controller, the yardstick and the learner's optional teacher;
 //! * [`physics`]: unicycle poses and their exact integration over a step;
+//! * [`scene`]: one tick of a swarm (poses, the commands applied into it, formation, goal), the
+//!   one type the step, the reward, the observation, the critic's features and the replay read;
 //! * [`formation`]: formation shapes (random and named) and random episodes;
 //! * [`observation`]: the observation models, their named layout and what a robot sees;
 //! * [`task`]: conditions C1-C3, the paper's reward and the episode [`task::Outcome`];
 //! * [`reality`]: sensor noise, lost messages, actuation delay, motor lag and dying
 //!   controllers between the truth and the robots (the `[reality]` section, off by default);
 //! * [`world`]: one episode's true state and the step that applies the robots' commands;
-//! * [`features`]: the critic's view of a tick (poses relative to the centroid).
+//! * [`features`]: the critic's view of a scene (poses relative to the centroid).
 
 pub mod baseline;
 pub mod features;
@@ -17,5 +19,6 @@ pub mod formation;
 pub mod observation;
 pub mod physics;
 pub mod reality;
+pub mod scene;
 pub mod task;
 pub mod world;

@@ -21,6 +21,7 @@ use formation_protocol::config::{EnvConfig, ObservationModel};
 use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS, neighbours};
 
 use crate::physics::Pose;
+use crate::scene::Scene;
 
 /// Floats per observed neighbour.
 pub const NEIGHBOUR_FEATURES: usize = 5;
@@ -136,19 +137,6 @@ pub fn to_robot_frame(pose: &Pose, point: [f64; 2]) -> [f64; 2] {
     [c * dx + s * dy, -s * dx + c * dy]
 }
 
-/// What the observation is computed from: the true state of one tick.
-#[derive(Debug, Clone, Copy)]
-pub struct Scene<'a> {
-    /// Every robot's pose.
-    pub poses: &'a [Pose],
-    /// Desired length of each robot's two observed edges.
-    pub desired: &'a [[f64; NEIGHBOURS]],
-    /// Goal of the centroid, world frame.
-    pub goal: [f64; 2],
-    /// Each robot's offset from the goal in the goal formation, world frame.
-    pub slots: &'a [[f64; 2]],
-}
-
 /// Computes observations of one model; allocation-free.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Observer {
@@ -249,6 +237,7 @@ mod tests {
         let slots = [[0.0; 2]; 3];
         let scene = Scene {
             poses: &poses,
+            commands: &[(0.0, 0.0); 3],
             desired: &desired,
             goal: [0.0, 2.0],
             slots: &slots,
@@ -296,6 +285,7 @@ mod tests {
         let slots = [[1.0, 0.0], [0.0, 0.0], [0.0, 0.0]];
         let scene = Scene {
             poses: &poses,
+            commands: &[(0.0, 0.0); 3],
             desired: &desired,
             goal: [2.0, 3.0],
             slots: &slots,
@@ -323,6 +313,7 @@ mod tests {
         let slots = [[0.0; 2]; 5];
         let scene = Scene {
             poses: &poses,
+            commands: &[(0.0, 0.0); 5],
             desired: &desired,
             goal: [0.0, 0.0],
             slots: &slots,

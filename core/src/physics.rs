@@ -11,6 +11,17 @@ pub struct Pose {
     pub theta: f64,
 }
 
+impl From<[f32; 3]> for Pose {
+    /// A pose as the wire carries it, (x, y, theta) in `f32`, widened exactly.
+    fn from([x, y, theta]: [f32; 3]) -> Self {
+        Self {
+            x: f64::from(x),
+            y: f64::from(y),
+            theta: f64::from(theta),
+        }
+    }
+}
+
 /// sin(h) / h, continuous at 0.
 fn sinc(h: f64) -> f64 {
     if h.abs() < 1e-6 { 1.0 - h * h / 6.0 } else { h.sin() / h }

@@ -1,13 +1,16 @@
 //! The task: the paper's conditions C1-C3, its reward table and how an episode ends.
 //!
 //! Pure functions shared by the sim (online) and the replay (HER relabelling), so a relabelled
-//! reward is computed by exactly the code that produced the original one.
+//! reward is computed by exactly the code that produced the original one: both call [`score`]
+//! on a [`Scene`], which carries the commands applied into its tick, so a reward term on the
+//! actions goes there and HER recomputes it too.
 
 use formation_protocol::config::EnvConfig;
 use formation_protocol::wire::{OUTCOME_ABORTED, OUTCOME_COLLISION, OUTCOME_RUNNING, OUTCOME_SUCCESS, OUTCOME_TIMEOUT};
 use formation_protocol::{NEIGHBOURS, neighbours};
 
 use crate::physics::Pose;
+use crate::scene::Scene;
 
 /// Centroid of the robots' positions.
 pub fn centroid(poses: &[Pose]) -> [f64; 2] {
@@ -152,6 +155,29 @@ pub fn reward(conditions: &Conditions, steps: u32, env: &EnvConfig) -> (f64, Out
         outcome
     };
     (reward, outcome)
+}
+
+/// What reaching a scene scores.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepResult {
+    /// Shared reward of the transition into the scene.
+    pub reward: f64,
+    /// How the transition ends.
+    pub outcome: Outcome,
+    /// C1-C3 at the scene.
+    pub conditions: Conditions,
+}
+
+/// Scores the transition into `scene`, the `steps`-th of its episode: C1-C3 at its poses, the
+/// reward and the outcome. The sim's step and HER's relabelling both call this.
+pub fn score(scene: &Scene, steps: u32, env: &EnvConfig) -> StepResult {
+    let conditions = conditions(scene.poses, scene.desired, scene.goal, env);
+    let (reward, outcome) = reward(&conditions, steps, env);
+    StepResult {
+        reward,
+        outcome,
+        conditions,
+    }
 }
 
 #[cfg(test)]

@@ -4,9 +4,10 @@ use formation_protocol::config::EnvConfig;
 use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS};
 
 use crate::formation::EpisodeInit;
-use crate::observation::{Observer, Scene};
+use crate::observation::Observer;
 use crate::physics::{Pose, integrate};
-use crate::task::{Conditions, Outcome, conditions, reward};
+use crate::scene::Scene;
+use crate::task::{Conditions, StepResult, conditions, score};
 
 /// The true state of an episode.
 #[derive(Debug, Clone)]
@@ -17,6 +18,8 @@ pub struct World {
     pub arena_m: f64,
     /// Current poses.
     pub poses: Vec<Pose>,
+    /// The commands (v, w) the last step applied, clamped; zero before the first step.
+    pub commands: Vec<(f64, f64)>,
     /// Desired length of each robot's observed edges.
     pub desired: Vec<[f64; NEIGHBOURS]>,
     /// Goal of the centroid.
@@ -29,17 +32,6 @@ pub struct World {
     pub steps: u32,
 }
 
-/// What one step did.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct StepResult {
-    /// Shared reward.
-    pub reward: f64,
-    /// How the transition ends.
-    pub outcome: Outcome,
-    /// C1-C3 at the new state.
-    pub conditions: Conditions,
-}
-
 impl World {
     /// A world at the start of `init`.
     pub fn new(env: &EnvConfig, init: EpisodeInit) -> Self {
@@ -47,6 +39,7 @@ impl World {
         Self {
             env: env.clone(),
             arena_m,
+            commands: vec![(0.0, 0.0); init.poses.len()],
             poses: init.poses,
             desired: init.desired,
             goal: init.goal,
@@ -61,10 +54,12 @@ impl World {
         self.poses.len()
     }
 
-    /// The true state the observations are computed from.
+    /// The current tick: what the observations, the reward and the state stream are
+    /// computed from.
     pub fn scene(&self) -> Scene<'_> {
         Scene {
             poses: &self.poses,
+            commands: &self.commands,
             desired: &self.desired,
             goal: self.goal,
             slots: &self.slots,
@@ -81,24 +76,42 @@ impl World {
         conditions(&self.poses, &self.desired, self.goal, &self.env)
     }
 
-    /// Applies one (v, w) per robot (clamped to the limits), integrates over dt, keeps the
-    /// robots in the arena and scores the new state.
+    /// Applies one (v, w) per robot (clamped to the limits, and kept in the scene),
+    /// integrates over dt, keeps the robots in the arena and scores the new scene.
     pub fn step(&mut self, commands: &[(f64, f64)]) -> StepResult {
         debug_assert_eq!(commands.len(), self.poses.len());
-        for (pose, &(v, w)) in self.poses.iter_mut().zip(commands) {
-            let (v, w) = self.env.clamp_command(v, w);
-            let mut next = integrate(*pose, v, w, self.env.dt_s);
+        for ((pose, applied), &(v, w)) in self.poses.iter_mut().zip(&mut self.commands).zip(commands) {
+            *applied = self.env.clamp_command(v, w);
+            let mut next = integrate(*pose, applied.0, applied.1, self.env.dt_s);
             next.x = next.x.clamp(0.0, self.arena_m);
             next.y = next.y.clamp(0.0, self.arena_m);
             *pose = next;
         }
         self.steps += 1;
-        let conditions = self.conditions();
-        let (reward, outcome) = reward(&conditions, self.steps, &self.env);
-        StepResult {
-            reward,
-            outcome,
-            conditions,
-        }
+        score(&self.scene(), self.steps, &self.env)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use rand::SeedableRng;
+    use rand::rngs::StdRng;
+
+    use super::*;
+    use crate::formation::random_episode;
+
+    #[test]
+    fn the_scene_carries_the_commands_the_step_applied_clamped() {
+        let env = EnvConfig::default();
+        let mut rng = StdRng::seed_from_u64(3);
+        let mut world = World::new(&env, random_episode(3, &env, &mut rng));
+        assert_eq!(world.scene().commands, &[(0.0, 0.0); 3], "nothing applied yet");
+        let asked = [(0.1, -0.2), (10.0, 10.0), (-1.0, -10.0)];
+        let result = world.step(&asked);
+        let applied: Vec<(f64, f64)> = asked.iter().map(|&(v, w)| env.clamp_command(v, w)).collect();
+        assert_eq!(world.scene().commands, applied.as_slice());
+        assert_eq!(applied[1], (env.v_max, env.w_max), "over the limits: clamped");
+        // The step scores the scene it hands out.
+        assert_eq!(score(&world.scene(), world.steps, &env), result);
     }
 }

@@ -5,16 +5,18 @@
 //! publishes state(t+1); so when state(t) is read, its observations are already waiting. The
 //! commands of tick t arrive with state(t+1) as the sim applied them (clamped, or held for a
 //! robot that missed the tick), which is what the replay must learn from; so the critic does
-//! not subscribe to the command streams themselves.
+//! not subscribe to the command streams themselves. Each state becomes one replay tick, the
+//! sim's [`Scene`] of that tick with the commands and the reward of the transition into it.
 
 use anyhow::{Context, Result};
-use formation_core::features::{TickState, observation};
 use formation_core::observation::Observer;
+use formation_core::physics::Pose;
+use formation_core::scene::Scene;
 use formation_core::task::Outcome;
-use formation_protocol::MAX_OBS_DIM;
 use formation_protocol::config::EnvConfig;
 use formation_protocol::services::{self, FileDescriptorBased, Sizing};
 use formation_protocol::wire::*;
+use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS};
 use formation_replay::buffer::{Episode, Tick};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::subscriber::Subscriber;
@@ -169,22 +171,28 @@ where
     fn take_tick(&mut self, state: &StateMsg) -> Option<FinishedEpisode> {
         let n = state.n_agents as usize;
         let key = (state.header.episode, state.header.tick);
-        let poses = state.poses[..n].to_vec();
-        let desired = state.desired[..n].to_vec();
-        let slots = state.slots[..n].to_vec();
+        let poses: Vec<Pose> = state.poses[..n].iter().map(|&p| Pose::from(p)).collect();
+        let commands: Vec<(f64, f64)> = state.applied[..n]
+            .iter()
+            .map(|&[v, w]| (f64::from(v), f64::from(w)))
+            .collect();
+        let desired: Vec<[f64; NEIGHBOURS]> = state.desired[..n].iter().map(|d| d.map(f64::from)).collect();
+        let slots: Vec<[f64; 2]> = state.slots[..n].iter().map(|s| s.map(f64::from)).collect();
+        let goal = state.goal.map(f64::from);
         let observer = Observer::new(&self.env);
-        let true_state = TickState {
+        let scene = Scene {
             poses: &poses,
+            commands: &commands,
             desired: &desired,
+            goal,
             slots: &slots,
-            goal: state.goal,
         };
         let mut missing = false;
         let observations: Vec<[f32; MAX_OBS_DIM]> = (0..n)
             .map(|agent| {
                 self.observation_for(agent, key).unwrap_or_else(|| {
                     missing = true;
-                    observation(&observer, agent, &true_state)
+                    observer.observation(agent, &scene)
                 })
             })
             .collect();
@@ -193,9 +201,9 @@ where
         }
         let tick = Tick {
             poses,
+            commands,
             observations,
-            actions: vec![[0.0; 2]; n],
-            reward: 0.0,
+            reward: state.reward,
         };
         if state.header.tick == 0 {
             if let Some(cut) = self.current.take() {
@@ -205,7 +213,7 @@ where
                 episode: Episode {
                     number: state.header.episode,
                     desired,
-                    goal: state.goal,
+                    goal,
                     slots,
                     ticks: vec![tick],
                     terminal: false,
@@ -225,13 +233,6 @@ where
                 self.current = None;
                 return None;
             };
-            if let Some(previous) = builder.episode.ticks.last_mut() {
-                for (agent, action) in previous.actions.iter_mut().enumerate() {
-                    let [v, w] = state.applied[agent];
-                    *action = self.env.action_from_command(f64::from(v), f64::from(w));
-                }
-                previous.reward = state.reward;
-            }
             builder.episode_return += f64::from(state.reward);
             builder.episode.ticks.push(tick);
             builder.last_tick = state.header.tick;
@@ -370,20 +371,31 @@ mod tests {
         assert_eq!(done.outcome, Outcome::Success);
         assert!(done.episode.terminal, "a success is terminal");
         assert_eq!(done.episode_return, 4.0);
-        let ticks = &done.episode.ticks;
+        let episode = &done.episode;
+        let ticks = &episode.ticks;
         assert_eq!(ticks.len(), 3);
-        // Tick t's action and reward are those the state of t + 1 carries.
+        // Tick t + 1's scene holds the commands and the reward its state carries, those of
+        // the transition from t; tick 0 has none.
+        assert_eq!((ticks[0].reward, ticks[0].commands[1]), (0.0, (0.0, 0.0)));
+        assert_eq!(ticks[1].reward, 1.5);
         assert_eq!(
-            ticks[0].actions[1],
+            episode.scene(1, episode.goal).commands[1],
+            (0.2f32.into(), (-0.2f32).into())
+        );
+        assert_eq!(ticks[2].reward, 2.5);
+        assert_eq!(
+            episode.scene(2, episode.goal).commands[2],
+            (0.4f32.into(), (-0.4f32).into())
+        );
+        // The action executed from tick t, as the learner sees it.
+        assert_eq!(
+            episode.action(0, 1, &env),
             env.action_from_command(0.2f32.into(), (-0.2f32).into())
         );
-        assert_eq!(ticks[0].reward, 1.5);
         assert_eq!(
-            ticks[1].actions[2],
+            episode.action(1, 2, &env),
             env.action_from_command(0.4f32.into(), (-0.4f32).into())
         );
-        assert_eq!(ticks[1].reward, 2.5);
-        assert_eq!((ticks[2].actions[0], ticks[2].reward), ([0.0; 2], 0.0), "the last tick");
         // Each tick holds the observations the robots were sent at that tick.
         assert!((ticks[1].observations[2][0] - 1.2).abs() < 1e-6);
         assert_eq!(collector.stats.lost_transitions, 0);

@@ -13,6 +13,7 @@ use clap::{CommandFactory, Parser, ValueEnum};
 use formation_protocol::cli::{Mode, ViewerMode};
 use formation_protocol::config::{FormationShape, validate_agent_count};
 use formation_protocol::placement::Placement;
+use formation_protocol::{MAX_AGENTS, MIN_AGENTS};
 
 use crate::plan::Plan;
 
@@ -124,8 +125,11 @@ fn swarm_size(text: &str) -> Result<usize, String> {
     let n: usize = text
         .parse()
         .map_err(|_| format!("N must be a whole number, got {text:?}"))?;
-    validate_agent_count(n)
-        .map_err(|_| format!("N must be between 3 and 64 (each robot observes two distinct neighbours), got {n}"))?;
+    validate_agent_count(n).map_err(|_| {
+        format!(
+            "N must be between {MIN_AGENTS} and {MAX_AGENTS} (each robot observes two distinct neighbours), got {n}"
+        )
+    })?;
     Ok(n)
 }
 
@@ -133,7 +137,7 @@ fn extra_swarm_size(text: &str) -> Result<usize, String> {
     text.parse()
         .ok()
         .filter(|n| validate_agent_count(*n).is_ok())
-        .ok_or_else(|| format!("--extra-swarms takes sizes 3 to 64 like 3,8; got {text:?}"))
+        .ok_or_else(|| format!("--extra-swarms takes sizes {MIN_AGENTS} to {MAX_AGENTS} like 3,8; got {text:?}"))
 }
 
 fn non_negative_ms(text: &str) -> Result<f64, String> {

@@ -1,22 +1,29 @@
 //! Plays an episode in-process (no IPC) and records it as the critic's collector would
 //! assemble it from the streams: for tests, benchmarks and offline experiments.
 
+use formation_core::physics::Pose;
 use formation_core::world::World;
 use formation_protocol::ACTION_DIM;
 
 use crate::buffer::{Episode, Tick};
 
-fn snapshot(world: &World) -> Tick {
+/// A value as the state stream carries it (`f32`), widened back.
+fn wire(value: f64) -> f64 {
+    f64::from(value as f32)
+}
+
+/// The world's current scene as the collector reads it from the state stream.
+fn snapshot(world: &World, reward: f64) -> Tick {
     let n = world.n_agents();
     Tick {
         poses: world
             .poses
             .iter()
-            .map(|p| [p.x as f32, p.y as f32, p.theta as f32])
+            .map(|p| Pose::from([p.x as f32, p.y as f32, p.theta as f32]))
             .collect(),
+        commands: world.commands.iter().map(|&(v, w)| (wire(v), wire(w))).collect(),
         observations: (0..n).map(|agent| world.observation(agent)).collect(),
-        actions: vec![[0.0; ACTION_DIM]; n],
-        reward: 0.0,
+        reward: reward as f32,
     }
 }
 
@@ -28,17 +35,15 @@ pub fn record_episode(
     max_steps: u32,
     mut act: impl FnMut(&World) -> Vec<[f32; ACTION_DIM]>,
 ) -> Episode {
-    let mut ticks = vec![snapshot(&world)];
+    let mut ticks = vec![snapshot(&world, 0.0)];
     let mut terminal = false;
     for _ in 0..max_steps {
-        let actions = act(&world);
-        let commands: Vec<(f64, f64)> = actions.iter().map(|a| world.env.command_from_action(*a)).collect();
+        let commands: Vec<(f64, f64)> = act(&world)
+            .into_iter()
+            .map(|a| world.env.command_from_action(a))
+            .collect();
         let result = world.step(&commands);
-        if let Some(last) = ticks.last_mut() {
-            last.actions = actions;
-            last.reward = result.reward as f32;
-        }
-        ticks.push(snapshot(&world));
+        ticks.push(snapshot(&world, result.reward));
         if result.outcome.is_terminal() {
             terminal = true;
             break;
@@ -46,9 +51,9 @@ pub fn record_episode(
     }
     Episode {
         number,
-        desired: world.desired.iter().map(|d| d.map(|v| v as f32)).collect(),
-        goal: world.goal.map(|v| v as f32),
-        slots: world.slots.iter().map(|s| s.map(|v| v as f32)).collect(),
+        desired: world.desired.iter().map(|d| d.map(wire)).collect(),
+        goal: world.goal.map(wire),
+        slots: world.slots.iter().map(|s| s.map(wire)).collect(),
         ticks,
         terminal,
     }

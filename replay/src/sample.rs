@@ -4,9 +4,13 @@
 //! through windows of H ticks: the window ending at t and the one ending at t+k, for every robot
 //! at the same ticks. Ticks before the episode's start repeat tick 0 (the padding the agents use
 //! too).
+//!
+//! HER recomputes with the sim's own code on the replay's [`formation_core::scene::Scene`]s:
+//! the observation model ([`Observer`]) and the reward ([`score`]).
 
-use formation_core::features::{CriticFeatures, centroid, observation, transition_reward};
+use formation_core::features::CriticFeatures;
 use formation_core::observation::Observer;
+use formation_core::task::score;
 use formation_protocol::ACTION_DIM;
 use formation_protocol::config::{CriticArchitecture, EnvConfig};
 use rand::Rng;
@@ -49,7 +53,7 @@ pub struct Batch {
     /// [B]: where each sample came from (episode number, t).
     pub origins: Vec<(u32, usize)>,
     /// [B]: the goal used (world frame); differs from the episode's when relabelled.
-    pub goals: Vec<[f32; 2]>,
+    pub goals: Vec<[f64; 2]>,
     /// [B]: whether HER relabelled the sample.
     pub relabelled: Vec<bool>,
 }
@@ -83,7 +87,7 @@ pub struct Sampler {
     pub n_step: usize,
     /// Discount of the rewards within a sample and of its bootstrapped value.
     pub gamma: f64,
-    /// The environment (for rewards of relabelled samples).
+    /// The environment (for rewards of relabelled samples and the actions' scale).
     pub env: EnvConfig,
     /// The critic the batches are for (it decides the state's layout).
     pub critic: CriticArchitecture,
@@ -158,7 +162,7 @@ impl Sampler {
         let relabel = rng.random_bool(self.her_probability);
         let goal = if relabel {
             let reached = rng.random_range(t + 1..=last);
-            centroid(&episode.ticks[reached].poses)
+            episode.scene(reached, episode.goal).centroid()
         } else {
             episode.goal
         };
@@ -168,9 +172,10 @@ impl Sampler {
         while steps < self.n_step.max(1) && t + steps < last {
             let s = t + steps;
             let (r, done) = if relabel {
-                transition_reward(&episode.state(s + 1, goal), (s + 1) as u32, &self.env)
+                let scored = score(&episode.scene(s + 1, goal), (s + 1) as u32, &self.env);
+                (scored.reward as f32, scored.outcome.is_terminal())
             } else {
-                (episode.ticks[s].reward, episode.is_terminal_transition(s))
+                (episode.ticks[s + 1].reward, episode.is_terminal_transition(s))
             };
             reward += discount * f64::from(r);
             discount *= self.gamma;
@@ -186,29 +191,29 @@ impl Sampler {
             (t, &mut batch.observations, &mut batch.states),
             (next, &mut batch.next_observations, &mut batch.next_states),
         ] {
-            let frame = episode.ticks[end].poses[0][2];
+            let frame = episode.ticks[end].poses[0].theta as f32;
             for k in 0..h {
                 let tick = &episode.ticks[window_tick(end, k)];
-                let state = episode.state(window_tick(end, k), goal);
+                let scene = episode.scene(window_tick(end, k), goal);
                 for agent in 0..n {
                     let offset = ((b * n + agent) * h + k) * od;
                     let obs = if relabel {
-                        observation(&observer, agent, &state)
+                        observer.observation(agent, &scene)
                     } else {
                         tick.observations[agent]
                     };
                     observations[offset..offset + od].copy_from_slice(&obs[..od]);
                 }
                 let offset = (b * h + k) * sd;
-                features.write(&mut states[offset..offset + sd], &state, frame);
+                features.write(&mut states[offset..offset + sd], &scene, frame);
             }
         }
         for (end, actions) in [(t, &mut batch.actions), (next - 1, &mut batch.bootstrap_actions)] {
             for k in 0..h {
-                let tick = &episode.ticks[window_tick(end, k)];
+                let acted = window_tick(end, k);
                 for agent in 0..n {
                     let offset = ((b * h + k) * n + agent) * ACTION_DIM;
-                    actions[offset..offset + ACTION_DIM].copy_from_slice(&tick.actions[agent]);
+                    actions[offset..offset + ACTION_DIM].copy_from_slice(&episode.action(acted, agent, &self.env));
                 }
             }
         }

@@ -1,9 +1,11 @@
 //! The replay's public contract: sequences stay inside one episode, every robot's window covers
-//! the same ticks, and HER relabelling equals recomputing everything from the true states.
+//! the same ticks, the replay's ticks are the sim's scenes (with the commands applied), and
+//! HER relabelling equals recomputing everything from them with the sim's own code.
 
-use formation_core::features::{centroid, observation, transition_reward};
+use formation_core::features::CriticFeatures;
 use formation_core::formation::random_episode;
 use formation_core::observation::Observer;
+use formation_core::task::score;
 use formation_core::world::World;
 use formation_protocol::ACTION_DIM;
 use formation_protocol::config::{CriticArchitecture, EnvConfig, ObservationModel};
@@ -27,6 +29,12 @@ fn recorded_episodes(env: &EnvConfig, count: usize, n: usize, seed: u64) -> Vec<
             })
         })
         .collect()
+}
+
+/// Reward and terminal flag of reaching tick `s + 1` of `episode` with `goal`: the sim's code.
+fn recomputed(episode: &Episode, s: usize, goal: [f64; 2], env: &EnvConfig) -> (f32, bool) {
+    let scored = score(&episode.scene(s + 1, goal), (s + 1) as u32, env);
+    (scored.reward as f32, scored.outcome.is_terminal())
 }
 
 fn buffer_of(episodes: &[Episode]) -> ReplayBuffer {
@@ -74,10 +82,10 @@ fn sequences_never_cross_episodes_and_share_ticks() {
                     &episode.ticks[next_tick].observations[agent][..od]
                 );
                 let a = ((b * h + k) * n + agent) * ACTION_DIM;
-                assert_eq!(&batch.actions[a..a + ACTION_DIM], &episode.ticks[tick].actions[agent]);
+                assert_eq!(&batch.actions[a..a + ACTION_DIM], &episode.action(tick, agent, &env));
             }
         }
-        assert_eq!(batch.rewards[b], episode.ticks[t].reward);
+        assert_eq!(batch.rewards[b], episode.ticks[t + 1].reward);
         assert_eq!(batch.discounts[b], 0.98);
         assert_eq!(
             batch.terminals[b] == 1.0,
@@ -132,14 +140,14 @@ fn her_relabelling_matches(env: &EnvConfig) {
         let goal = batch.goals[b];
         // The new goal is a centroid the formation reached later in the same episode.
         assert!(
-            episode.ticks[t + 1..].iter().any(|tick| centroid(&tick.poses) == goal),
+            (t + 1..episode.ticks.len()).any(|r| episode.scene(r, episode.goal).centroid() == goal),
             "goal {goal:?} was never reached after t = {t}"
         );
         for agent in 0..n {
             for k in 0..h {
                 let tick = (t + k + 1).saturating_sub(h);
                 let offset = ((b * n + agent) * h + k) * od;
-                let expected = observation(&observer, agent, &episode.state(tick, goal));
+                let expected = observer.observation(agent, &episode.scene(tick, goal));
                 let got = &batch.observations[offset..offset + od];
                 assert_eq!(got, &expected[..od]);
                 // The neighbours (and the proximity term) are what the robot saw, up to the
@@ -152,10 +160,10 @@ fn her_relabelling_matches(env: &EnvConfig) {
                 // The goal and the slot in the robot's frame, checked by hand: rotate (g - p)
                 // by -theta.
                 let p = episode.ticks[tick].poses[agent];
-                let (s, c) = p[2].sin_cos();
-                let in_frame = |point: [f32; 2]| {
-                    let (dx, dy) = (point[0] - p[0], point[1] - p[1]);
-                    [c * dx + s * dy, -s * dx + c * dy]
+                let (s, c) = p.theta.sin_cos();
+                let in_frame = |point: [f64; 2]| {
+                    let (dx, dy) = (point[0] - p.x, point[1] - p.y);
+                    [(c * dx + s * dy) as f32, (-s * dx + c * dy) as f32]
                 };
                 let g = in_frame(goal);
                 let at = layout.goal();
@@ -167,7 +175,7 @@ fn her_relabelling_matches(env: &EnvConfig) {
                 }
             }
         }
-        let (reward, terminal) = transition_reward(&episode.state(t + 1, goal), (t + 1) as u32, &env);
+        let (reward, terminal) = recomputed(episode, t, goal, &env);
         assert_eq!(batch.rewards[b], reward);
         assert_eq!(batch.terminals[b] == 1.0, terminal);
         saw_success |= reward == env.r_goal as f32;
@@ -180,13 +188,13 @@ fn her_relabelling_matches(env: &EnvConfig) {
 
 #[test]
 fn recomputed_reward_matches_the_sim() {
-    // Without relabelling, transition_reward on the recorded next state gives the sim's reward.
+    // Without relabelling, the sim's reward code on the recorded next scene gives the sim's
+    // reward (the poses went through f32 on the wire, which moves no tolerance boundary here).
     let env = EnvConfig::default();
     for episode in recorded_episodes(&env, 10, 4, 9) {
         for t in 0..episode.ticks.len() - 1 {
-            let (reward, _) = transition_reward(&episode.state(t + 1, episode.goal), (t + 1) as u32, &env);
-            // Poses went through f32 on the wire; allow the rare tie at a tolerance boundary.
-            assert_eq!(reward, episode.ticks[t].reward, "episode {} t {t}", episode.number);
+            let (reward, _) = recomputed(&episode, t, episode.goal, &env);
+            assert_eq!(reward, episode.ticks[t + 1].reward, "episode {} t {t}", episode.number);
         }
     }
 }
@@ -228,9 +236,9 @@ fn n_step_samples_sum_discounted_rewards_up_to_a_terminal_or_the_end() {
             // The reference: one reward per tick, from the sim or recomputed for the goal.
             let step = |s: usize| {
                 if batch.relabelled[b] {
-                    transition_reward(&episode.state(s + 1, goal), (s + 1) as u32, &env)
+                    recomputed(episode, s, goal, &env)
                 } else {
-                    (episode.ticks[s].reward, episode.is_terminal_transition(s))
+                    (episode.ticks[s + 1].reward, episode.is_terminal_transition(s))
                 }
             };
             let (mut reward, mut k, mut terminal) = (0.0f64, 0, false);
@@ -257,14 +265,14 @@ fn n_step_samples_sum_discounted_rewards_up_to_a_terminal_or_the_end() {
                     // The next window ends k ticks on; the target's action history one before.
                     let next_tick = (t + k + w + 1).saturating_sub(h);
                     let offset = ((b * n + agent) * h + w) * od;
-                    let expected = observation(&sampler.observer(), agent, &episode.state(next_tick, goal));
+                    let expected = sampler.observer().observation(agent, &episode.scene(next_tick, goal));
                     let got = &batch.next_observations[offset..offset + od];
                     assert!(got.iter().zip(&expected[..od]).all(|(g, e)| (g - e).abs() < 1e-4));
                     let acted = (t + k + w).saturating_sub(h);
                     let a = ((b * h + w) * n + agent) * ACTION_DIM;
                     assert_eq!(
                         &batch.bootstrap_actions[a..a + ACTION_DIM],
-                        &episode.ticks[acted].actions[agent]
+                        &episode.action(acted, agent, &env)
                     );
                 }
             }
@@ -273,5 +281,62 @@ fn n_step_samples_sum_discounted_rewards_up_to_a_terminal_or_the_end() {
             full > 0 && cut > 0,
             "both whole and shortened sums were drawn ({full}, {cut})"
         );
+    }
+}
+
+#[test]
+fn replayed_scenes_carry_the_commands_the_world_applied() {
+    // What the policy asked and the world applied, tick by tick, next to what the replay holds.
+    let env = EnvConfig::default();
+    let mut rng = StdRng::seed_from_u64(11);
+    let world = World::new(&env, random_episode(4, &env, &mut rng));
+    let mut asked = Vec::new();
+    let episode = record_episode(0, world, 30, |w| {
+        let actions: Vec<[f32; ACTION_DIM]> = (0..w.n_agents())
+            .map(|_| [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)])
+            .collect();
+        asked.push(actions.clone());
+        actions
+    });
+    assert_eq!(
+        episode.scene(0, episode.goal).commands,
+        &[(0.0, 0.0); 4],
+        "nothing led to tick 0"
+    );
+    for (t, actions) in asked.iter().enumerate() {
+        let scene = episode.scene(t + 1, episode.goal);
+        for (agent, &action) in actions.iter().enumerate() {
+            let (v, w) = env.command_from_action(action);
+            // The command the world applied into t + 1, through the wire's f32.
+            assert_eq!(scene.commands[agent], (f64::from(v as f32), f64::from(w as f32)));
+            // The learner's action from t is the robot's own, up to that rounding.
+            let replayed = episode.action(t, agent, &env);
+            assert!((replayed[0] - action[0]).abs() < 1e-5 && (replayed[1] - action[1]).abs() < 1e-5);
+        }
+    }
+}
+
+#[test]
+fn critic_features_are_the_same_floats_from_the_world_and_from_the_replay() {
+    let env = EnvConfig::default();
+    for critic in [CriticArchitecture::Mlp, CriticArchitecture::Pooled] {
+        let features = CriticFeatures::new(5, env.observation, critic);
+        let mut rng = StdRng::seed_from_u64(12);
+        let world = World::new(&env, random_episode(5, &env, &mut rng));
+        let mut live = Vec::new();
+        let episode = record_episode(0, world, 20, |w| {
+            let mut out = vec![0.0; features.dim()];
+            features.write(&mut out, &w.scene(), w.poses[0].theta as f32);
+            live.push(out);
+            (0..w.n_agents())
+                .map(|_| [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)])
+                .collect()
+        });
+        for (t, expected) in live.iter().enumerate() {
+            let mut out = vec![0.0; features.dim()];
+            let frame = episode.ticks[t].poses[0].theta as f32;
+            features.write(&mut out, &episode.scene(t, episode.goal), frame);
+            assert_eq!(&out, expected, "{critic:?} tick {t}");
+        }
     }
 }

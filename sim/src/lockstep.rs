@@ -228,7 +228,6 @@ where
     /// Plays one episode tick by tick; `Some(Stop::Signal)` when a termination signal cut it.
     fn play_episode(&mut self, episode: u32, mut world: World) -> Result<Option<Stop>> {
         let options = self.options;
-        let n = options.n_agents;
         let log_world = self.tap.is_some()
             && (options.mode == Mode::Eval || episode.is_multiple_of(options.config.view.world_every_episodes));
         let eval_episode =
@@ -241,7 +240,6 @@ where
             last: world.conditions(),
         };
         let (mut outcome, mut reward, mut missed) = (Outcome::Running, 0.0, 0u32);
-        let mut applied = vec![(0.0f64, 0.0f64); n];
         self.trace.episode = episode;
         self.trace.edge_errors.clear();
         self.trace.mean_edge_error.clear();
@@ -258,7 +256,6 @@ where
                 outcome,
                 reward,
                 missed,
-                applied: &applied,
             };
             if !ends {
                 self.round.open_round(header);
@@ -284,11 +281,7 @@ where
             self.round.collect(&self.ports, header, deadline)?;
             missed = self.round.settle();
             tally.missed_ticks += u64::from(missed);
-            applied.copy_from_slice(self.round.commands());
-            let result = world.step(&applied);
-            for a in applied.iter_mut() {
-                *a = options.config.env.clamp_command(a.0, a.1);
-            }
+            let result = world.step(self.round.commands());
             self.env_steps += 1;
             reward = result.reward;
             tally.episode_return += result.reward;
@@ -310,7 +303,6 @@ where
                     outcome,
                     reward,
                     missed,
-                    applied: &applied,
                 };
                 self.close_on_signal(&world, header, transition, &tally)?;
                 return Ok(Some(Stop::Signal));

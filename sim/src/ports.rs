@@ -38,17 +38,15 @@ pub struct SimPorts<S: Service> {
     pub critic_progress_ready: Listener<S>,
 }
 
-/// What led to a published state.
+/// What led to a published state (the commands applied are the world's scene's).
 #[derive(Debug, Clone, Copy)]
-pub struct Transition<'a> {
+pub struct Transition {
     /// How the transition into this state ended.
     pub outcome: Outcome,
     /// Its shared reward.
     pub reward: f64,
     /// Robots whose command was missing (their last one was held).
     pub missed: u32,
-    /// The commands applied, clamped.
-    pub applied: &'a [(f64, f64)],
 }
 
 impl<S: Service> SimPorts<S> {
@@ -142,7 +140,7 @@ impl<S: Service> SimPorts<S> {
         msg.sequence = sequence;
         for (agent, pose) in world.poses.iter().enumerate() {
             msg.poses[agent] = [pose.x as f32, pose.y as f32, pose.theta as f32];
-            msg.applied[agent] = [transition.applied[agent].0 as f32, transition.applied[agent].1 as f32];
+            msg.applied[agent] = [world.commands[agent].0 as f32, world.commands[agent].1 as f32];
             msg.desired[agent] = world.desired[agent].map(|d| d as f32);
             msg.slots[agent] = world.slots[agent].map(|d| d as f32);
         }

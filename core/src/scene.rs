@@ -1,0 +1,43 @@
+//! One tick of a swarm, the one type every consumer of a tick reads: the physics step writes
+//! it ([`crate::world::World::scene`]), and the reward ([`crate::task::score`]), the
+//! observation models ([`crate::observation::Observer`]), the critic's features
+//! ([`crate::features::CriticFeatures`]), the critic's collector, the recorder and the replay
+//! (with HER's recomputations) read it.
+//!
+//! A scene carries the commands applied in the transition into its tick, so a reward term or
+//! an observation that depends on the robots' actions reads them here, and HER recomputes it
+//! with the same code.
+//!
+//! A scene borrows its storage, in `f64` everywhere: the sim's `World` owns the live episode;
+//! the replay's episodes hold the `f32` values the state stream carried, widened exactly
+//! (`f64` costs the replay 20 more bytes per robot and tick than `f32` poses and normalised
+//! actions, next to the 64 bytes of each robot's observation), so HER runs the sim's own
+//! functions on them without a conversion or an allocation.
+
+use formation_protocol::NEIGHBOURS;
+
+use crate::physics::Pose;
+use crate::task::centroid;
+
+/// The true state of one tick and the commands that led to it.
+#[derive(Debug, Clone, Copy)]
+pub struct Scene<'a> {
+    /// Every robot's pose, world frame.
+    pub poses: &'a [Pose],
+    /// Every robot's command (v, w) applied in the transition into this tick, clamped to the
+    /// limits (held for a robot that missed the tick); zero at an episode's first tick.
+    pub commands: &'a [(f64, f64)],
+    /// Desired length of each robot's two observed edges.
+    pub desired: &'a [[f64; NEIGHBOURS]],
+    /// Goal of the centroid, world frame.
+    pub goal: [f64; 2],
+    /// Each robot's offset from the goal in the goal formation, world frame.
+    pub slots: &'a [[f64; 2]],
+}
+
+impl Scene<'_> {
+    /// Centroid of the robots' positions.
+    pub fn centroid(&self) -> [f64; 2] {
+        centroid(self.poses)
+    }
+}
