@@ -284,13 +284,17 @@ mod tests {
         env_with(ObservationModel::Paper, FormationShape::Random)
     }
 
-    pub(crate) const SHAPES: [FormationShape; 5] = [
-        FormationShape::Random,
-        FormationShape::Ring,
-        FormationShape::Line,
-        FormationShape::Wedge,
-        FormationShape::Grid,
-    ];
+    /// `FormationShape::KINDS` is every shape but `mixed` (which draws from it), as clap's
+    /// derive lists them: a shape added to the enum and not to `KINDS` fails here.
+    #[test]
+    fn the_kinds_a_mixed_run_draws_from_are_every_other_shape() {
+        let others: Vec<FormationShape> = <FormationShape as clap::ValueEnum>::value_variants()
+            .iter()
+            .copied()
+            .filter(|shape| *shape != FormationShape::Mixed)
+            .collect();
+        assert_eq!(FormationShape::KINDS.as_slice(), others.as_slice());
+    }
 
     pub(crate) fn env_with(observation: ObservationModel, shape: FormationShape) -> EnvConfig {
         EnvConfig {
@@ -309,7 +313,7 @@ mod tests {
 
     #[test]
     fn baseline_with_slots_solves_every_shape_at_6_and_16_robots() {
-        for shape in SHAPES {
+        for shape in FormationShape::KINDS {
             for n in [6, 16] {
                 let env = env_with(ObservationModel::SlotProximity, shape);
                 let (success, collision) = success_rate(&env, n, 40, 5);
@@ -322,20 +326,17 @@ mod tests {
 
 #[cfg(test)]
 mod report {
-    use super::tests::{SHAPES, env_with, success_rate};
-    use formation_protocol::config::ObservationModel;
+    use super::tests::{env_with, success_rate};
+    use crate::observation::MODELS;
+    use formation_protocol::config::FormationShape;
 
     /// Prints the baseline's in-process success rates for every observation model, shape and
     /// size: `cargo test --release -p formation-core baseline_report -- --ignored --nocapture`.
     #[test]
     #[ignore = "a report, not a check"]
     fn baseline_report() {
-        for model in [
-            ObservationModel::Paper,
-            ObservationModel::Slot,
-            ObservationModel::SlotProximity,
-        ] {
-            for shape in SHAPES {
+        for model in MODELS {
+            for shape in FormationShape::KINDS {
                 let cells: Vec<String> = [3, 4, 6, 8, 12, 16, 32, 64]
                     .iter()
                     .map(|&n| {

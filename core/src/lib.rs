@@ -7,6 +7,8 @@
 //!   one type the step, the reward, the observation, the critic's features and the replay read;
 //! * [`formation`]: formation shapes (random and named) and random episodes;
 //! * [`observation`]: the observation models, their named layout and what a robot sees;
+//! * [`layout`]: `layout.json`, the payloads' and the observation models' layout for other
+//!   languages (printed by `formation-layout`);
 //! * [`task`]: conditions C1-C3, the paper's reward and the episode [`task::Outcome`];
 //! * [`reality`]: sensor noise, lost messages, actuation delay, motor lag and dying
 //!   controllers between the truth and the robots (the `[reality]` section, off by default);
@@ -16,6 +18,7 @@
 pub mod baseline;
 pub mod features;
 pub mod formation;
+pub mod layout;
 pub mod observation;
 pub mod physics;
 pub mod reality;

@@ -26,6 +26,32 @@ use crate::scene::Scene;
 /// Floats per observed neighbour.
 pub const NEIGHBOUR_FEATURES: usize = 5;
 
+/// The floats of a neighbour's block, in order: its position, the cos and sin of its heading
+/// relative to the observer's, the desired distance to it.
+pub const NEIGHBOUR_FIELDS: [&str; NEIGHBOUR_FEATURES] = ["x", "y", "cos", "sin", "desired"];
+
+/// The floats of a point's block (the goal, the slot, the proximity term), in order.
+pub const POINT_FIELDS: [&str; 2] = ["x", "y"];
+
+/// Every observation model, smallest first: what `layout.json` lists (a test keeps it
+/// exhaustive).
+pub const MODELS: [ObservationModel; 3] = [
+    ObservationModel::Paper,
+    ObservationModel::Slot,
+    ObservationModel::SlotProximity,
+];
+
+/// One named run of floats in an observation.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Block {
+    /// `neighbour_0`, `neighbour_1`, `goal`, `slot` or `proximity`.
+    pub name: String,
+    /// Its first float.
+    pub offset: usize,
+    /// The names of its floats, in order (its length is theirs).
+    pub fields: &'static [&'static str],
+}
+
 /// Where each quantity sits in an observation of one model.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Layout {
@@ -37,6 +63,26 @@ impl Layout {
     /// The layout of `model`.
     pub const fn of(model: ObservationModel) -> Self {
         Self { model }
+    }
+
+    /// Every block of the model, in order (what `layout.json` gives other languages).
+    pub fn blocks(self) -> Vec<Block> {
+        let point = |name: &str, offset: usize| Block {
+            name: name.to_string(),
+            offset,
+            fields: &POINT_FIELDS,
+        };
+        let mut blocks: Vec<Block> = (0..NEIGHBOURS)
+            .map(|k| Block {
+                name: format!("neighbour_{k}"),
+                offset: self.neighbour(k),
+                fields: &NEIGHBOUR_FIELDS,
+            })
+            .collect();
+        blocks.push(point("goal", self.goal()));
+        blocks.extend(self.slot().map(|at| point("slot", at)));
+        blocks.extend(self.proximity().map(|at| point("proximity", at)));
+        blocks
     }
 
     /// Floats in one observation.
@@ -216,6 +262,29 @@ mod tests {
             observation: model,
             ..EnvConfig::default()
         })
+    }
+
+    #[test]
+    fn every_model_is_listed_named_and_laid_out_without_gaps() {
+        // Every variant, as clap's derive lists them.
+        assert_eq!(
+            MODELS.as_slice(),
+            <ObservationModel as clap::ValueEnum>::value_variants()
+        );
+        for model in MODELS {
+            assert_eq!(ObservationModel::from_name(model.as_str()), Some(model));
+            let layout = Layout::of(model);
+            let mut end = 0;
+            for block in layout.blocks() {
+                assert_eq!(block.offset, end, "{model:?}: {} does not follow on", block.name);
+                end += block.fields.len();
+            }
+            assert_eq!(end, layout.dim(), "{model:?}: the blocks fill the observation");
+            assert!(layout.dim() <= MAX_OBS_DIM);
+        }
+        // ObservationView reads a neighbour's block in NEIGHBOUR_FIELDS' order.
+        let at = |field: &str| NEIGHBOUR_FIELDS.iter().position(|f| *f == field);
+        assert_eq!((at("x"), at("cos"), at("desired")), (Some(0), Some(2), Some(4)));
     }
 
     #[test]

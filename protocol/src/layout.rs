@@ -1,11 +1,11 @@
 //! The memory layout of every payload in [`crate::wire`], as JSON: size, alignment, iceoryx2
 //! type name and each field's offset, size and element type, plus the protocol's constants.
 //!
-//! Bindings in other languages mirror the payloads by hand (`python/formation_swarm/wire.py`);
-//! `python/formation_swarm/layout.json` holds this output and a unit test here keeps it equal
-//! to the build, so a layout change in Rust fails `cargo test` until the file is regenerated
-//! (`FORMATION_UPDATE_LAYOUT=1 cargo test -p formation-protocol layout`), and then the Python
-//! conformance test fails until the mirrors follow. `formation-layout` prints the same JSON.
+//! Bindings in other languages mirror the payloads by hand (`python/formation_swarm/wire.py`).
+//! `formation_core::layout` adds the observation models to this JSON and keeps
+//! `python/formation_swarm/layout.json` equal to it (a unit test there), so a layout change in
+//! Rust fails `cargo test` until the file is regenerated, and then the Python conformance test
+//! fails until the mirrors follow. `formation-layout` (in `core/`) prints the same JSON.
 
 use std::fmt::Write as _;
 use std::mem::{align_of, offset_of, size_of};
@@ -52,14 +52,21 @@ fn size_of_field<T, F>(_: impl Fn(&T) -> &F) -> usize {
     size_of::<F>()
 }
 
-/// The layout of every payload and the protocol's constants, as pretty-printed JSON.
-pub fn layout_json() -> String {
+/// The layout of every payload and the protocol's constants, as pretty-printed JSON, followed
+/// by `more`: further members of the top-level object (`  "key": value`, comma-separated, no
+/// trailing comma), or nothing when empty.
+pub fn layout_json_with(more: &str) -> String {
     let mut out = String::from("{\n");
     let _ = writeln!(out, "  \"protocol_version\": {PROTOCOL_VERSION},");
     write_constants(&mut out);
     out.push_str(",\n  \"payloads\": [\n");
     write_payloads(&mut out);
-    out.push_str("\n  ]\n}\n");
+    out.push_str("\n  ]");
+    if !more.is_empty() {
+        out.push_str(",\n");
+        out.push_str(more);
+    }
+    out.push_str("\n}\n");
     out
 }
 
@@ -182,24 +189,5 @@ mod tests {
         assert_eq!(MAX_OBS_DIM, 16);
         assert_eq!(MAX_AGENTS, 64);
         assert_eq!((NEIGHBOURS, ACTION_DIM), (2, 2));
-    }
-
-    /// `python/formation_swarm/layout.json` is this build's layout: the Python mirrors are
-    /// checked against that file, so it must never drift from Rust.
-    #[test]
-    fn python_layout_file_matches_the_build() {
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../python/formation_swarm/layout.json");
-        let expected = layout_json();
-        if std::env::var_os("FORMATION_UPDATE_LAYOUT").is_some() {
-            std::fs::write(&path, &expected).expect("write layout.json");
-        }
-        let found = std::fs::read_to_string(&path).unwrap_or_default();
-        assert!(
-            found == expected,
-            "{} differs from the payloads' layout in this build: regenerate it with \
-             `FORMATION_UPDATE_LAYOUT=1 cargo test -p formation-protocol layout`, update \
-             python/formation_swarm/wire.py and bump PROTOCOL_VERSION. This build's layout:\n{expected}",
-            path.display()
-        );
     }
 }

@@ -1,15 +1,46 @@
 """The scripted baseline (``core/src/baseline.rs``) in Python: a distance-based formation
-controller from the robot's own observation, tracked by a unicycle. An example policy."""
+controller from the robot's own observation, tracked by a unicycle. An example policy.
+
+Where each quantity sits in the observation comes from ``layout.json`` (``wire.OBSERVATION_MODELS``),
+never from indices written here."""
 
 from __future__ import annotations
 
+import functools
 import math
-from typing import Sequence, Tuple
+from typing import NamedTuple, Optional, Sequence, Tuple
+
+from . import wire
+
+
+class _Indices(NamedTuple):
+    """The floats the baseline reads, for one observation model."""
+
+    neighbours: Tuple[Tuple[int, int, int], ...]  # each tracked neighbour's x, y, desired
+    goal: Tuple[int, int]
+    slot: Optional[Tuple[int, int]]
+    proximity: Optional[Tuple[int, int]]
+
+
+@functools.lru_cache(maxsize=None)
+def _indices(dim: int) -> _Indices:
+    layout = wire.observation_layout(dim)
+
+    def point(block: str) -> Optional[Tuple[int, int]]:
+        x = layout.index(block)
+        return None if x is None else (x, layout.index(block, "y"))
+
+    neighbours = tuple(
+        (layout.index(f"neighbour_{k}"), layout.index(f"neighbour_{k}", "y"),
+         layout.index(f"neighbour_{k}", "desired"))
+        for k in range(wire.NEIGHBOURS)
+    )
+    return _Indices(neighbours, point("goal"), point("slot"), point("proximity"))
 
 
 class Baseline:
-    """``policy(obs) -> (v, w)``; the observation model follows from ``len(obs)`` (12: paper,
-    14: slot, 16: slot_proximity). Gains are the Rust defaults."""
+    """``policy(obs) -> (v, w)``; the observation model follows from ``len(obs)`` (each model's
+    dimension is its own, see ``wire.OBSERVATION_MODELS``). Gains are the Rust defaults."""
 
     def __init__(self, v_max: float = 0.5, w_max: float = 1.0, proximity_range: float = 1.0,
                  k_form: float = 1.5, k_goal: float = 0.6, k_turn: float = 2.5,
@@ -25,26 +56,27 @@ class Baseline:
 
     def desired_velocity(self, obs: Sequence[float]) -> Tuple[float, float]:
         """The desired planar velocity in the robot's frame."""
+        at = _indices(len(obs))
         ux = uy = cx = cy = 0.0
-        for k in range(2):  # neighbours (i+1) and (i+2): x, y, cos, sin, desired distance
-            qx, qy, desired = float(obs[5 * k]), float(obs[5 * k + 1]), float(obs[5 * k + 4])
+        for x, y, d in at.neighbours:  # neighbours (i+1) and (i+2)
+            qx, qy, desired = float(obs[x]), float(obs[y]), float(obs[d])
             dist = max(math.hypot(qx, qy), 1e-6)
             pull = self.k_form * (dist - desired)
             push = self.k_repulsion * (self.repulsion_range - dist) if dist < self.repulsion_range else 0.0
             ux += (pull - push) * qx / dist
             uy += (pull - push) * qy / dist
             cx, cy = cx + qx / 3.0, cy + qy / 3.0
-        if len(obs) >= 16:  # nearest untracked robot as (1 - d/R) * unit vector
-            nx, ny = float(obs[14]), float(obs[15])
+        if at.proximity is not None:  # nearest untracked robot as (1 - d/R) * unit vector
+            nx, ny = float(obs[at.proximity[0]]), float(obs[at.proximity[1]])
             closeness = math.hypot(nx, ny)
             if closeness > 0.0:
                 dist = (1.0 - closeness) * self.proximity_range
                 push = self.k_repulsion * max(self.repulsion_range - dist, 0.0)
                 ux, uy = ux - push * nx / closeness, uy - push * ny / closeness
-        if len(obs) >= 14:  # the robot's own slot in the goal formation
-            tx, ty = float(obs[12]), float(obs[13])
+        if at.slot is not None:  # the robot's own slot in the goal formation
+            tx, ty = float(obs[at.slot[0]]), float(obs[at.slot[1]])
         else:  # the goal minus the centroid of the robot's triangle (exact for N = 3)
-            tx, ty = float(obs[10]) - cx, float(obs[11]) - cy
+            tx, ty = float(obs[at.goal[0]]) - cx, float(obs[at.goal[1]]) - cy
         gx, gy = self.k_goal * tx, self.k_goal * ty
         speed = math.hypot(gx, gy)
         if speed > self.v_max:

@@ -28,8 +28,8 @@ class SimGone(FormationError):
     """The sim fell silent and its process is gone (or it stayed silent too long)."""
 
 
-#: Floats per observation model (``formation_core::observation::Layout::dim``).
-OBSERVATION_DIMS = {"paper": 12, "slot": 14, "slot_proximity": 16}
+#: Floats per observation model (``formation_core::observation::Layout::dim``, from layout.json).
+OBSERVATION_DIMS = {name: model.dim for name, model in wire.OBSERVATION_MODELS.items()}
 
 
 @dataclasses.dataclass(frozen=True)

@@ -4,11 +4,18 @@ Every class carries the same iceoryx2 type name as its Rust twin (``type_name()`
 bindings' service builder declares the same payload type (name, size, alignment) and the
 services open across languages. ``tests/test_layout.py`` checks sizes, alignments and field
 offsets against ``layout.json``, which a Rust unit test keeps equal to the build.
+
+The observation models are not restated here: ``OBSERVATION_MODELS`` reads each one's dimension
+and named blocks from ``layout.json`` (``formation_core::observation::Layout``).
 """
 
 from __future__ import annotations
 
 import ctypes
+import dataclasses
+import json
+from pathlib import Path
+from typing import Dict, Optional, Tuple
 
 #: Bumped whenever a payload's layout or meaning changes (``wire::PROTOCOL_VERSION``).
 PROTOCOL_VERSION = 2
@@ -177,3 +184,47 @@ PAYLOADS = {
     "CriticProgressMsg": CriticProgress,
     "WeightsHeader": WeightsHeader,
 }
+
+
+@dataclasses.dataclass(frozen=True)
+class ObservationLayout:
+    """One observation model as ``layout.json`` lists it: its name, its floats, and each block
+    (``neighbour_0``, ``neighbour_1``, ``goal``, ``slot``, ``proximity``) with its first float
+    and the names of its floats."""
+
+    name: str
+    dim: int
+    blocks: Dict[str, Tuple[int, Tuple[str, ...]]]
+
+    def index(self, block: str, field: str = "x") -> Optional[int]:
+        """Where ``field`` of ``block`` sits in an observation (``index("neighbour_1",
+        "desired")``), or None when this model has no such block."""
+        if block not in self.blocks:
+            return None
+        offset, fields = self.blocks[block]
+        return offset + fields.index(field)
+
+
+def _observation_models() -> Dict[str, ObservationLayout]:
+    raw = json.loads((Path(__file__).parent / "layout.json").read_text())
+    return {
+        model["name"]: ObservationLayout(
+            name=model["name"],
+            dim=int(model["dim"]),
+            blocks={b["name"]: (int(b["offset"]), tuple(b["fields"])) for b in model["blocks"]},
+        )
+        for model in raw["observation_models"]
+    }
+
+
+#: Every observation model by name (``env.observation``), read from ``layout.json``.
+OBSERVATION_MODELS: Dict[str, ObservationLayout] = _observation_models()
+
+
+def observation_layout(dim: int) -> ObservationLayout:
+    """The observation model whose observations have ``dim`` floats (each model's is its own)."""
+    for model in OBSERVATION_MODELS.values():
+        if model.dim == dim:
+            return model
+    dims = sorted(m.dim for m in OBSERVATION_MODELS.values())
+    raise ValueError(f"no observation model has {dim} floats (layout.json has {dims})")

@@ -1,5 +1,6 @@
 """The ctypes mirrors match the Rust payloads: layout.json is what a Rust unit test
-(protocol/src/layout.rs) keeps equal to the build; here every mirror is compared with it."""
+(core/src/layout.rs) keeps equal to the build; here every mirror is compared with it, and the
+observation models it lists are checked as the Python side reads them."""
 
 import ctypes
 import json
@@ -10,6 +11,7 @@ from pathlib import Path
 import pytest
 
 import formation_swarm
+import formation_swarm.run
 from formation_swarm import wire
 
 
@@ -81,13 +83,61 @@ def test_layout_file_matches_the_binaries():
     assert int(version.stdout) == wire.PROTOCOL_VERSION
 
 
+def test_every_observation_model_is_laid_out_without_gaps():
+    """layout.json's observation models: blocks one after another filling ``dim`` floats, a
+    dimension of its own for each model (the baseline tells them apart by it), the wire's room."""
+    models = LAYOUT["observation_models"]
+    assert [m["name"] for m in models] == list(wire.OBSERVATION_MODELS)
+    assert len({m["dim"] for m in models}) == len(models)
+    for model in models:
+        end = 0
+        for block in model["blocks"]:
+            assert block["offset"] == end, (model["name"], block["name"])
+            end += len(block["fields"])
+        assert end == model["dim"] <= wire.MAX_OBS_DIM, model["name"]
+        assert wire.observation_layout(model["dim"]).name == model["name"]
+    assert formation_swarm.run.OBSERVATION_DIMS == {m["name"]: m["dim"] for m in models}
+
+
+def test_the_baseline_reads_where_the_layout_says():
+    """Every model's observation of the same scene gives the same command when its slot is the
+    goal minus the triangle's centroid (what the paper's model falls back to), whatever the
+    blocks' offsets: the baseline takes them from layout.json."""
+    paper = wire.OBSERVATION_MODELS["paper"]
+    slot = wire.OBSERVATION_MODELS["slot"]
+    scene = {("neighbour_0", "x"): -1.0, ("neighbour_0", "y"): 0.5, ("neighbour_0", "cos"): 1.0,
+             ("neighbour_0", "desired"): 1.1, ("neighbour_1", "x"): -1.0, ("neighbour_1", "y"): -0.5,
+             ("neighbour_1", "cos"): 1.0, ("neighbour_1", "desired"): 1.1, ("goal", "x"): 2.0,
+             ("goal", "y"): 0.3}
+    centroid = ((-1.0 - 1.0) / 3, (0.5 - 0.5) / 3)
+    scene[("slot", "x")], scene[("slot", "y")] = 2.0 - centroid[0], 0.3 - centroid[1]
+
+    def observation(layout):
+        obs = [0.0] * layout.dim
+        for (block, field), value in scene.items():
+            at = layout.index(block, field)
+            if at is not None:
+                obs[at] = value
+        return obs
+
+    baseline = formation_swarm.Baseline()
+    v, w = baseline(observation(paper))
+    assert v > 0.0
+    assert baseline(observation(slot)) == pytest.approx((v, w))
+
+
 def test_baseline_matches_the_rust_unit_tests():
     """The hand-made observations of core/src/baseline.rs's tests, same answers."""
+    paper = wire.OBSERVATION_MODELS["paper"]
+
     def obs_with(neighbours, desired, goal):
-        obs = [0.0] * 12
-        for k in range(2):
-            obs[5 * k], obs[5 * k + 1], obs[5 * k + 2], obs[5 * k + 4] = *neighbours[k], 1.0, desired[k]
-        obs[10], obs[11] = goal
+        obs = [0.0] * paper.dim
+        for k in range(wire.NEIGHBOURS):
+            block = f"neighbour_{k}"
+            obs[paper.index(block, "x")], obs[paper.index(block, "y")] = neighbours[k]
+            obs[paper.index(block, "cos")] = 1.0
+            obs[paper.index(block, "desired")] = desired[k]
+        obs[paper.index("goal", "x")], obs[paper.index("goal", "y")] = goal
         return obs
 
     baseline = formation_swarm.Baseline()
