@@ -5,8 +5,8 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use formation_swarm::{
-    assert_clean, bin_dir, pid_of, processes_of_run, repo_root, run_id_of, run_swarm, run_swarm_with, scratch_dir,
-    shm_leftovers,
+    announced, assert_clean, bin_dir, pid_of, processes_of_run, repo_root, run_id_of, run_swarm, run_swarm_with,
+    scratch_dir, shm_leftovers,
 };
 
 fn kill(pid: u32, signal: i32) {
@@ -418,5 +418,123 @@ fn a_robot_of_another_protocol_version_is_refused_at_start_up() {
         "{stderr}"
     );
     assert!(formation_swarm::shm_leftovers(&run_id).is_empty());
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+/// `episodes.csv` of `run_dir` as (steps, missed_ticks) per episode, in order.
+fn steps_and_misses(run_dir: &std::path::Path) -> Vec<(u64, u64)> {
+    let text = std::fs::read_to_string(run_dir.join("episodes.csv")).expect("episodes.csv");
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().expect("header").split(',').collect();
+    let column = |name: &str| header.iter().position(|&h| h == name).expect(name);
+    let (steps, missed) = (column("steps"), column("missed_ticks"));
+    lines
+        .map(|line| {
+            let fields: Vec<&str> = line.split(',').collect();
+            (
+                fields[steps].parse().expect("steps"),
+                fields[missed].parse().expect("missed_ticks"),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn a_dead_robot_under_restart_off_misses_its_ticks_alone() {
+    // N = 6 lockstep with the tick gate: the five robots left answer quietly (only the last
+    // one of a tick raises the sim's event), so a tick the dead robot never completes ends at
+    // the deadline, and their on-time answers must still be read and applied.
+    let dir = scratch_dir("kill-agent-restart-off");
+    let run_dir = dir.join("run");
+    let log = run_dir.with_extension("log");
+    let args = [
+        "6",
+        "--scripted",
+        "all",
+        "--mode",
+        "eval",
+        "--episodes",
+        "3000",
+        "--restart",
+        "off",
+        "--viewer",
+        "off",
+    ];
+    let run = run_swarm_with(&args, &run_dir, Duration::from_secs(300), |_| {
+        let run_id = run_id_of(&log);
+        // Killed once the swarm is well under way (episodes 0..=49 played).
+        announced(&run_dir.join("episodes.csv"), "50 episodes", |line| {
+            line.starts_with("49,").then_some(())
+        });
+        kill_process(&run_id, "--agent 4");
+    })
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "{}", run.output);
+    let episodes = steps_and_misses(&run_dir);
+    assert_eq!(episodes.len(), 3000);
+    // Episodes before the kill miss nothing; the kill's episode misses at most one command a
+    // tick (the dead robot's); every episode after it exactly one a tick.
+    let killed_in = episodes
+        .iter()
+        .position(|&(_, missed)| missed > 0)
+        .expect("an episode with misses");
+    let (steps, missed) = episodes[killed_in];
+    assert!(
+        missed <= steps,
+        "episode {killed_in}: {missed} missed commands in {steps} ticks: robots other than the dead one missed"
+    );
+    let after = &episodes[killed_in + 1..];
+    assert!(after.len() >= 10, "killed too late: {killed_in}");
+    for (k, &(steps, missed)) in after.iter().enumerate() {
+        assert_eq!(missed, steps, "episode {}", killed_in + 1 + k);
+    }
+    // Nobody but the dead robot was ever given up on.
+    let sim_log = std::fs::read_to_string(run_dir.join("logs/sim.log")).expect("sim log");
+    let given_up: Vec<&str> = sim_log.lines().filter(|l| l.contains("ticks in a row")).collect();
+    assert_eq!(given_up.len(), 1, "{given_up:?}");
+    assert!(given_up[0].contains("agent 4 missed"), "{given_up:?}");
+    let summary = run.summary().expect("summary");
+    let total: u64 = episodes.iter().map(|&(_, missed)| missed).sum();
+    assert_eq!(summary["missed_ticks"], serde_json::json!(total), "{summary}");
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn impossible_training_runs_are_refused_before_anything_starts() {
+    let dir = scratch_dir("bad-training");
+    std::fs::create_dir_all(&dir).expect("dir");
+    // Independent actors (one per robot of the primary swarm) cannot drive extra swarms: the
+    // critic's own check, run by the launcher's pre-flight, refuses them by the setting's name.
+    let independent = dir.join("independent.toml");
+    std::fs::write(&independent, "[learn]\ncritic = \"pooled\"\nshared_actor = false\n").expect("write");
+    let config = independent.to_str().expect("utf8");
+    for (args, needle) in [
+        (
+            vec!["4", "--extra-swarms", "3", "--config", config, "--minutes", "1"],
+            "learn.shared_actor = true",
+        ),
+        // Seeds whose episodes training must never play: held out, or (extra swarm 1 here)
+        // the selection's.
+        (
+            vec!["3", "--seed", "1000", "--minutes", "1"],
+            "the run (--seed 1000) would train on seed 1000",
+        ),
+        (
+            vec!["3", "--seed", "6160344", "--extra-swarms", "4", "--minutes", "1"],
+            "extra swarm 1 (--seed 6160344 + 7919 x 1) would train on seed 6168263",
+        ),
+    ] {
+        let mut args = args;
+        args.extend(["--viewer", "off"]);
+        let run = run_swarm(&args, &dir.join("run"), Duration::from_secs(60)).expect("launch");
+        assert_eq!(run.status, Some(2), "{args:?}: {}", run.output);
+        assert!(
+            run.output.contains(needle),
+            "{args:?}: should say {needle:?}:\n{}",
+            run.output
+        );
+        assert!(run.run_id.is_none(), "{args:?}: nothing may start:\n{}", run.output);
+    }
     std::fs::remove_dir_all(&dir).expect("cleanup");
 }

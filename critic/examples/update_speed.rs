@@ -80,7 +80,7 @@ fn main() -> anyhow::Result<()> {
         let t0 = Instant::now();
         let batch = sampler.sample(&replay, batch_size, &mut rng).expect("batch");
         let t1 = Instant::now();
-        learner.update(&batch)?;
+        learner.update(&batch, 0)?;
         sampling += (t1 - t0).as_secs_f64();
         updating += t1.elapsed().as_secs_f64();
     }

@@ -37,6 +37,21 @@ pub struct Losses {
     pub action_magnitude: Option<f64>,
 }
 
+/// What the batches of one swarm (one replay) have driven. The actor's schedule is kept per
+/// swarm: the actor steps on every `policy_delay`-th update of each swarm's own, so that with
+/// the swarms taken in turn every swarm's batches get their share of actor (and teacher)
+/// steps. One count over every update would give them all to the same swarms (with two
+/// swarms and a delay of 2, all to the second).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SwarmSteps {
+    /// Critic updates on the swarm's batches.
+    pub updates: u64,
+    /// Actor steps on them.
+    pub actor: u64,
+    /// Actor steps on them that also pulled towards the teacher.
+    pub teacher: u64,
+}
+
 /// Linear layers with ReLU between them (and after the last with `relu_last`).
 #[derive(Debug, Clone)]
 pub struct Mlp {
@@ -130,6 +145,8 @@ pub struct Learner {
     /// each critic can step on its own thread.
     critic_optimizers: Vec<AdamW>,
     updates: u64,
+    /// Indexed by swarm; grown as swarms appear.
+    swarm_steps: Vec<SwarmSteps>,
     rng: StdRng,
     /// The scripted baseline and the environment it commands, when `imitation_alpha` > 0.
     teacher: Option<(ScriptedBaseline, EnvConfig)>,
@@ -319,6 +336,7 @@ impl Learner {
             critics,
             critic_targets,
             updates: 0,
+            swarm_steps: Vec::new(),
             rng,
             teacher: (config.imitation_alpha > 0.0)
                 .then(|| (ScriptedBaseline::new(env, BaselineGains::default()), env.clone())),
@@ -525,8 +543,14 @@ impl Learner {
         ))
     }
 
-    /// One gradient update of the critic(s), and of the actor(s) and targets when due.
-    pub fn update(&mut self, batch: &Batch) -> Result<Losses> {
+    /// What swarm `swarm`'s batches have driven so far.
+    pub fn swarm_steps(&self, swarm: usize) -> SwarmSteps {
+        self.swarm_steps.get(swarm).copied().unwrap_or_default()
+    }
+
+    /// One gradient update of the critic(s) on a batch of swarm `swarm` (0 for a run of one
+    /// swarm), and of the actor(s) and targets when that swarm's schedule has them due.
+    pub fn update(&mut self, batch: &Batch, swarm: usize) -> Result<Losses> {
         let sized_by_n = self.config.critic == CriticArchitecture::Mlp;
         if (sized_by_n && batch.n_agents != self.n_agents) || batch.history != self.history {
             bail!(
@@ -547,7 +571,14 @@ impl Learner {
             Algorithm::Ddpg => 1,
             Algorithm::Td3 => u64::from(self.config.policy_delay),
         };
-        if self.updates.is_multiple_of(delay) {
+        if self.swarm_steps.len() <= swarm {
+            self.swarm_steps.resize(swarm + 1, SwarmSteps::default());
+        }
+        let steps = &mut self.swarm_steps[swarm];
+        steps.updates += 1;
+        if steps.updates.is_multiple_of(delay) {
+            steps.actor += 1;
+            steps.teacher += u64::from(self.teacher.is_some());
             let (actor_loss, action_magnitude) = self.actor_step(batch)?;
             losses.actor = Some(actor_loss);
             losses.action_magnitude = Some(action_magnitude);

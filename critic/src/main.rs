@@ -85,12 +85,14 @@ fn try_main(cli: Cli) -> Result<()> {
                 "--extra-swarm needs learn.critic = \"pooled\" (an mlp critic is sized by N), e.g. --config configs/any-n.toml"
             );
         }
+        if !config.learn.shared_actor {
+            bail!(
+                "--extra-swarm needs learn.shared_actor = true: independent actors (one per robot) cannot drive swarms of other sizes"
+            );
+        }
     }
-    if cli.run.mode == Mode::Train && cli.run.seed == config.learn.selection_seed {
-        bail!(
-            "--seed {} is learn.selection_seed: the run would train on the episodes its checkpoints are selected on",
-            cli.run.seed
-        );
+    if cli.run.mode == Mode::Train {
+        config.learn.check_training_seeds(cli.run.seed, cli.extra_swarm.len())?;
     }
     if cli.check {
         if let Some(path) = &resume {

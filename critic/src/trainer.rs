@@ -183,7 +183,8 @@ impl<S: Service> Trainer<S> {
         let started = Instant::now();
         while started.elapsed() < UPDATES_BETWEEN_DRAINS {
             // Round robin over the swarms owed updates: every size gets the same share, and
-            // a swarm whose updates are slow (a large N) cannot starve the others.
+            // a swarm whose updates are slow (a large N) cannot starve the others. The actor
+            // steps on each swarm's own schedule, so it gets the same share too.
             let count = self.swarms.len();
             let Some(swarm) = (1..=count)
                 .map(|step| (self.last_served + step) % count)
@@ -196,7 +197,7 @@ impl<S: Service> Trainer<S> {
             let Some(batch) = self.sampler.sample(&data.replay, self.batch_size, &mut self.rng) else {
                 break;
             };
-            let step = self.learner.update(&batch)?;
+            let step = self.learner.update(&batch, swarm)?;
             data.updates += 1;
             self.losses.critic = step.critic;
             if step.actor.is_some() {
@@ -297,9 +298,14 @@ impl<S: Service> Trainer<S> {
             .iter()
             .map(|s| format!("N={} {:.2}", s.n_agents, s.success))
             .collect();
+        // Each swarm's batches step the actor on a schedule of their own (learner::SwarmSteps).
+        let actor_steps: Vec<String> = (0..self.swarms.len())
+            .map(|k| format!("N={} {}", self.swarms[k].n_agents, self.learner.swarm_steps(k).actor))
+            .collect();
         eprintln!(
-            "critic: checkpoint at {} updates: selection success {:.3} ({}), formation held {:.2}, {:.1} steps; scored in {} ms{}",
+            "critic: checkpoint at {} updates (actor steps {}): selection success {:.3} ({}), formation held {:.2}, {:.1} steps; scored in {} ms{}",
             self.learner.updates(),
+            actor_steps.join(", "),
             score.success(),
             by_size.join(", "),
             score.mean(|s| s.formation_held),

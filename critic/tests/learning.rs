@@ -141,7 +141,7 @@ fn critic_loss_falls_on_a_fixed_batch() {
             .to_scalar::<f32>()
             .expect("scalar");
         for _ in 0..200 {
-            learner.update(&batch).expect("update");
+            learner.update(&batch, 0).expect("update");
         }
         let after = learner
             .critic_loss(&batch, &target)
@@ -205,7 +205,7 @@ fn independent_actors_have_one_network_per_robot() {
     let mut learner = Learner::new(3, &env, &learn, 8).expect("learner");
     assert_eq!(learner.n_actors(), 3);
     let batch = random_batch(&env, 3, 16, 9);
-    let losses = learner.update(&batch).expect("update");
+    let losses = learner.update(&batch, 0).expect("update");
     assert!(losses.critic.is_finite() && losses.actor.is_some());
 }
 
@@ -223,7 +223,7 @@ fn a_teacher_pulls_the_actor_towards_the_baseline() {
     let mut learner = Learner::new(3, &env, &taught, 22).expect("learner");
     let before = learner.imitation_error(&batch).expect("error").expect("a teacher");
     for _ in 0..300 {
-        learner.update(&batch).expect("update");
+        learner.update(&batch, 0).expect("update");
     }
     let after = learner.imitation_error(&batch).expect("error").expect("a teacher");
     assert!(after < 0.5 * before, "imitation error {before} -> {after}");
@@ -271,7 +271,9 @@ fn twin_critics_on_two_threads_learn_exactly_what_one_thread_learns() {
             };
             let mut learner = Learner::new(3, &env, &config, 5).expect("learner");
             for step in 0..6 {
-                learner.update(&random_batch(&env, 3, 32, 100 + step)).expect("update");
+                learner
+                    .update(&random_batch(&env, 3, 32, 100 + step), 0)
+                    .expect("update");
             }
             learner
         })
@@ -355,7 +357,7 @@ fn one_pooled_critic_fits_two_swarm_sizes_ignores_robot_order_and_carries_over()
     };
     let before = batches.each_ref().map(|b| loss(&learner, b));
     for step in 0..400 {
-        learner.update(&batches[step % 2]).expect("update");
+        learner.update(&batches[step % 2], step % 2).expect("update");
     }
     let after = batches.each_ref().map(|b| loss(&learner, b));
     for k in 0..2 {
@@ -387,4 +389,35 @@ fn one_pooled_critic_fits_two_swarm_sizes_ignores_robot_order_and_carries_over()
     assert_eq!(loss(&five, &batches[1]), after[1], "the critic carried over");
     assert_eq!(five.updates(), 0, "no `updates` in the metadata given");
     std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn with_two_swarms_taken_in_turn_each_gets_its_share_of_actor_and_teacher_steps() {
+    let (env, learn) = small_config(Algorithm::Td3);
+    let env = EnvConfig { history: 1, ..env };
+    let learn = LearnConfig {
+        critic: CriticArchitecture::Pooled,
+        critic_encoder: vec![16],
+        critic_hidden: vec![16],
+        policy_delay: 2,
+        imitation_alpha: 2.5,
+        ..learn
+    };
+    let mut learner = Learner::new(3, &env, &learn, 12).expect("learner");
+    let batches = [3, 4].map(|n| random_batch_for(&env, CriticArchitecture::Pooled, n, 8, n as u64));
+    // Two swarms owed equally: the trainer's round robin alternates them.
+    let mut actor_steps = [0u64; 2];
+    for update in 0..200 {
+        let swarm = update % 2;
+        let losses = learner.update(&batches[swarm], swarm).expect("update");
+        actor_steps[swarm] += u64::from(losses.actor.is_some());
+    }
+    for (swarm, &stepped) in actor_steps.iter().enumerate() {
+        let steps = learner.swarm_steps(swarm);
+        assert_eq!(steps.updates, 100, "swarm {swarm}");
+        assert!(steps.actor.abs_diff(50) <= 1, "swarm {swarm}: {steps:?}");
+        assert_eq!(steps.teacher, steps.actor, "swarm {swarm}: every actor step is taught");
+        assert_eq!(stepped, steps.actor, "swarm {swarm}: the actor stepped on its batches");
+    }
+    assert_eq!(learner.updates(), 200);
 }

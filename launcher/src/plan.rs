@@ -9,7 +9,7 @@ use anyhow::{Context, Result, bail, ensure};
 use clap::ValueEnum;
 use formation_core::observation::Layout;
 use formation_protocol::cli::{Mode, ViewerMode, parse_robot_set, robot_set_arg};
-use formation_protocol::config::{FormationShape, RunConfig};
+use formation_protocol::config::{FormationShape, RunConfig, extra_swarm_seed};
 use formation_protocol::placement::Placement;
 use formation_protocol::services::{ICEORYX_CONFIG_FILE, RunIdentity};
 use formation_protocol::wire::PROTOCOL_VERSION;
@@ -160,6 +160,9 @@ impl Plan {
         if let Some(shape) = args.shape {
             config.env.shape = shape;
         }
+        if args.mode == Mode::Train {
+            config.learn.check_training_seeds(args.seed, args.extra_swarms.len())?;
+        }
         let learned = n - scripted.len() - external.len();
         let checkpoint = match (&args.checkpoint, args.mode) {
             (None, Mode::Eval) if learned > 0 => Some(shipped_model()?),
@@ -196,7 +199,7 @@ impl Plan {
                 n: size,
                 identity: RunIdentity::new(&format!("{run_id}x{k}"))?,
                 run_dir: run_dir.join(format!("swarm-{k}-n{size}")),
-                seed: args.seed.wrapping_add(7919 * k as u64),
+                seed: extra_swarm_seed(args.seed, k),
                 scripted: Vec::new(),
                 external: Vec::new(),
                 remote: Vec::new(),
@@ -792,6 +795,15 @@ mod tests {
             (vec!["2"], "between 3 and 64"),
             (vec!["3", "--extra-swarms", "4,2"], "sizes 3 to 64"),
             (vec!["3", "--minutes", "0"], "--minutes must be a positive number"),
+            (
+                vec!["3", "--seed", "1000"],
+                "the run (--seed 1000) would train on seed 1000",
+            ),
+            (vec!["3", "--seed", "6168263"], "learn.selection_seed"),
+            (
+                vec!["3", "--seed", "6160344", "--extra-swarms", "4,5"],
+                "extra swarm 1 (--seed 6160344 + 7919 x 1) would train on seed 6168263",
+            ),
         ] {
             let refusal = plan(&args).expect_err(needle);
             assert!(format!("{refusal:#}").contains(needle), "{args:?}: {refusal:#}");

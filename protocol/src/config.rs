@@ -228,6 +228,12 @@ impl EnvConfig {
 /// model selection must not play these episodes.
 pub const HELD_OUT_SEED: u64 = 1000;
 
+/// Episode seed of extra swarm `k` (1, 2, ...) of a training run started with `--seed seed`:
+/// 7919 (a prime) apart, so the swarms of a run play unrelated episodes.
+pub fn extra_swarm_seed(seed: u64, k: usize) -> u64 {
+    seed.wrapping_add(7919 * k as u64)
+}
+
 /// From this many robots on, formations are compact rings (smaller swarms get freer shapes).
 pub const LARGE_SWARM: usize = 8;
 
@@ -434,6 +440,16 @@ pub enum ConfigError {
         path: String,
         /// What toml said, with line and key.
         message: String,
+    },
+    /// A training swarm's episode seed draws episodes that training must never play.
+    #[error("{swarm} would train on seed {seed}, which is {reserved}; pick another --seed")]
+    ReservedSeed {
+        /// Which swarm, with how its seed follows from `--seed`.
+        swarm: String,
+        /// Its episode seed.
+        seed: u64,
+        /// Whose seed it is and what its episodes are for.
+        reserved: &'static str,
     },
     /// A value is out of its range.
     #[error("config value {field} = {value} is invalid: {reason}")]
@@ -697,6 +713,33 @@ impl LearnConfig {
         self.validate_bookkeeping()
     }
 
+    /// Refuses a training run whose swarms would play episodes training must never see: those
+    /// of `learn.selection_seed` (model selection scores checkpoints on them) and those of
+    /// [`HELD_OUT_SEED`] (the held-out evaluation). The run trains on `seed` and, with
+    /// `extra_swarms` extra swarms, on [`extra_swarm_seed`]`(seed, k)` for k = 1..=extra_swarms.
+    pub fn check_training_seeds(&self, seed: u64, extra_swarms: usize) -> Result<(), ConfigError> {
+        for k in 0..=extra_swarms {
+            let swarm_seed = extra_swarm_seed(seed, k);
+            let reserved = if swarm_seed == self.selection_seed {
+                "learn.selection_seed (the episodes its checkpoints are selected on)"
+            } else if swarm_seed == HELD_OUT_SEED {
+                "the held-out evaluation seed 1000 (the episodes results are measured on)"
+            } else {
+                continue;
+            };
+            let swarm = match k {
+                0 => format!("the run (--seed {seed})"),
+                k => format!("extra swarm {k} (--seed {seed} + 7919 x {k})"),
+            };
+            return Err(ConfigError::ReservedSeed {
+                swarm,
+                seed: swarm_seed,
+                reserved,
+            });
+        }
+        Ok(())
+    }
+
     /// Replay, weights streaming, threads, evaluation and model selection.
     fn validate_bookkeeping(&self) -> Result<(), ConfigError> {
         let l = self;
@@ -814,6 +857,45 @@ mod tests {
             let err = RunConfig::from_toml_str(text).expect_err(text);
             assert!(err.to_string().contains(field), "{err} should name {field}");
         }
+    }
+
+    #[test]
+    fn training_seeds_never_play_the_selection_or_held_out_episodes() {
+        let learn = LearnConfig::default();
+        assert!(learn.check_training_seeds(1, 4).is_ok());
+        let selection = learn.selection_seed;
+        for (seed, extra, needles) in [
+            (
+                selection,
+                0,
+                ["the run (--seed 6168263)", "seed 6168263", "learn.selection_seed"],
+            ),
+            (HELD_OUT_SEED, 2, ["the run (--seed 1000)", "seed 1000", "held-out"]),
+            (
+                selection - 2 * 7919,
+                3,
+                [
+                    "extra swarm 2 (--seed 6152425 + 7919 x 2)",
+                    "seed 6168263",
+                    "learn.selection_seed",
+                ],
+            ),
+            (
+                HELD_OUT_SEED.wrapping_sub(7919),
+                1,
+                ["extra swarm 1 (--seed", "seed 1000,", "held-out"],
+            ),
+        ] {
+            let text = learn
+                .check_training_seeds(seed, extra)
+                .expect_err("refused")
+                .to_string();
+            for needle in needles {
+                assert!(text.contains(needle), "{text:?} should name {needle:?}");
+            }
+        }
+        // Fewer extra swarms than it takes to reach a reserved seed: nothing to refuse.
+        assert!(learn.check_training_seeds(selection - 2 * 7919, 1).is_ok());
     }
 
     #[test]
