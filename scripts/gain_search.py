@@ -1,0 +1,226 @@
+#!/usr/bin/env python3
+"""The fair hand-written rival (issue 28, item 5): searches the scripted baseline's gains for one
+condition of the reality grid and reports the whole search as a success against steps-to-goal
+front, with the learned policy's point on it.
+
+Each gain set is a run config with a `[baseline]` section (OUT/sets/set-NN.toml) played by the
+baseline on every robot, at each N, on episodes from --seed (default 2000: not the held-out 1000
+and up). "Scripted tuned" is the most successful set (success averaged over the N list), ties
+broken by fewer mean steps to the goal; it is written as OUT/tuned-ROW.toml, which
+scripts/reality_grid.py --tuned OUT reads.
+
+  scripts/gain_search.py --row field --n 3,12 --episodes 20
+  FORMATION_BIN_DIR=target/debug scripts/gain_search.py --row ideal --sets 20 --episodes 10
+
+The sets: the defaults, the issue's softer gains (k_form 0.75, k_goal 0.3, k_turn 1.25), the
+defaults' formation/goal/turn gains scaled together, and the rest drawn log-uniformly from a
+seeded Latin hypercube (--search-seed) over the ranges in RANGES.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import random
+import sys
+import time
+from pathlib import Path
+
+import reality_runs as rr
+
+#: Search ranges of each gain (lo, hi), drawn log-uniformly.
+RANGES = {
+    "k_form": (0.3, 3.0),
+    "k_goal": (0.15, 1.2),
+    "k_turn": (0.6, 5.0),
+    "repulsion_range": (0.3, 0.9),
+    "k_repulsion": (1.0, 6.0),
+}
+#: The defaults' k_form, k_goal and k_turn multiplied together by these.
+SCALES = (0.35, 0.5, 0.6, 0.75, 0.9, 1.25)
+
+
+def gain_sets(count: int, seed: int) -> list[dict]:
+    """count gain sets: defaults, the issue's softer set, the scaled family, then a hypercube."""
+    sets = [dict(rr.DEFAULT_GAINS), {**rr.DEFAULT_GAINS, "k_form": 0.75, "k_goal": 0.3, "k_turn": 1.25}]
+    for s in SCALES:
+        if s != 0.5:  # 0.5 is the issue's set
+            sets.append({**rr.DEFAULT_GAINS, **{k: round(rr.DEFAULT_GAINS[k] * s, 4) for k in ("k_form", "k_goal", "k_turn")}})
+    rng = random.Random(seed)
+    rest = max(0, count - len(sets))
+    strata = {name: rng.sample(range(rest), rest) for name in rr.GAIN_NAMES}
+    for i in range(rest):
+        gains = {}
+        for name in rr.GAIN_NAMES:
+            lo, hi = RANGES[name]
+            u = (strata[name][i] + rng.random()) / rest
+            gains[name] = round(math.exp(math.log(lo) + u * (math.log(hi) - math.log(lo))), 4)
+        sets.append(gains)
+    return sets[:count]
+
+
+def rank_key(result: dict):
+    """Most successful first, then fewer steps."""
+    return (-round(result["success"], 9), result["steps"])
+
+
+def pooled(summaries: list[dict | None]) -> dict:
+    """Success, collisions and steps averaged over the N list (a failed run counts as 0 success)."""
+    ok = [s for s in summaries if s is not None]
+    steps = [rr.steps_or_inf(s) for s in ok]
+    return {
+        "success": sum(s["success_rate"] for s in ok) / len(summaries),
+        "collisions": sum(s["collision_rate"] for s in ok) / max(1, len(ok)),
+        "steps": sum(steps) / len(steps) if steps else math.inf,
+        "failed_runs": len(summaries) - len(ok),
+    }
+
+
+def front_check(results: list[dict], learned: dict) -> list[dict]:
+    """The sets that beat the learned policy on the front: success at least the learned one's - 0.02
+    in fewer than 1.2x its mean steps (issue 28's acceptance)."""
+    return [
+        r for r in results
+        if r["success"] >= learned["success"] - 0.02 and r["steps"] < 1.2 * learned["steps"]
+    ]
+
+
+def plot(results: list[dict], learned: dict | None, tuned: dict, ns: list[int], title: str, path: Path) -> None:
+    """Success against mean steps to the goal, one point per gain set, per N and pooled."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [("all N (mean)", None)] + [(f"N = {n}", i) for i, n in enumerate(ns)] if len(ns) > 1 else [(f"N = {ns[0]}", 0)]
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4), squeeze=False)
+    for ax, (name, i) in zip(axes[0], panels):
+        def point(r):
+            if i is None:
+                return r["steps"], r["success"]
+            s = r["per_n"][i]
+            return (math.inf, 0.0) if s is None else (rr.steps_or_inf(s), s["success_rate"])
+
+        finite = [point(r) for r in results if math.isfinite(point(r)[0])]
+        if finite:
+            ax.scatter(*zip(*finite), c="tab:blue", s=22, label="gain set (scripted)")
+        for r, style in ((results[0], dict(marker="s", c="tab:gray", label="defaults")), (tuned, dict(marker="D", c="tab:green", label="tuned"))):
+            x, y = point(r)
+            if math.isfinite(x):
+                ax.scatter([x], [y], s=60, edgecolors="k", zorder=3, **style)
+        if learned is not None:
+            x, y = point(learned)
+            if math.isfinite(x):
+                ax.scatter([x], [y], marker="*", s=220, c="tab:red", edgecolors="k", zorder=4, label="learned")
+        ax.set_title(name)
+        ax.set_xlabel("mean steps to goal (successful episodes)")
+        ax.set_ylim(-0.03, 1.03)
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("success rate")
+    axes[0][0].legend(fontsize=8, loc="lower right")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--row", default="field", choices=rr.ROW_NAMES, help="grid condition to search (default field)")
+    ap.add_argument("--n", default="3,12", help="swarm sizes, comma-separated (default 3,12)")
+    ap.add_argument("--episodes", type=int, default=20, help="episodes per gain set and N (default 20)")
+    ap.add_argument("--seed", type=int, default=2000, help="episode seed (default 2000; the held-out seeds are 1000 and up, below 2000)")
+    ap.add_argument("--sets", type=int, default=24, help="gain sets (default 24, at least 20 for the issue)")
+    ap.add_argument("--search-seed", type=int, default=7, help="seed of the hypercube sets (default 7)")
+    ap.add_argument("--checkpoint", type=Path, help="learned model (default: the launcher's shipped model)")
+    ap.add_argument("--no-learned", action="store_true", help="leave out the learned policy's point")
+    ap.add_argument("--config", type=Path, help="base config under every run")
+    ap.add_argument("--field", type=Path, help="field preset (default configs/reality-field.toml)")
+    ap.add_argument("--lab", type=Path, help="lab preset (default configs/reality-lab.toml)")
+    ap.add_argument("--shape", help="formation shape of every episode (default: the config's)")
+    ap.add_argument("--out", type=Path, help="output directory (default runs/gain-search-ROW-<time>)")
+    args = ap.parse_args()
+    if args.episodes < 1 or args.sets < 1:
+        ap.error("--episodes and --sets must be at least 1")
+    if 1000 <= args.seed < 2000:
+        print("gain_search.py: warning: seeds 1000-1999 are the grid's held-out episodes", file=sys.stderr)
+
+    ns = rr.parse_list(args.n)
+    out = args.out or rr.ROOT / "runs" / f"gain-search-{args.row}-{time.strftime('%Y%m%d-%H%M%S')}"
+    (out / "sets").mkdir(parents=True, exist_ok=True)
+    reality = rr.rows(args.field or rr.preset_path("field"), args.lab or rr.preset_path("lab"))[args.row]
+    base = rr.load_base(args.config)
+    sets = gain_sets(args.sets, args.search_seed)
+
+    progress = rr.Progress(len(sets) * len(ns) + (0 if args.no_learned else len(ns)))
+    print(f"gain search: {args.row}, {len(sets)} gain sets, N = {ns}, {args.episodes} episodes from seed {args.seed}, "
+          f"binaries: {rr.bin_dir_note()}, into {out}", file=sys.stderr)
+    results = []
+    for k, gains in enumerate(sets):
+        config = out / "sets" / f"set-{k:02d}.toml"
+        config.write_text(f"# gain set {k} of the {args.row} search (scripts/gain_search.py)\n"
+                          + rr.to_toml(rr.cell_config(base, reality, gains)))
+        per_n = [
+            rr.timed_run(rr.Cell(n, "scripted", config, out / "runs" / f"set-{k:02d}-n{n}", args.episodes, args.seed, shape=args.shape),
+                         progress, f"set {k:02d} N={n}")
+            for n in ns
+        ]
+        results.append({"set": k, "gains": gains, "per_n": per_n, **pooled(per_n)})
+    learned = None
+    if not args.no_learned:
+        config = out / "sets" / "learned.toml"
+        config.write_text(rr.to_toml(rr.cell_config(base, reality, None)))
+        per_n = [
+            rr.timed_run(rr.Cell(n, "learned", config, out / "runs" / f"learned-n{n}", args.episodes, args.seed,
+                                 checkpoint=args.checkpoint, shape=args.shape), progress, f"learned N={n}")
+            for n in ns
+        ]
+        learned = {"set": "learned", "per_n": per_n, **pooled(per_n)}
+
+    ranked = sorted(results, key=rank_key)
+    tuned = ranked[0]
+    (out / f"tuned-{args.row}.toml").write_text(
+        f"# Scripted tuned for '{args.row}': gain set {tuned['set']} of {len(sets)}, success {tuned['success']:.3f}, "
+        f"mean steps {tuned['steps']:.1f} at N = {args.n}, {args.episodes} episodes from seed {args.seed}\n"
+        "# (scripts/gain_search.py; the most successful set, ties broken by fewer steps)\n"
+        + rr.to_toml({"baseline": tuned["gains"]})
+    )
+    with open(out / "search.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["set", *rr.GAIN_NAMES, "n", "success", "collisions", "steps_to_goal"])
+        for r in results + ([learned] if learned else []):
+            for n, s in zip(ns, r["per_n"]):
+                gains = [r["gains"][g] for g in rr.GAIN_NAMES] if "gains" in r else [""] * len(rr.GAIN_NAMES)
+                w.writerow([r["set"], *gains, n, *(["", "", ""] if s is None else
+                            [s["success_rate"], s["collision_rate"], s.get("mean_steps_to_goal")])])
+    json.dump({"row": args.row, "reality": reality, "ns": ns, "episodes": args.episodes, "seed": args.seed,
+               "results": results, "learned": learned, "tuned": tuned["set"]},
+              open(out / "search.json", "w"), indent=1, default=str)
+    title = f"gain search, {rr.ROW_TITLES[args.row]}: {len(sets)} sets, {args.episodes} episodes/N from seed {args.seed}"
+    plot(results, learned, tuned, ns, title, out / "front.png")
+
+    print(f"### Gain search: {rr.ROW_TITLES[args.row]} (N = {args.n}, {args.episodes} episodes each from seed {args.seed})\n")
+    print("| rank | set | k_form | k_goal | k_turn | repulsion_range | k_repulsion | success | collisions | steps to goal |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for i, r in enumerate(ranked):
+        g = r["gains"]
+        note = " (defaults)" if r["set"] == 0 else (" (issue's softer)" if r["set"] == 1 else "")
+        print(f"| {i + 1} | {r['set']}{note} | {g['k_form']} | {g['k_goal']} | {g['k_turn']} | {g['repulsion_range']} | "
+              f"{g['k_repulsion']} | {r['success']:.2f} | {r['collisions']:.2f} | {rr.fmt_steps(None if math.isinf(r['steps']) else r['steps'])} |")
+    if learned:
+        print(f"| - | learned | | | | | | {learned['success']:.2f} | {learned['collisions']:.2f} | "
+              f"{rr.fmt_steps(None if math.isinf(learned['steps']) else learned['steps'])} |")
+        beaten_by = front_check(results, learned) if math.isfinite(learned["steps"]) else results
+        print(f"\nFront check (a set with success >= learned - 0.02 in < 1.2x the learned steps beats it): "
+              + ("learned not beaten" if not beaten_by else "beaten by set(s) " + ", ".join(str(r["set"]) for r in beaten_by)))
+    failed = sum(r["failed_runs"] for r in results)
+    if failed:
+        print(f"\n{failed} run(s) failed: see {out}/runs/*.log")
+    print(f"\ntuned: {out}/tuned-{args.row}.toml (set {tuned['set']}); front: {out}/front.png; all runs: {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
