@@ -7,7 +7,7 @@ use std::collections::HashMap;
 use std::fs::{File, OpenOptions};
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::process::CommandExt;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::{Command, ExitStatus, Stdio};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, channel};
 use std::thread::JoinHandle;
@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use formation_protocol::cli::{Mode, write_atomically};
-use formation_protocol::services::{RunIdentity, SHM_DIR};
+use formation_protocol::services::{RunIdentity, sweep_abandoned_runs};
 use signal_hook::consts::{SIGINT, SIGTERM};
 use signal_hook::iterator::Signals;
 
@@ -29,6 +29,8 @@ const QUICK_DEATHS_TO_GIVE_UP: u32 = 3;
 const WIND_DOWN: Duration = Duration::from_secs(10);
 /// An extra swarm's sim still running when the primary ends gets this long before Ctrl-C.
 const EXTRA_SIM_GRACE: Duration = Duration::from_secs(2);
+/// At the end, how long the run's files wait for clients still closing their ports.
+const CLIENT_GRACE: Duration = Duration::from_secs(2);
 
 /// What the supervisor waits for.
 enum Event {
@@ -59,7 +61,14 @@ struct Supervisor<'a> {
 /// Runs the plan to its end; returns the launcher's exit code.
 pub fn launch(plan: &Plan) -> Result<u8> {
     let bin_dir = bin_dir()?;
-    for (run_id, files) in sweep_runs_of_dead_launchers(Path::new(SHM_DIR)) {
+    // Held for the launcher's whole life (released by the kernel however it ends): what tells
+    // other launchers and clients that this run is alive, whichever PID namespace they are in.
+    let _locks = plan
+        .identities()
+        .into_iter()
+        .map(RunIdentity::hold_launcher_lock)
+        .collect::<Result<Vec<_>>>()?;
+    for (run_id, files) in sweep_abandoned_runs() {
         println!("removed {files} shared-memory files of run {run_id}, whose launcher is gone");
     }
     for (program, args) in plan.preflight() {
@@ -110,6 +119,8 @@ pub fn launch(plan: &Plan) -> Result<u8> {
         let _ = tee.join();
     }
     for identity in plan.identities() {
+        // A client (a Python env) whose ports outlive the sim removes those services itself.
+        identity.wait_for_clients(CLIENT_GRACE);
         identity.remove_leftovers();
     }
     let code = result?;
@@ -118,53 +129,6 @@ pub fn launch(plan: &Plan) -> Result<u8> {
         plan.primary().run_dir.display()
     );
     Ok(code)
-}
-
-/// The pid of the launcher that made `run_id` (`r<time>p<pid>`, extra swarms `...x<k>`, remote
-/// hosts `...h<i>`), if the id is a launcher's.
-fn launcher_pid(run_id: &str) -> Option<u32> {
-    let rest = run_id.strip_prefix('r')?;
-    let (time, pid_and_suffix) = rest.split_once('p')?;
-    // An extra swarm (`x<k>`) or a remote robot's host (`h<i>`) follows the pid.
-    let digits = pid_and_suffix.bytes().take_while(u8::is_ascii_digit).count();
-    (time.len() == 6 && time.bytes().all(|b| b.is_ascii_digit())).then_some(())?;
-    pid_and_suffix[..digits].parse().ok()
-}
-
-/// Whether process `pid` exists and has not ended (a zombie waiting for its parent has).
-fn process_runs(pid: u32) -> bool {
-    std::fs::read_to_string(format!("/proc/{pid}/stat")).is_ok_and(|stat| {
-        // State is the first field after the command name, which is in parentheses.
-        stat.rsplit_once(')')
-            .and_then(|(_, rest)| rest.split_whitespace().next())
-            .is_some_and(|state| state != "Z" && state != "X")
-    })
-}
-
-/// Removes the shared memory and root paths of runs whose launcher no longer exists (one
-/// killed outright cannot clean up after itself; its members died with it). Runs not made by
-/// a launcher (other run ids) are left alone. `shm_dir` is where runs are looked for (the
-/// files are removed from `/dev/shm`). Returns each swept run with its file count.
-fn sweep_runs_of_dead_launchers(shm_dir: &Path) -> Vec<(String, usize)> {
-    let mut run_ids: Vec<String> = std::fs::read_dir(shm_dir)
-        .into_iter()
-        .flatten()
-        .flatten()
-        .filter_map(|entry| {
-            let name = entry.file_name().to_string_lossy().into_owned();
-            let run_id = name.strip_prefix("fc_")?.split('_').next()?.to_string();
-            (!process_runs(launcher_pid(&run_id)?)).then_some(run_id)
-        })
-        .collect();
-    run_ids.sort();
-    run_ids.dedup();
-    run_ids
-        .into_iter()
-        .filter_map(|run_id| {
-            let identity = RunIdentity::new(&run_id).ok()?;
-            Some((run_id, identity.remove_leftovers()))
-        })
-        .collect()
 }
 
 /// Where the member binaries are: `FORMATION_BIN_DIR`, else beside this launcher.
@@ -501,46 +465,5 @@ fn die_with_the_launcher(command: &mut Command) {
             }
             Ok(())
         });
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn run_ids_name_the_launcher_that_made_them() {
-        assert_eq!(launcher_pid("r123456p4242"), Some(4242));
-        assert_eq!(launcher_pid("r123456p4242x3"), Some(4242));
-        assert_eq!(launcher_pid("r123456p4242h2"), Some(4242));
-        assert_eq!(launcher_pid("default"), None);
-        assert_eq!(launcher_pid("r12p4242"), None);
-        assert_eq!(launcher_pid("rabcdefp1"), None);
-    }
-
-    #[test]
-    fn runs_of_a_dead_launcher_are_swept_and_live_ones_are_not() {
-        // A pid that just ended, and this test's own (alive).
-        let mut child = Command::new("true").spawn().expect("spawn true");
-        let dead = child.id();
-        child.wait().expect("wait");
-        let dir = std::env::temp_dir().join(format!("formation-sweep-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).expect("dir");
-        let dead_run = format!("r000001p{dead}");
-        let live_run = format!("r000001p{}", std::process::id());
-        for name in [
-            format!("fc_{dead_run}_state.data"),
-            format!("fc_{dead_run}x1_state.data"),
-            format!("fc_{live_run}_state.data"),
-            "fc_default_state.data".to_string(),
-        ] {
-            std::fs::write(dir.join(name), b"").expect("write");
-        }
-        let swept: Vec<String> = sweep_runs_of_dead_launchers(&dir)
-            .into_iter()
-            .map(|(id, _)| id)
-            .collect();
-        assert_eq!(swept, vec![dead_run.clone(), format!("{dead_run}x1")]);
-        std::fs::remove_dir_all(&dir).expect("cleanup");
     }
 }

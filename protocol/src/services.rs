@@ -87,23 +87,199 @@ impl RunIdentity {
         Ok(path)
     }
 
-    /// Removes what a finished run leaves behind: its `/dev/shm` files and its root path.
+    /// Removes what a finished run leaves behind: its `/dev/shm` files (the launcher's lock
+    /// file last, so that a run with files left always has its lock file) and its root path.
     /// Returns how many shared-memory files were removed.
     pub fn remove_leftovers(&self) -> usize {
+        self.remove_leftovers_in(std::path::Path::new(SHM_DIR))
+    }
+
+    fn remove_leftovers_in(&self, shm_dir: &std::path::Path) -> usize {
         let prefix = self.shm_prefix();
+        let lock = self.launcher_lock_in(shm_dir);
         let mut removed = 0;
-        if let Ok(entries) = std::fs::read_dir(SHM_DIR) {
+        if let Ok(entries) = std::fs::read_dir(shm_dir) {
             for entry in entries.flatten() {
                 if entry.file_name().to_string_lossy().starts_with(&prefix)
+                    && entry.path() != lock
                     && std::fs::remove_file(entry.path()).is_ok()
                 {
                     removed += 1;
                 }
             }
         }
+        if std::fs::remove_file(&lock).is_ok() {
+            removed += 1;
+        }
         let _ignored_if_absent = std::fs::remove_dir_all(self.root_path());
         removed
     }
+
+    /// The lock file a live launcher of this run holds: `/dev/shm/<shm prefix>launcher.lock`.
+    pub fn launcher_lock_path(&self) -> PathBuf {
+        self.launcher_lock_in(std::path::Path::new(SHM_DIR))
+    }
+
+    fn launcher_lock_in(&self, shm_dir: &std::path::Path) -> PathBuf {
+        shm_dir.join(format!("{}{LAUNCHER_LOCK}", self.shm_prefix()))
+    }
+
+    /// Takes this run's launcher lock (an exclusive `flock` on [`Self::launcher_lock_path`]),
+    /// held until the returned guard drops or the launcher dies, however it dies. The lock, not
+    /// a pid, is what tells another launcher (or a Python client) that the run is alive: a pid
+    /// means nothing to a process in another PID namespace that shares `/dev/shm`.
+    pub fn hold_launcher_lock(&self) -> Result<LauncherLock> {
+        self.hold_launcher_lock_in(std::path::Path::new(SHM_DIR))
+    }
+
+    /// The file a client of the run (a Python env) holds a shared `flock` on while it has ports
+    /// open: `/dev/shm/<shm prefix>clients.lock`, made with the launcher's lock.
+    pub fn clients_lock_path(&self) -> PathBuf {
+        std::path::Path::new(SHM_DIR).join(format!("{}{CLIENTS_LOCK}", self.shm_prefix()))
+    }
+
+    /// Waits, at most `patience`, until no client holds the run's clients lock (it has closed
+    /// its ports): at the run's end, before [`Self::remove_leftovers`], so that a client whose
+    /// ports outlive the sim removes those services itself instead of finding their files
+    /// gone. Returns false if a client still held it.
+    pub fn wait_for_clients(&self, patience: std::time::Duration) -> bool {
+        let Ok(file) = std::fs::File::open(self.clients_lock_path()) else {
+            return true;
+        };
+        if try_flock(&file).unwrap_or(true) {
+            return true;
+        }
+        // flock(2) has no timeout: a thread waits in it; the channel's timeout bounds the wait.
+        let (done, finished) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            use std::os::fd::AsRawFd;
+            // SAFETY: flock(2) on a descriptor that `file`, moved here, owns.
+            let _ = done.send(unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX) } == 0);
+        });
+        finished.recv_timeout(patience).unwrap_or(false)
+    }
+
+    fn hold_launcher_lock_in(&self, shm_dir: &std::path::Path) -> Result<LauncherLock> {
+        use std::os::unix::fs::{MetadataExt, OpenOptionsExt};
+        let path = self.launcher_lock_in(shm_dir);
+        let started = std::time::Instant::now();
+        loop {
+            let file = std::fs::OpenOptions::new()
+                .create(true)
+                .truncate(false)
+                .read(true)
+                .write(true)
+                .mode(0o644)
+                .open(&path)
+                .with_context(|| format!("cannot create {}", path.display()))?;
+            if !try_flock(&file)? {
+                // A sweep that saw the new file before this lock may hold it for a moment;
+                // a live launcher of the same run id holds it for good.
+                anyhow::ensure!(
+                    started.elapsed() < LOCK_PATIENCE,
+                    "{} is held by another live launcher of run {}",
+                    path.display(),
+                    self.run_id
+                );
+                std::thread::sleep(std::time::Duration::from_millis(20));
+                continue;
+            }
+            // Such a sweep removes the file it locked: then lock the one that is there now.
+            let held = file.metadata()?;
+            if std::fs::metadata(&path).is_ok_and(|now| now.dev() == held.dev() && now.ino() == held.ino()) {
+                // The clients' file comes after the lock: a run with files has its lock file.
+                let clients = shm_dir.join(format!("{}{CLIENTS_LOCK}", self.shm_prefix()));
+                let lock = LauncherLock { file, path, clients };
+                std::fs::OpenOptions::new()
+                    .create(true)
+                    .truncate(false)
+                    .write(true)
+                    .mode(0o644)
+                    .open(&lock.clients)
+                    .with_context(|| format!("cannot create {}", lock.clients.display()))?;
+                return Ok(lock);
+            }
+        }
+    }
+}
+
+/// Suffix (after the run's shm prefix) of the lock file a live launcher holds.
+const LAUNCHER_LOCK: &str = "launcher.lock";
+/// Suffix of the file clients hold a shared lock on while their ports are open.
+const CLIENTS_LOCK: &str = "clients.lock";
+/// How long taking a launcher lock waits for a sweep that holds it for a moment.
+const LOCK_PATIENCE: std::time::Duration = std::time::Duration::from_secs(2);
+
+/// A live launcher's hold on its run (from [`RunIdentity::hold_launcher_lock`]): dropped, it
+/// removes its file and the clients' (if the run's clean-up has not already); the kernel
+/// releases the lock when the launcher is killed.
+#[derive(Debug)]
+pub struct LauncherLock {
+    file: std::fs::File,
+    path: PathBuf,
+    clients: PathBuf,
+}
+
+impl Drop for LauncherLock {
+    fn drop(&mut self) {
+        use std::os::unix::fs::MetadataExt;
+        // Only the file this guard locked (still locked: nobody else can have replaced it).
+        let ours = self.file.metadata().ok().map(|m| (m.dev(), m.ino()));
+        if std::fs::metadata(&self.path).ok().map(|m| (m.dev(), m.ino())) == ours && ours.is_some() {
+            let _ignored_if_absent = std::fs::remove_file(&self.clients);
+            let _ignored_if_absent = std::fs::remove_file(&self.path);
+        }
+    }
+}
+
+/// Takes an exclusive `flock` on `file` without waiting: false while someone else holds it.
+fn try_flock(file: &std::fs::File) -> Result<bool> {
+    use std::os::fd::AsRawFd;
+    // SAFETY: flock(2) on a descriptor that `file` owns for the duration of the call.
+    if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } == 0 {
+        return Ok(true);
+    }
+    let err = std::io::Error::last_os_error();
+    if err.kind() == std::io::ErrorKind::WouldBlock {
+        return Ok(false);
+    }
+    Err(err).context("flock")
+}
+
+/// Removes the shared memory and root path of every run whose launcher is gone: its lock file
+/// is in `/dev/shm` and nobody holds it (a launcher killed outright cannot clean up after
+/// itself; its members died with it). The lock is held while the files go, so a launcher that
+/// is alive, in this PID namespace or another sharing `/dev/shm`, is never swept. Runs with
+/// no lock file (not started by a launcher) are left alone. Returns each swept run with the
+/// number of files removed.
+pub fn sweep_abandoned_runs() -> Vec<(String, usize)> {
+    sweep_abandoned_runs_in(std::path::Path::new(SHM_DIR))
+}
+
+fn sweep_abandoned_runs_in(shm_dir: &std::path::Path) -> Vec<(String, usize)> {
+    let lock_suffix = format!("_{LAUNCHER_LOCK}");
+    let mut run_ids: Vec<String> = std::fs::read_dir(shm_dir)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter_map(|entry| {
+            let name = entry.file_name().to_string_lossy().into_owned();
+            Some(name.strip_prefix("fc_")?.strip_suffix(&lock_suffix)?.to_string())
+        })
+        .collect();
+    run_ids.sort();
+    run_ids
+        .into_iter()
+        .filter_map(|run_id| {
+            let identity = RunIdentity::new(&run_id).ok()?;
+            let file = std::fs::File::open(identity.launcher_lock_in(shm_dir)).ok()?;
+            // Held: the launcher lives. Taken: it is gone, and no new one can take it meanwhile.
+            try_flock(&file).ok()?.then_some(())?;
+            let removed = identity.remove_leftovers_in(shm_dir);
+            drop(file);
+            Some((run_id, removed))
+        })
+        .collect()
 }
 
 /// Creates a node of the run with a descriptive name (shown by `iox2 node list`).
@@ -579,6 +755,86 @@ mod tests {
             contract.required_attributes().number_of_attributes(),
             CONTRACT_KEYS.len()
         );
+    }
+
+    /// A pid that does not exist (a child that has been waited for).
+    fn gone_pid() -> u32 {
+        let mut child = std::process::Command::new("true").spawn().expect("spawn true");
+        let pid = child.id();
+        child.wait().expect("wait");
+        pid
+    }
+
+    #[test]
+    fn a_held_launcher_lock_keeps_its_run_from_being_swept_whatever_its_pid_says() {
+        let dir = std::env::temp_dir().join(format!("formation-sweep-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        // Run ids name their launcher's pid; here neither pid exists (as for a launcher in
+        // another PID namespace): only the lock tells the live run from the dead one.
+        let pid = gone_pid();
+        let live = RunIdentity::new(&format!("r000001p{pid}")).expect("id");
+        let dead = RunIdentity::new(&format!("r000002p{pid}x1")).expect("id");
+        for identity in [&live, &dead] {
+            std::fs::write(identity.launcher_lock_in(&dir), b"").expect("lock file");
+            std::fs::write(dir.join(format!("{}state.data", identity.shm_prefix())), b"").expect("write");
+        }
+        std::fs::write(dir.join("fc_default_state.data"), b"").expect("write"); // no launcher's
+        // The live launcher's lock, as any process holds it (the dead one's is left unheld).
+        let held = std::fs::File::open(live.launcher_lock_in(&dir)).expect("open");
+        assert!(try_flock(&held).expect("flock"));
+        assert_eq!(sweep_abandoned_runs_in(&dir), vec![(dead.run_id.clone(), 2)]);
+        let names = |dir: &std::path::Path| {
+            let mut names: Vec<String> = std::fs::read_dir(dir)
+                .expect("dir")
+                .flatten()
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .collect();
+            names.sort();
+            names
+        };
+        let prefix = live.shm_prefix();
+        let expected = vec![
+            "fc_default_state.data".to_string(),
+            format!("{prefix}launcher.lock"),
+            format!("{prefix}state.data"),
+        ];
+        assert_eq!(names(&dir), expected);
+        // The launcher is killed outright: the kernel drops its lock, the next sweep takes all.
+        drop(held);
+        assert_eq!(sweep_abandoned_runs_in(&dir), vec![(live.run_id.clone(), 2)]);
+        assert_eq!(names(&dir), vec!["fc_default_state.data".to_string()]);
+        std::fs::remove_dir_all(&dir).expect("cleanup");
+    }
+
+    #[test]
+    fn a_launcher_lock_is_exclusive_and_goes_with_its_guard() {
+        let dir = std::env::temp_dir().join(format!("formation-lock-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let identity = RunIdentity::new(&format!("r000003p{}", gone_pid())).expect("id");
+        let lock = identity.hold_launcher_lock_in(&dir).expect("lock");
+        assert!(sweep_abandoned_runs_in(&dir).is_empty());
+        let err = identity.hold_launcher_lock_in(&dir).expect_err("held by the first");
+        assert!(format!("{err:#}").contains("another live launcher"), "{err:#}");
+        let clients = dir.join(format!("{}{CLIENTS_LOCK}", identity.shm_prefix()));
+        assert!(clients.exists());
+        drop(lock);
+        assert!(!identity.launcher_lock_in(&dir).exists() && !clients.exists());
+        std::fs::remove_dir_all(&dir).expect("cleanup");
+    }
+
+    #[test]
+    fn the_run_end_waits_for_clients_that_hold_their_lock() {
+        let identity = RunIdentity::new(&format!("clients{}", std::process::id())).expect("id");
+        let lock = identity.hold_launcher_lock().expect("lock");
+        let client = std::fs::File::open(identity.clients_lock_path()).expect("open");
+        use std::os::fd::AsRawFd;
+        // SAFETY: flock(2) on a descriptor `client` owns.
+        assert_eq!(unsafe { libc::flock(client.as_raw_fd(), libc::LOCK_SH) }, 0);
+        assert!(!identity.wait_for_clients(std::time::Duration::from_millis(100)));
+        drop(client); // the client closed its ports
+        assert!(identity.wait_for_clients(std::time::Duration::from_secs(60)));
+        drop(lock);
+        assert!(!identity.clients_lock_path().exists() && !identity.launcher_lock_path().exists());
     }
 
     #[test]

@@ -1,7 +1,7 @@
 """A PettingZoo ``ParallelEnv`` over a real multi-process swarm.
 
-``FormationEnv`` starts ``scripts/run_swarm.sh N --external all --mode eval`` (the sim and the
-critic as their own processes, no robot process) and plays all N robot slots from this Python
+``FormationEnv`` starts the launcher, ``formation N --external all --mode eval`` (the sim and
+the critic as their own processes, no robot process) and plays all N robot slots from this Python
 process over iceoryx2 shared memory, one ``Robot`` per slot, exactly as ``formation-agent``
 would: every ``step`` answers the sim's current tick for every robot and waits for the next.
 
@@ -13,14 +13,18 @@ would: every ``step`` answers the sim's current tick for every robot and waits f
             {agent: env.action_space(agent).sample() for agent in env.agents})
     env.close()
 
-Needs the ``pettingzoo`` extra (``pip install './python[pettingzoo]'``) and this repository's
-``scripts/run_swarm.sh`` with its binaries (``FORMATION_BIN_DIR``, or a release build).
+Needs the ``pettingzoo`` extra (``pip install './python[pettingzoo]'``) and the binaries:
+``cargo install``-ed on PATH, in ``FORMATION_BIN_DIR``, or a checkout's ``scripts/run_swarm.sh``
+(:func:`find_launcher` gives the order).
 """
 
 from __future__ import annotations
 
 import atexit
 import collections
+import dataclasses
+import fcntl
+import gc
 import json
 import math
 import os
@@ -106,22 +110,78 @@ shutil.rmtree(info["root_path"], ignore_errors=True)
 """
 
 
-def find_repo(repo: Union[str, Path, None] = None) -> Path:
-    """The checkout holding ``scripts/run_swarm.sh``: ``repo``, else ``$FORMATION_REPO``, else
-    the checkout this package sits in (``python/formation_swarm``), else the working directory
-    or one of its parents."""
-    if repo is not None or os.environ.get("FORMATION_REPO"):
-        chosen = Path(repo if repo is not None else os.environ["FORMATION_REPO"]).expanduser()
-        if not (chosen / "scripts" / "run_swarm.sh").is_file():
-            raise FormationError(f"{chosen} has no scripts/run_swarm.sh (repo= / FORMATION_REPO)")
-        return chosen.resolve()
-    cwd = Path.cwd().resolve()
-    for candidate in (Path(__file__).resolve().parents[2], cwd, *cwd.parents):
-        if (candidate / "scripts" / "run_swarm.sh").is_file():
-            return candidate
+#: The binaries a run needs: the launcher and the members it starts (``cargo install`` puts
+#: them side by side).
+BINARIES = ("formation", "formation-sim", "formation-agent", "formation-critic")
+
+
+@dataclasses.dataclass(frozen=True)
+class Launcher:
+    """How the env starts a swarm: ``command`` (``run_swarm.sh`` of a checkout, or the
+    ``formation`` binary) and the prebuilt binaries it uses (``FORMATION_BIN_DIR``; None: the
+    checkout's script builds a release first), found as :func:`find_launcher` says."""
+
+    command: Path
+    bin_dir: Optional[Path]
+    found: str
+
+
+def _script(checkout: Path) -> Path:
+    return checkout / "scripts" / "run_swarm.sh"
+
+
+def _missing(directory: Path) -> List[str]:
+    return [b for b in BINARIES if not os.access(directory / b, os.X_OK) or not (directory / b).is_file()]
+
+
+def find_launcher(repo: Union[str, Path, None] = None, bin_dir: Union[str, Path, None] = None) -> Launcher:
+    """Where the env's swarms come from, in this order (the first that applies wins):
+
+    1. ``repo`` (``FormationEnv(repo=...)``): that checkout's ``scripts/run_swarm.sh``;
+    2. ``$FORMATION_REPO``: the same;
+    3. ``bin_dir`` (``FormationEnv(bin_dir=...)``), else ``$FORMATION_BIN_DIR``: the
+       ``formation`` launcher in that directory, with its member binaries beside it;
+    4. the checkout this package sits in (``pip install -e ./python``, or ``PYTHONPATH``): its
+       ``scripts/run_swarm.sh``;
+    5. ``formation`` on ``PATH`` with ``formation-sim``, ``formation-agent`` and
+       ``formation-critic`` beside it (as ``cargo install`` puts them, python/README.md).
+
+    A checkout's script uses the binaries of 3 when given, else builds a release first. Raises
+    ``FormationError`` naming each place tried."""
+    env_bin = os.environ.get("FORMATION_BIN_DIR") or None
+    chosen_bin = bin_dir if bin_dir is not None else env_bin
+    bins = None if chosen_bin is None else Path(chosen_bin).expanduser().resolve()
+    for given, how in ((repo, "repo="), (os.environ.get("FORMATION_REPO") or None, "FORMATION_REPO")):
+        if given is not None:
+            checkout = Path(given).expanduser().resolve()
+            if not _script(checkout).is_file():
+                raise FormationError(f"{how} {checkout} has no scripts/run_swarm.sh")
+            return Launcher(_script(checkout), bins, f"{how} {checkout}")
+    tried = ["repo= (not given)", "FORMATION_REPO (not set)"]
+    if bins is not None:
+        how = "bin_dir=" if bin_dir is not None else "FORMATION_BIN_DIR"
+        missing = _missing(bins)
+        if missing:
+            raise FormationError(f"{how} {bins} lacks {', '.join(missing)}")
+        return Launcher(bins / "formation", bins, f"{how} {bins}")
+    tried.append("bin_dir= / FORMATION_BIN_DIR (not set)")
+    package_checkout = Path(__file__).resolve().parents[2]
+    if _script(package_checkout).is_file():
+        return Launcher(_script(package_checkout), None, f"the checkout of the package, {package_checkout}")
+    tried.append(f"the checkout the package sits in ({package_checkout} has no scripts/run_swarm.sh)")
+    on_path = shutil.which("formation")
+    if on_path is not None:
+        directory = Path(on_path).parent
+        missing = _missing(directory)
+        if not missing:
+            return Launcher(directory / "formation", directory, f"PATH, {directory}")
+        tried.append(f"PATH (formation in {directory}, but not {', '.join(missing)} beside it)")
+    else:
+        tried.append("PATH (no formation)")
     raise FormationError(
-        "cannot find scripts/run_swarm.sh: pass FormationEnv(repo=...) or set FORMATION_REPO to the "
-        "formation-swarm checkout"
+        "cannot find the formation-swarm binaries; tried, in order: " + "; ".join(tried) + ". Install them "
+        "(python/README.md: cargo install ...), or pass FormationEnv(repo=...) / set FORMATION_REPO to a "
+        "checkout, or set FORMATION_BIN_DIR to a directory of built binaries"
     )
 
 
@@ -238,15 +298,18 @@ class FormationEnv(ParallelEnv):
     ``<run_dir>/recording.rrd``, ``--viewer save``); ``viewer`` (``spawn``, ``save``,
     ``connect=URL`` or ``off``: run_swarm.sh ``--viewer``, overrides the one render_mode picks);
     ``run_dir`` (where the runs go: ``swarm-<k>`` per launch; default a temporary directory,
-    removed by :meth:`close` unless render_mode is ``"rerun"``); ``repo`` (the checkout, see
-    :func:`find_repo`); ``bin_dir`` (prebuilt binaries, ``FORMATION_BIN_DIR``; without either the
-    launcher builds a release); ``placement`` (run_swarm.sh ``--placement``); ``step_timeout_s``;
+    removed by :meth:`close` unless render_mode is ``"rerun"``); ``repo`` (a checkout whose
+    ``scripts/run_swarm.sh`` to run) and ``bin_dir`` (prebuilt binaries, ``FORMATION_BIN_DIR``):
+    where the launcher and its binaries come from, see :func:`find_launcher`; ``placement`` (run_swarm.sh ``--placement``); ``step_timeout_s``;
     ``launch_timeout_s`` (how long to wait for run.json); ``close_timeout_s``.
 
     Use :meth:`close` (or ``with FormationEnv(...) as env``): it stops the swarm and leaves
     nothing in /dev/shm. An env still open at interpreter exit is closed by an ``atexit`` hook;
     for a process that is killed, a small watcher process (started with the swarm) stops the
     swarm within seconds and removes its shared memory.
+
+    The env pickles as its constructor's arguments (SuperSuit's ``concat_vec_envs_v1`` copies
+    it so): a copy starts its own swarm when first used, in its own directory.
     """
 
     metadata = {"name": "formation_swarm_v0", "render_modes": ["rerun"], "is_parallelizable": True}
@@ -269,32 +332,59 @@ class FormationEnv(ParallelEnv):
         launch_timeout_s: float = 900.0,
         close_timeout_s: float = 60.0,
     ) -> None:
+        def resolved(path: Union[str, Path, None]) -> Optional[str]:
+            return None if path is None else str(Path(path).expanduser().resolve())
+
+        self._configure(
+            dict(
+                n=n, seed=seed, shape=shape, config=resolved(config), max_cycles=max_cycles,
+                render_mode=render_mode, viewer=viewer, run_dir=resolved(run_dir), repo=resolved(repo),
+                bin_dir=resolved(bin_dir), placement=placement, step_timeout_s=step_timeout_s,
+                launch_timeout_s=launch_timeout_s, close_timeout_s=close_timeout_s,
+            ),
+            copy=False,
+        )
+        try:
+            self._launch(self._seed)
+        except BaseException:
+            self.close()
+            raise
+        self._make_spaces(self.run.observation_dim)
+
+    def _configure(self, args: Dict[str, Any], copy: bool) -> None:
+        """Checks the constructor's arguments (``args``, paths resolved) and sets the env up
+        without starting a swarm; a ``copy`` (unpickled) puts its runs in a directory of its
+        own under a given ``run_dir``."""
+        render_mode, n, seed, config = args["render_mode"], args["n"], args["seed"], args["config"]
         if render_mode not in (None, "rerun"):
             raise FormationError(f"render_mode must be None or 'rerun', got {render_mode!r}")
         if not (wire.MIN_AGENTS <= int(n) <= wire.MAX_AGENTS):
             raise FormationError(f"n must be {wire.MIN_AGENTS} to {wire.MAX_AGENTS}, got {n}")
         if int(seed) < 0:
             raise FormationError(f"seed must be a whole number >= 0, got {seed}")
+        self._args = args
         self.n = int(n)
+        self._seed = int(seed)
         self.render_mode = render_mode
-        self.max_cycles = max_cycles
-        self.shape = shape
-        self.config = None if config is None else Path(config).resolve()
+        self.max_cycles = args["max_cycles"]
+        self.shape = args["shape"]
+        self.config = None if config is None else Path(config)
         if self.config is not None and not self.config.is_file():
             raise FormationError(f"config file {self.config} does not exist")
-        self.viewer = viewer or ("save" if render_mode == "rerun" else "off")
-        self.placement = placement
-        self.step_timeout_s = step_timeout_s
-        self.launch_timeout_s = launch_timeout_s
-        self.close_timeout_s = close_timeout_s
-        self.repo = find_repo(repo)
-        self.bin_dir = None if bin_dir is None else Path(bin_dir).resolve()
+        self.viewer = args["viewer"] or ("save" if render_mode == "rerun" else "off")
+        self.placement = args["placement"]
+        self.step_timeout_s = args["step_timeout_s"]
+        self.launch_timeout_s = args["launch_timeout_s"]
+        self.close_timeout_s = args["close_timeout_s"]
+        #: How this env starts its swarms (:func:`find_launcher`).
+        self.launcher = find_launcher(args["repo"], args["bin_dir"])
+        run_dir = args["run_dir"]
         self._own_base = run_dir is None
         if run_dir is None:
             self.base_dir = Path(tempfile.mkdtemp(prefix="formation-env-"))
         else:
-            self.base_dir = Path(run_dir).resolve()
-            self.base_dir.mkdir(parents=True, exist_ok=True)
+            Path(run_dir).mkdir(parents=True, exist_ok=True)
+            self.base_dir = Path(tempfile.mkdtemp(prefix="copy-", dir=run_dir)) if copy else Path(run_dir)
         self.keep_runs = not self._own_base or render_mode == "rerun"
 
         self.possible_agents: List[str] = [f"{AGENT_PREFIX}{i}" for i in range(self.n)]
@@ -307,27 +397,45 @@ class FormationEnv(ParallelEnv):
         self._observer: Optional[Observer] = None
         self._waitset = None
         self._guards: List[Any] = []
+        self._clients_lock: Optional[int] = None
+        self._last_state: Optional[wire.State] = None
+        self._owed = False
         self._closed = False
         # An env left open at interpreter exit is closed then (a weak reference: the hook does
         # not keep the env alive).
         self._atexit = _closer(weakref.ref(self))
         atexit.register(self._atexit)
-        #: The RunInfo (run.json) of the running swarm.
+        #: The RunInfo (run.json) of the running swarm (None until a copy first starts one).
         self.run: Optional[RunInfo] = None
         #: The run directory of the running swarm (``<base>/swarm-<k>``).
         self.run_dir: Optional[Path] = None
-        try:
-            self._launch(int(seed))
-        except BaseException:
-            self.close()
-            raise
-        run = self.run
-        obs_space = gymnasium.spaces.Box(-np.inf, np.inf, shape=(run.observation_dim,), dtype=np.float32)
+
+    def _make_spaces(self, observation_dim: int) -> None:
+        obs_space = gymnasium.spaces.Box(-np.inf, np.inf, shape=(observation_dim,), dtype=np.float32)
         self.observation_spaces = {agent: obs_space for agent in self.possible_agents}
         act_space = gymnasium.spaces.Box(-1.0, 1.0, shape=(wire.ACTION_DIM,), dtype=np.float32)
         self.action_spaces = {agent: act_space for agent in self.possible_agents}
         #: ``Box`` of :meth:`state`.
         self.state_space = gymnasium.spaces.Box(-np.inf, np.inf, shape=(8 * self.n + 2,), dtype=np.float32)
+
+    # --- pickling: a copy is its constructor's arguments and starts its own swarm ------------
+
+    def __getstate__(self) -> Dict[str, Any]:
+        """What a copy (pickle, cloudpickle, ``copy.deepcopy``) keeps: the constructor's
+        arguments and the observation size; no process, port or lock of this env."""
+        return {"args": dict(self._args), "observation_dim": int(self.observation_spaces[self.possible_agents[0]].shape[0])}
+
+    def __setstate__(self, state: Dict[str, Any]) -> None:
+        """An unpickled copy: the same arguments and spaces, its own swarm started when first
+        used (:meth:`reset`), its runs in its own directory."""
+        self._configure(dict(state["args"]), copy=True)
+        self._make_spaces(int(state["observation_dim"]))
+
+    def _ensure_swarm(self, seed: Optional[int] = None) -> None:
+        """Starts the swarm of an unpickled copy on its first use (``seed``, else the env's)."""
+        self._check_open()
+        if self.run is None:
+            self._launch(self._seed if seed is None else int(seed))
 
     # --- PettingZoo --------------------------------------------------------------------------
 
@@ -358,6 +466,7 @@ class FormationEnv(ParallelEnv):
         options = options or {}
         if seed is not None and int(seed) < 0:
             raise FormationError(f"seed must be a whole number >= 0, got {seed}")
+        self._ensure_swarm(seed)
         if (seed is not None and int(seed) != self._seed) or options.get("restart"):
             self._shutdown()
             self._launch(self._seed if seed is None else int(seed))
@@ -497,6 +606,7 @@ class FormationEnv(ParallelEnv):
 
     def command_from_action(self, action: Any) -> Tuple[float, float]:
         """(v, w) in m/s and rad/s for a normalised action (clipped to [-1, 1]^2)."""
+        self._ensure_swarm()
         a = np.asarray(action, dtype=np.float64).reshape(-1)
         if a.shape != (wire.ACTION_DIM,):
             raise FormationError(f"an action is 2 numbers (normalised v, w), got shape {np.shape(action)}")
@@ -506,6 +616,7 @@ class FormationEnv(ParallelEnv):
 
     def action_from_command(self, v: float, w: float) -> np.ndarray:
         """The normalised action for a physical (v, w) (clipped to the robot's limits)."""
+        self._ensure_swarm()
         a0 = min(max(2.0 * v / self.run.v_max - 1.0, -1.0), 1.0)
         a1 = min(max(w / self.run.w_max, -1.0), 1.0)
         return np.array([a0, a1], dtype=np.float32)
@@ -535,7 +646,7 @@ class FormationEnv(ParallelEnv):
             + swarm_config(self.config, self.step_timeout_s)
         )
         args = [
-            str(self.repo / "scripts" / "run_swarm.sh"), str(self.n),
+            str(self.launcher.command), str(self.n),
             "--external", "all", "--mode", "eval", "--episodes", str(RUN_EPISODES),
             "--seed", str(seed), "--viewer", self.viewer, "--placement", self.placement,
             "--config", str(config), "--run-dir", str(run_dir),
@@ -543,8 +654,10 @@ class FormationEnv(ParallelEnv):
         if self.shape:
             args += ["--shape", self.shape]
         environ = dict(os.environ)
-        if self.bin_dir is not None:
-            environ["FORMATION_BIN_DIR"] = str(self.bin_dir)
+        if self.launcher.bin_dir is not None:
+            environ["FORMATION_BIN_DIR"] = str(self.launcher.bin_dir)
+        else:
+            environ.pop("FORMATION_BIN_DIR", None)
         with open(self.base_dir / f"swarm-{k}.log", "wb") as log:
             self._proc = subprocess.Popen(
                 args, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, env=environ,
@@ -564,6 +677,7 @@ class FormationEnv(ParallelEnv):
                 raise FormationError(f"no {run_dir / 'run.json'} after {self.launch_timeout_s} s{self._log_tail()}")
             time.sleep(0.05)
         self.run = connect(run_dir, timeout=10)
+        self._hold_clients_lock()
         if self.run.n_agents != self.n:
             raise FormationError(f"run.json says {self.run.n_agents} robots, the env asked for {self.n}")
         self._observer = Observer(self.run, name="env")
@@ -730,6 +844,7 @@ class FormationEnv(ParallelEnv):
                 except FormationError:
                     pass
         self._release_ports()
+        self._release_clients_lock()
         if proc is not None:
             try:
                 proc.wait(timeout=max(0.1, deadline - time.monotonic()))
@@ -771,6 +886,22 @@ class FormationEnv(ParallelEnv):
                     robot.answer(queue[-1], 0.0, 0.0)
                 queue.clear()
 
+    def _hold_clients_lock(self) -> None:
+        """A shared ``flock`` on the run's ``/dev/shm/<prefix>clients.lock`` while the ports are
+        open: at the run's end the launcher waits for it (a few seconds at most) before it
+        removes the run's files, so ports that outlive the sim remove their services
+        themselves (iceoryx2 would otherwise warn of "a corrupted system" for each)."""
+        try:
+            fd = os.open(f"/dev/shm/{self.run.shm_prefix}clients.lock", os.O_RDONLY)
+        except FileNotFoundError:
+            return
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)  # the launcher is already removing the run
+            return
+        self._clients_lock = fd
+
     def _release_ports(self) -> None:
         for guard in self._guards:
             guard.delete()
@@ -784,6 +915,14 @@ class FormationEnv(ParallelEnv):
         if self._observer is not None:
             self._observer.close()
             self._observer = None
+
+    def _release_clients_lock(self) -> None:
+        """Once the ports are gone (and whatever still referred to them: a collection first),
+        lets the launcher remove the run's files."""
+        if self._clients_lock is not None:
+            gc.collect()
+            os.close(self._clients_lock)
+            self._clients_lock = None
 
     @staticmethod
     def _remove_leftovers(run: RunInfo) -> None:

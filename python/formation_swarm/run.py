@@ -9,6 +9,7 @@ sizes the Rust processes ask for (so whichever side creates a service first, the
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import json
 import os
 import time
@@ -83,16 +84,24 @@ class RunInfo:
             raise FormationError(f"{run_dir / 'run.json'} is malformed: {err!r}") from err
 
     def launcher_alive(self) -> bool:
-        """True while the launcher that wrote run.json still runs (False for a finished run)."""
+        """True while the launcher that wrote run.json still runs (False for a finished run):
+        while someone holds the run's lock file, ``/dev/shm/<shm prefix>launcher.lock``, which
+        the launcher locks (``flock``) for its whole life and removes with the run's files. A
+        pid would not do: a launcher in another PID namespace sharing /dev/shm has none here.
+        A run.json written by hand (``launcher_pid`` 0: no launcher) counts as alive."""
         if self.launcher_pid <= 0:
             return True
         try:
-            os.kill(self.launcher_pid, 0)
-        except ProcessLookupError:
+            fd = os.open(f"/dev/shm/{self.shm_prefix}launcher.lock", os.O_RDONLY)
+        except FileNotFoundError:
             return False
-        except PermissionError:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
             return True
-        return True
+        finally:
+            os.close(fd)
+        return False
 
     # --- service sizing, as protocol/src/services.rs derives it -----------------------------
 

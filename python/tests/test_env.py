@@ -270,3 +270,107 @@ def test_a_killed_process_leaves_nothing(tmp_path, watchdog):
         time.sleep(0.2)
     assert not processes_mentioning(base), "the launcher and the watcher have ended"
     assert_clean(run_id)
+
+
+def test_close_prints_nothing(tmp_path, watchdog):
+    """A normal open/step/close leaves the Python process's own stderr empty: the client's ports
+    go before the swarm removes its services (iceoryx2 warns of "a corrupted system" once per
+    service otherwise). In a process of its own, as a user runs it (pytest's own process does
+    not show the race)."""
+    import subprocess
+    import sys
+
+    script = (
+        "import formation_swarm as fs\n"
+        f"env = fs.FormationEnv(n=3, seed=9, run_dir={str(tmp_path / 'env')!r}, bin_dir={str(bin_dir())!r})\n"
+        "for seed in (9, 20, 21, 22):  # each new seed stops the running swarm and starts another\n"
+        "    obs, _ = env.reset(seed=seed)\n"
+        "    for _ in range(5):\n"
+        "        obs, *_ = env.step({a: [0.5, 0.0] for a in env.agents})\n"
+        "env.close()\n"
+        "print(' '.join(p.parent.name + '=' + __import__('json').loads(p.read_text())['run_id']\n"
+        "               for p in sorted(env.base_dir.glob('swarm-*/run.json'))))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=150,
+                          env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
+    assert done.returncode == 0, done.stderr
+    assert done.stderr == "", done.stderr
+    ids = [item.split("=")[1] for item in done.stdout.split()]
+    assert len(ids) == 4
+    for run_id in ids:
+        assert_clean(run_id)
+
+
+def test_a_held_launcher_lock_keeps_its_run_from_the_sweep(make_env, tmp_path):
+    """A run whose launcher lock is held (here by a process of this test; its run id names a pid
+    that does not exist, as a launcher's in another PID namespace would) is not swept by a
+    real launcher, and ``launcher_alive`` says it lives; released, the next launcher sweeps it."""
+    import subprocess
+    import sys
+
+    child = subprocess.Popen(["true"])
+    child.wait()
+    run_id = f"r000001p{child.pid}x9"
+    lock = f"/dev/shm/fc_{run_id}_launcher.lock"
+    data = f"/dev/shm/fc_{run_id}_state.data"
+    for path in (lock, data):
+        open(path, "wb").close()
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import fcntl, sys\nf = open(sys.argv[1])\nfcntl.flock(f, fcntl.LOCK_EX)\n"
+                               "print('held', flush=True)\nsys.stdin.read()\n", lock],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline() == "held\n"
+        info = fs.RunInfo.from_dict(tmp_path, {
+            "run_id": run_id, "n_agents": 3, "shm_prefix": f"fc_{run_id}_", "root_path": str(root_path(run_id)),
+            "protocol_version": fs.PROTOCOL_VERSION, "observation": "slot_proximity", "observation_dim": 16,
+            "critic_window": 64, "startup_timeout_s": 60, "sim_silence_ms": 2000, "command_timeout_ms": 200,
+            "v_max": 0.5, "w_max": 1.0, "proximity_range_m": 1.0, "mode": "eval", "launcher_pid": child.pid})
+        assert info.launcher_alive()
+        env = make_env(n=3, seed=10)  # a real launcher: its sweep leaves the held run alone
+        assert os.path.exists(lock) and os.path.exists(data)
+        assert env.run.launcher_alive() and "whose launcher is gone" not in env._log_tail(50)
+        holder.stdin.close()
+        assert holder.wait(timeout=30) == 0
+        assert not info.launcher_alive()
+        env.reset(seed=11)  # the next launcher (this one, or any on the machine) sweeps it
+        assert not os.path.exists(lock) and not os.path.exists(data)
+        assert not info.launcher_alive()
+    finally:
+        if holder.poll() is None:
+            holder.kill()
+            holder.wait()
+        remove_leftovers(run_id)
+
+
+def test_supersuit_vector_env_recipe(make_env):
+    """PettingZoo's recipe for Stable-Baselines3: SuperSuit's pettingzoo_env_to_vec_env_v1, then
+    concat_vec_envs_v1, which copies the env with cloudpickle; each copy starts its own swarm
+    on first use, and both copies step."""
+    ss = pytest.importorskip("supersuit")
+    import pickle
+
+    env = make_env(n=3, seed=12, max_cycles=40)
+    copy = pickle.loads(pickle.dumps(env))
+    assert copy.run is None and copy.observation_space("robot_0") == env.observation_space("robot_0")
+    copy.close()  # never started: nothing to stop
+    vec = ss.concat_vec_envs_v1(ss.pettingzoo_env_to_vec_env_v1(env), 2, num_cpus=0, base_class="gymnasium")
+    try:
+        obs, infos = vec.reset(seed=13)
+        assert obs.shape == (2 * 3, env.run.observation_dim)
+        copies = [sub.par_env for sub in vec.vec_envs]
+        assert all(c is not env and c.run is not None for c in copies)
+        assert len({c.run.run_id for c in copies + [env]}) == 3, "every copy runs its own swarm"
+        for _ in range(45):  # past max_cycles: the vector env resets the copies itself
+            obs, rewards, terminations, truncations, infos = vec.step(
+                np.tile(np.array([[0.5, 0.0]], dtype=np.float32), (6, 1)))
+            assert obs.shape == (6, env.run.observation_dim) and rewards.shape == (6,)
+            assert np.all(np.isfinite(obs)) and np.all(np.isfinite(rewards))
+        assert all(c.run.launcher_alive() for c in copies)
+        copy_ids = [c.run.run_id for c in copies]
+        ticks = [c.world().tick for c in copies]
+        assert all(t > 0 for t in ticks), ticks
+    finally:
+        vec.close()
+    for run_id in copy_ids:
+        assert_clean(run_id)
