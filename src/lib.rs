@@ -111,7 +111,7 @@ pub fn run_swarm_with(
     if let (None, Some(id)) = (status, &run_id) {
         // The watchdog killed the launcher before its own clean-up: do it here so a failed
         // test leaves nothing behind (the test still fails on the missing status).
-        if let Ok(identity) = formation_protocol::services::RunIdentity::new(id) {
+        if let Ok(identity) = formation_ipc::services::RunIdentity::new(id) {
             identity.remove_leftovers();
         }
     }

@@ -3,9 +3,9 @@
 
 use std::time::Duration;
 
+use formation_core::config::{LearnConfig, RunConfig};
 use formation_critic::selection::Selector;
 use formation_model::checkpoint;
-use formation_protocol::config::{LearnConfig, RunConfig};
 use formation_swarm::{assert_clean, processes_of_run, repo_root, run_swarm, scratch_dir, shm_leftovers};
 
 fn scripted_eval(n: &str, episodes: &str) {

@@ -8,12 +8,12 @@ use std::cell::Cell;
 
 use formation_agent::policy::{Exploration, LearnedPolicy, Policy};
 use formation_core::baseline::{BaselineGains, ScriptedBaseline};
+use formation_core::config::{EnvConfig, ObservationModel, RunConfig};
 use formation_core::formation::random_episode;
 use formation_core::world::World;
 use formation_model::actor::ActorShape;
 use formation_model::history::ObservationHistory;
 use formation_protocol::MAX_OBS_DIM;
-use formation_protocol::config::{EnvConfig, ObservationModel, RunConfig};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 

@@ -1,7 +1,7 @@
 //! What drives a robot: the scripted baseline or the learned actor, behind one trait.
 
 use anyhow::Result;
-use formation_protocol::config::EnvConfig;
+use formation_core::config::EnvConfig;
 use rand::Rng;
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, Normal};

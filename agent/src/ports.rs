@@ -6,8 +6,8 @@
 use std::time::Duration;
 
 use anyhow::{Context, Result};
-use formation_protocol::services::{self, FileDescriptorBased, RunIdentity, Sizing};
-use formation_protocol::tick_gate::{ALL_ANSWERED_EVENT_ID, Answer, TickGate};
+use formation_ipc::services::{self, FileDescriptorBased, RunIdentity, Sizing};
+use formation_ipc::tick_gate::{ALL_ANSWERED_EVENT_ID, Answer, TickGate};
 use formation_protocol::wire::{CommandMsg, FLAG_HELLO, Header, ObservationMsg, WeightsHeader};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;

@@ -4,9 +4,9 @@
 use std::time::Duration;
 
 use anyhow::{Result, bail};
-use formation_protocol::config::RunConfig;
-use formation_protocol::services::{self, FileDescriptorBased, RunIdentity, Sizing};
-use formation_protocol::termination_requested;
+use formation_core::config::RunConfig;
+use formation_ipc::services::{self, FileDescriptorBased, RunIdentity, Sizing};
+use formation_ipc::termination_requested;
 use formation_protocol::wire::*;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::prelude::*;
@@ -161,9 +161,10 @@ where
 mod tests {
     use std::time::Instant;
 
+    use formation_ipc::services::Sizing;
+    use formation_ipc::tick_gate::{ALL_ANSWERED_EVENT_ID, TickGate};
     use formation_model::history::ObservationHistory;
-    use formation_protocol::tick_gate::{ALL_ANSWERED_EVENT_ID, TickGate};
-    use formation_protocol::{MAX_OBS_DIM, services::Sizing};
+    use formation_protocol::MAX_OBS_DIM;
 
     use super::*;
 

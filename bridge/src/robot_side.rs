@@ -9,8 +9,8 @@ use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, sync_channel};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
-use formation_protocol::services::{self, Sizing};
-use formation_protocol::termination_requested;
+use formation_ipc::services::{self, Sizing};
+use formation_ipc::termination_requested;
 use formation_protocol::wire::{CommandMsg, FLAG_RUN_END, ObservationMsg, WeightsHeader};
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;

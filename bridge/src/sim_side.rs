@@ -9,8 +9,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use anyhow::{Context, Result, anyhow};
-use formation_protocol::services::{self, SimWatch, Sizing};
-use formation_protocol::termination_requested;
+use formation_ipc::services::{self, SimWatch, Sizing};
+use formation_ipc::termination_requested;
 use formation_protocol::wire::{CommandMsg, FLAG_RUN_END, ObservationMsg, WeightsHeader};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::subscriber::Subscriber;

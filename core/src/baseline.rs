@@ -13,9 +13,9 @@
 //! The desired velocity u is then tracked by a unicycle: turn towards u, drive forward with
 //! the component of u along the heading (never backwards).
 
+use crate::config::{ConfigError, EnvConfig};
 use crate::observation::{Layout, ObservationView};
 use formation_protocol::NEIGHBOURS;
-use formation_protocol::config::{ConfigError, EnvConfig};
 use serde::{Deserialize, Serialize};
 
 /// Gains of the baseline, the `[baseline]` section (unknown keys rejected, missing ones keep
@@ -162,11 +162,11 @@ impl ScriptedBaseline {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::{FormationShape, ObservationModel};
     use crate::formation::random_episode;
     use crate::task::Outcome;
     use crate::world::World;
     use formation_protocol::MAX_OBS_DIM;
-    use formation_protocol::config::{FormationShape, ObservationModel};
     use rand::SeedableRng;
     use rand::rngs::StdRng;
 
@@ -327,8 +327,8 @@ mod tests {
 #[cfg(test)]
 mod report {
     use super::tests::{env_with, success_rate};
+    use crate::config::FormationShape;
     use crate::observation::MODELS;
-    use formation_protocol::config::FormationShape;
 
     /// Prints the baseline's in-process success rates for every observation model, shape and
     /// size: `cargo test --release -p formation-core baseline_report -- --ignored --nocapture`.

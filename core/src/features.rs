@@ -14,7 +14,7 @@
 //! (their values are that stream's `f32`s, widened exactly), so the features are the same
 //! floats whether a scene is read from the replay or from a `World`'s stream.
 
-use formation_protocol::config::{CriticArchitecture, ObservationModel};
+use crate::config::{CriticArchitecture, ObservationModel};
 use formation_protocol::{NEIGHBOURS, neighbours};
 
 use crate::observation::Layout;

@@ -1,26 +1,13 @@
-//! Formations and episodes: robots start exactly in formation around a random centroid, with
-//! a random goal 1 to 2.5 m away. Shapes are random rigid ones or named ones (ring, line,
-//! wedge, grid), all drawn at a random size and orientation.
-//!
-//! Robot i observes (i+1) mod N and (i+2) mod N, so a shape's robots are numbered along a
-//! closed tour of it: every tour step and every second step is an observed edge and must lie in
-//! [edge_min, edge_max]. A line is therefore two staggered files (the tour goes up one and down
-//! the other), a wedge is that band bent into a V, and a grid is toured by a boustrophedon that
-//! returns along its first column.
+//! Episodes: robots start exactly in formation (a shape from [`crate::shapes`]) around a random
+//! centroid, with a random goal 1 to 2.5 m away, at a random size and orientation.
 
-use formation_protocol::config::{EnvConfig, FormationShape, LARGE_SWARM};
+use crate::config::EnvConfig;
 use formation_protocol::{NEIGHBOURS, neighbours};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
 use crate::physics::{Pose, wrap_angle};
-
-/// Closest two robots of a formation may be, as a multiple of eps_coll (keeps starts safe).
-pub const MIN_SEPARATION_FACTOR: f64 = 2.5;
-/// Relaxation sweeps that pull a drawn shape into the allowed edge lengths.
-const RELAX_SWEEPS: usize = 400;
-/// Lattice spacing of the named shapes, as a fraction of edge_max / 2 (so two steps fit).
-const SPACING_RANGE: std::ops::Range<f64> = 0.85..0.95;
+use crate::shapes::draw_shape;
 
 /// Where an episode starts and where it must go.
 #[derive(Debug, Clone, PartialEq)]
@@ -34,225 +21,6 @@ pub struct EpisodeInit {
     /// Each robot's offset from the goal in the goal formation (the start shape translated to
     /// the goal, same orientation), world frame.
     pub slots: Vec<[f64; 2]>,
-}
-
-/// The observed (directed) edges of a swarm of `n` robots.
-pub fn observed_edges(n: usize) -> impl Iterator<Item = (usize, usize, usize)> {
-    (0..n).flat_map(move |i| neighbours(i, n).into_iter().enumerate().map(move |(k, j)| (i, k, j)))
-}
-
-fn edge_ok(length: f64, env: &EnvConfig) -> bool {
-    length >= env.edge_min_m && length <= env.edge_max_m
-}
-
-fn distance(a: [f64; 2], b: [f64; 2]) -> f64 {
-    (a[0] - b[0]).hypot(a[1] - b[1])
-}
-
-/// True when every observed edge is in range and no two robots are closer than the margin.
-pub fn shape_is_valid(points: &[[f64; 2]], env: &EnvConfig) -> bool {
-    let n = points.len();
-    let min_sep = env.eps_coll_m * MIN_SEPARATION_FACTOR;
-    observed_edges(n).all(|(i, _, j)| edge_ok(distance(points[i], points[j]), env))
-        && (0..n).all(|i| (i + 1..n).all(|j| distance(points[i], points[j]) >= min_sep))
-}
-
-/// Alternate projections: each observed edge towards the allowed range, each too-close pair
-/// apart. Returns true once a sweep changed nothing that mattered.
-fn relax(points: &mut [[f64; 2]], env: &EnvConfig) -> bool {
-    let n = points.len();
-    let min_sep = env.eps_coll_m * MIN_SEPARATION_FACTOR;
-    for _ in 0..RELAX_SWEEPS {
-        let mut settled = true;
-        for (i, _, j) in observed_edges(n) {
-            let (dx, dy) = (points[j][0] - points[i][0], points[j][1] - points[i][1]);
-            let d = dx.hypot(dy).max(1e-9);
-            if !edge_ok(d, env) {
-                settled = false;
-            }
-            let target = d.clamp(env.edge_min_m * 1.02, env.edge_max_m * 0.98);
-            let corr = 0.5 * (d - target) / d;
-            points[i][0] += corr * dx;
-            points[i][1] += corr * dy;
-            points[j][0] -= corr * dx;
-            points[j][1] -= corr * dy;
-        }
-        for i in 0..n {
-            for j in i + 1..n {
-                let (dx, dy) = (points[j][0] - points[i][0], points[j][1] - points[i][1]);
-                let d = dx.hypot(dy).max(1e-9);
-                if d < min_sep {
-                    settled = false;
-                    let corr = 0.5 * (min_sep * 1.05 - d) / d;
-                    points[i][0] -= corr * dx;
-                    points[i][1] -= corr * dy;
-                    points[j][0] += corr * dx;
-                    points[j][1] += corr * dy;
-                }
-            }
-        }
-        if settled {
-            return true;
-        }
-    }
-    false
-}
-
-/// Moves the points so that their centroid is the origin.
-fn centred(mut points: Vec<[f64; 2]>) -> Vec<[f64; 2]> {
-    let n = points.len() as f64;
-    let (sx, sy) = points.iter().fold((0.0, 0.0), |(sx, sy), p| (sx + p[0], sy + p[1]));
-    for p in &mut points {
-        p[0] -= sx / n;
-        p[1] -= sy / n;
-    }
-    points
-}
-
-/// A shape of `n` robots of kind `shape`, centred on the origin, numbered along its tour, with
-/// every observed edge in [edge_min, edge_max] and no two robots closer than a safe margin.
-/// The x axis is the shape's forward direction (a wedge points along +x).
-pub fn draw_shape<R: Rng>(shape: FormationShape, n: usize, env: &EnvConfig, rng: &mut R) -> Vec<[f64; 2]> {
-    match shape {
-        FormationShape::Random => return random_shape(n, env, rng),
-        FormationShape::Mixed => {
-            let kind = FormationShape::KINDS[rng.random_range(0..FormationShape::KINDS.len())];
-            return draw_shape(kind, n, env, rng);
-        }
-        _ => {}
-    }
-    loop {
-        // Two tour steps along a straight file must fit under edge_max.
-        let shortest = env.edge_min_m * 1.05;
-        let spacing = shortest.max(rng.random_range(SPACING_RANGE) * 0.5 * env.edge_max_m);
-        let mut points = match shape {
-            FormationShape::Random | FormationShape::Mixed => unreachable!("drawn above"),
-            FormationShape::Ring => ring(n, spacing),
-            FormationShape::Line => files(n, spacing),
-            FormationShape::Wedge => wedge(files(n, spacing), rng.random_range(0.45..0.7)),
-            FormationShape::Grid => grid(n, spacing),
-        };
-        if shape_is_valid(&points, env) || (relax(&mut points, env) && shape_is_valid(&points, env)) {
-            return centred(points);
-        }
-    }
-}
-
-/// Robots evenly on a circle whose chord between tour neighbours is `spacing`.
-fn ring(n: usize, spacing: f64) -> Vec<[f64; 2]> {
-    let step = std::f64::consts::TAU / n as f64;
-    let radius = spacing / (2.0 * (0.5 * step).sin());
-    (0..n)
-        .map(|i| [radius * (i as f64 * step).cos(), radius * (i as f64 * step).sin()])
-        .collect()
-}
-
-/// Two staggered files along x, `spacing` apart along and across: the tour runs forward along
-/// the first file and back along the second.
-fn files(n: usize, spacing: f64) -> Vec<[f64; 2]> {
-    let front = n.div_ceil(2);
-    let back = n - front;
-    let across = spacing;
-    let first = (0..front).map(|k| [k as f64 * spacing, 0.0]);
-    let second = (0..back).rev().map(|k| [(k as f64 + 0.5) * spacing, across]);
-    first.chain(second).collect()
-}
-
-/// A band of two files bent at its middle into a V whose arms open at `half_angle` (radians)
-/// behind an apex at the front.
-fn wedge(band: Vec<[f64; 2]>, half_angle: f64) -> Vec<[f64; 2]> {
-    let middle = band.iter().map(|p| p[0]).fold(0.0, f64::max) * 0.5;
-    let (s, c) = half_angle.sin_cos();
-    band.iter()
-        .map(|p| {
-            let along = p[0] - middle;
-            let across = p[1];
-            let side = if along < 0.0 { 1.0 } else { -1.0 };
-            // Each arm runs back from the apex; the second file sits on the arm's outer side.
-            [-c * along.abs() + s * across, side * (s * along.abs() + c * across)]
-        })
-        .collect()
-}
-
-/// A block of `rows` (even) by `columns` lattice points `spacing` apart, toured by a
-/// boustrophedon over columns 1.. that returns along column 0; odd `n` gets a nose robot ahead
-/// of the block's first row.
-fn grid(n: usize, spacing: f64) -> Vec<[f64; 2]> {
-    if n < 5 {
-        return ring(n, spacing);
-    }
-    let even = n - n % 2;
-    let mut rows = 2;
-    while (rows + 2) * (rows + 2) <= even {
-        rows += 2;
-    }
-    let columns = even.div_ceil(rows);
-    // Lattice points the block leaves out: pairs of rows at the end of the last column.
-    let missing_pairs = (rows * columns - even) / 2;
-    let present = |row: usize, column: usize| column + 1 < columns || row < rows - 2 * missing_pairs;
-    let point = |row: usize, column: usize| [column as f64 * spacing, -(row as f64) * spacing];
-    let mut tour = Vec::with_capacity(n);
-    for row in 0..rows {
-        let columns_of_row: Vec<usize> = if row % 2 == 0 {
-            (1..columns).collect()
-        } else {
-            (1..columns).rev().collect()
-        };
-        tour.extend(
-            columns_of_row
-                .into_iter()
-                .filter(|&column| present(row, column))
-                .map(|column| point(row, column)),
-        );
-    }
-    tour.extend((0..rows).rev().map(|row| point(row, 0)));
-    // The tour ends at (0, 0); rotate it to start there, then put the nose between (0, 0) and
-    // (0, 1), half a spacing ahead of the first row.
-    tour.rotate_right(1);
-    if n % 2 == 1 {
-        tour.insert(1, [0.5 * spacing, 0.9 * spacing]);
-    }
-    tour
-}
-
-/// A random shape of `n` robots, centred on the origin, whose observed edges all lie in
-/// [edge_min, edge_max] and whose robots are at least a safe distance apart.
-///
-/// Robots start on a perturbed ring (any N closes the triangle strip), then alternate
-/// projections move each edge into range and push close pairs apart; a shape that does not
-/// settle is discarded and drawn again.
-pub fn random_shape<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> Vec<[f64; 2]> {
-    let mid_edge = 0.5 * (env.edge_min_m + env.edge_max_m);
-    loop {
-        let step = std::f64::consts::TAU / n as f64;
-        // Ring radius that puts the second neighbour (the longer chord for n >= 5) near mid range.
-        let chord_angle = if n >= 5 { 2.0 * step } else { step };
-        let large = n >= LARGE_SWARM;
-        // Small swarms: any ring that puts the constraining chord around mid range. Large ones:
-        // the most compact ring whose second-neighbour chord clears edge_min, so they fit.
-        let (chord, jitter) = if large {
-            (rng.random_range(1.05..1.2) * env.edge_min_m, 0.03)
-        } else {
-            (rng.random_range(0.6..1.2) * mid_edge, 0.25)
-        };
-        let base_radius = chord / (2.0 * (0.5 * chord_angle).sin());
-        let mut points: Vec<[f64; 2]> = (0..n)
-            .map(|i| {
-                let angle = i as f64 * step + rng.random_range(-0.35..0.35) * step * if large { 0.2 } else { 1.0 };
-                let zigzag = if n >= 5 && i % 2 == 1 {
-                    -0.35 * env.edge_min_m
-                } else {
-                    0.0
-                };
-                let radius = base_radius * rng.random_range(1.0 - jitter..1.0 + jitter) + zigzag;
-                [radius * angle.cos(), radius * angle.sin()]
-            })
-            .collect();
-        relax(&mut points, env);
-        if shape_is_valid(&points, env) {
-            return centred(points);
-        }
-    }
 }
 
 /// A random episode: a shape of the configured kind, rotated to a common random heading, placed
@@ -345,6 +113,8 @@ impl Iterator for Episodes {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::FormationShape;
+    use crate::shapes::{edge_ok, observed_edges, random_shape};
     use crate::task::{centroid, conditions};
 
     #[test]

@@ -5,7 +5,8 @@
 //! * [`physics`]: unicycle poses and their exact integration over a step;
 //! * [`scene`]: one tick of a swarm (poses, the commands applied into it, formation, goal), the
 //!   one type the step, the reward, the observation, the critic's features and the replay read;
-//! * [`formation`]: formation shapes (random and named) and random episodes;
+//! * [`shapes`]: the formation shapes, one file each, and what every shape must satisfy;
+//! * [`formation`]: random episodes (a shape at a random place, size and heading, and a goal);
 //! * [`observation`]: the observation models, their named layout and what a robot sees;
 //! * [`layout`]: `layout.json`, the payloads' and the observation models' layout for other
 //!   languages (printed by `formation-layout`);
@@ -16,12 +17,15 @@
 //! * [`features`]: the critic's view of a scene (poses relative to the centroid).
 
 pub mod baseline;
+pub mod config;
 pub mod features;
 pub mod formation;
 pub mod layout;
 pub mod observation;
 pub mod physics;
 pub mod reality;
+pub mod run_dir;
 pub mod scene;
+pub mod shapes;
 pub mod task;
 pub mod world;

@@ -17,7 +17,7 @@
 //! robots they do not track. A robot never reads the true state: the sim computes these from
 //! it and sends each robot its own.
 
-use formation_protocol::config::{EnvConfig, ObservationModel};
+use crate::config::{EnvConfig, ObservationModel};
 use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS, neighbours};
 
 use crate::physics::Pose;

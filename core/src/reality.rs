@@ -17,8 +17,8 @@
 use std::collections::VecDeque;
 use std::fmt;
 
+use crate::config::{ConfigError, EnvConfig};
 use formation_protocol::NEIGHBOURS;
-use formation_protocol::config::{ConfigError, EnvConfig};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
@@ -571,8 +571,8 @@ fn noisy_proximity(near: [f64; 2], range: f64, noise: [f64; 2]) -> [f64; 2] {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::ObservationModel;
     use formation_protocol::MAX_OBS_DIM;
-    use formation_protocol::config::ObservationModel;
 
     fn env() -> EnvConfig {
         EnvConfig::default()

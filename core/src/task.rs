@@ -5,7 +5,7 @@
 //! on a [`Scene`], which carries the commands applied into its tick, so a reward term on the
 //! actions goes there and HER recomputes it too.
 
-use formation_protocol::config::EnvConfig;
+use crate::config::EnvConfig;
 use formation_protocol::wire::{OUTCOME_ABORTED, OUTCOME_COLLISION, OUTCOME_RUNNING, OUTCOME_SUCCESS, OUTCOME_TIMEOUT};
 use formation_protocol::{NEIGHBOURS, neighbours};
 

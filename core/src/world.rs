@@ -1,6 +1,6 @@
 //! One episode's world: poses, formation, goal, and the step that applies the robots' commands.
 
-use formation_protocol::config::EnvConfig;
+use crate::config::EnvConfig;
 use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS};
 
 use crate::formation::EpisodeInit;

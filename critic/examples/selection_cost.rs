@@ -8,9 +8,9 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::ValueEnum;
+use formation_core::config::{EnvConfig, FormationShape, LearnConfig};
 use formation_critic::selection::Selector;
 use formation_model::checkpoint;
-use formation_protocol::config::{EnvConfig, FormationShape, LearnConfig};
 
 fn main() -> anyhow::Result<()> {
     // SAFETY: no other thread runs yet; candle reads this for its matmul thread count.

@@ -9,10 +9,10 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, ensure};
+use formation_core::config::EnvConfig;
 use formation_critic::selection::{SuddenTurn, play};
 use formation_model::actor::FrozenActor;
 use formation_model::checkpoint;
-use formation_protocol::config::EnvConfig;
 
 fn main() -> Result<()> {
     let mut args = std::env::args().skip(1);

@@ -10,11 +10,11 @@
 use std::time::Instant;
 
 use candle_core::{Device, Tensor};
+use formation_core::config::{Algorithm, CriticArchitecture, EnvConfig, LearnConfig};
 use formation_core::formation::random_episode;
 use formation_core::world::World;
 use formation_critic::learner::Learner;
 use formation_protocol::ACTION_DIM;
-use formation_protocol::config::{Algorithm, CriticArchitecture, EnvConfig, LearnConfig};
 use formation_replay::buffer::ReplayBuffer;
 use formation_replay::record::record_episode;
 use formation_replay::sample::Sampler;

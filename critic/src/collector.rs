@@ -9,12 +9,12 @@
 //! sim's [`Scene`] of that tick with the commands and the reward of the transition into it.
 
 use anyhow::{Context, Result};
+use formation_core::config::EnvConfig;
 use formation_core::observation::Observer;
 use formation_core::physics::Pose;
 use formation_core::scene::Scene;
 use formation_core::task::Outcome;
-use formation_protocol::config::EnvConfig;
-use formation_protocol::services::{self, FileDescriptorBased, Sizing};
+use formation_ipc::services::{self, FileDescriptorBased, Sizing};
 use formation_protocol::wire::*;
 use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS};
 use formation_replay::buffer::{Episode, Tick};
@@ -264,7 +264,7 @@ where
 
 #[cfg(test)]
 mod tests {
-    use formation_protocol::services::{RunIdentity, Sizing};
+    use formation_ipc::services::{RunIdentity, Sizing};
     use iceoryx2::port::publisher::Publisher;
 
     use super::*;

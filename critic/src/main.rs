@@ -6,13 +6,14 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
 use clap::Parser;
+use formation_core::config::{CriticArchitecture, validate_agent_count};
+use formation_core::run_dir::prepare_run_dir;
 use formation_critic::run::{CriticOptions, run};
+use formation_ipc::cli::ViewerMode;
+use formation_ipc::cli::{Mode, RunArgs};
+use formation_ipc::placement::Role;
+use formation_ipc::services::RunIdentity;
 use formation_model::checkpoint;
-use formation_protocol::cli::ViewerMode;
-use formation_protocol::cli::{Mode, RunArgs, prepare_run_dir};
-use formation_protocol::config::{CriticArchitecture, validate_agent_count};
-use formation_protocol::placement::Role;
-use formation_protocol::services::RunIdentity;
 use iceoryx2::prelude::*;
 
 /// Subscribes to the sim's state and every agent's observations and commands, assembles them

@@ -13,6 +13,7 @@
 //! changed the outcome of 6 of 200 episodes of the 3-robot paper model.
 
 use anyhow::{Context, Result, ensure};
+use formation_core::config::{EnvConfig, LearnConfig};
 use formation_core::formation::Episodes;
 use formation_core::observation::Layout;
 use formation_core::task::Outcome;
@@ -20,7 +21,6 @@ use formation_core::world::World;
 use formation_model::actor::{ActorShape, FrozenActor};
 use formation_model::checkpoint::{SelectionScore, SizeScore};
 use formation_model::history::ObservationHistory;
-use formation_protocol::config::{EnvConfig, LearnConfig};
 
 /// The fixed episodes a run's checkpoints are scored on.
 #[derive(Debug, Clone)]

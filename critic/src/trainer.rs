@@ -8,10 +8,10 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
+use formation_core::config::Algorithm;
+use formation_ipc::services::Sizing;
 use formation_model::actor::ActorShape;
 use formation_model::checkpoint::{self, BEST_FILE_NAME, FILE_NAME, SelectionScore};
-use formation_protocol::config::Algorithm;
-use formation_protocol::services::Sizing;
 use formation_replay::buffer::ReplayBuffer;
 use formation_replay::sample::Sampler;
 use iceoryx2::prelude::*;

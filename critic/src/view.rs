@@ -4,7 +4,7 @@
 use std::path::Path;
 
 use anyhow::Result;
-use formation_protocol::cli::ViewerMode;
+use formation_ipc::cli::ViewerMode;
 use rerun::RecordingStream;
 
 /// Training curves of one run.

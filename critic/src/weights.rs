@@ -2,7 +2,7 @@
 //! an agent that (re)connects gets the latest weights at once.
 
 use anyhow::{Context, Result};
-use formation_protocol::services::{self, Sizing};
+use formation_ipc::services::{self, Sizing};
 use formation_protocol::wire::{PROTOCOL_VERSION, WeightsHeader};
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::update_connections::UpdateConnections;

@@ -2,11 +2,11 @@
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
+use formation_core::config::{Algorithm, CriticArchitecture, EnvConfig, LearnConfig};
 use formation_core::features::CriticFeatures;
 use formation_core::observation::Layout;
 use formation_critic::learner::{Learner, soft_update};
 use formation_protocol::ACTION_DIM;
-use formation_protocol::config::{Algorithm, CriticArchitecture, EnvConfig, LearnConfig};
 use formation_replay::sample::Batch;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};

@@ -2,11 +2,11 @@
 
 use std::path::PathBuf;
 
+use formation_core::config::{EnvConfig, LearnConfig};
 use formation_critic::learner::Learner;
 use formation_critic::selection::{Selector, SuddenTurn, play};
 use formation_model::actor::FrozenActor;
 use formation_model::checkpoint::{self, SelectionScore};
-use formation_protocol::config::{EnvConfig, LearnConfig};
 
 fn shipped_model() -> checkpoint::Checkpoint {
     let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../models/formation.safetensors");

@@ -10,9 +10,9 @@ use std::process::ExitCode;
 
 use clap::error::ErrorKind;
 use clap::{CommandFactory, Parser, ValueEnum};
-use formation_protocol::cli::{Mode, ViewerMode};
-use formation_protocol::config::{FormationShape, validate_agent_count};
-use formation_protocol::placement::Placement;
+use formation_core::config::{FormationShape, validate_agent_count};
+use formation_ipc::cli::{Mode, ViewerMode};
+use formation_ipc::placement::Placement;
 use formation_protocol::{MAX_AGENTS, MIN_AGENTS};
 
 use crate::plan::Plan;

@@ -7,11 +7,11 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 use anyhow::{Context, Result, bail, ensure};
 use clap::ValueEnum;
+use formation_core::config::{FormationShape, RunConfig, extra_swarm_seed};
 use formation_core::observation::Layout;
-use formation_protocol::cli::{Mode, ViewerMode, parse_robot_set, robot_set_arg};
-use formation_protocol::config::{FormationShape, RunConfig, extra_swarm_seed};
-use formation_protocol::placement::Placement;
-use formation_protocol::services::{ICEORYX_CONFIG_FILE, RunIdentity};
+use formation_ipc::cli::{Mode, ViewerMode, parse_robot_set, robot_set_arg};
+use formation_ipc::placement::Placement;
+use formation_ipc::services::{ICEORYX_CONFIG_FILE, RunIdentity};
 use formation_protocol::wire::PROTOCOL_VERSION;
 
 use crate::{LaunchArgs, Switch};

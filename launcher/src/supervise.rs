@@ -14,8 +14,9 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use formation_protocol::cli::{Mode, write_atomically};
-use formation_protocol::services::{RunIdentity, sweep_abandoned_runs};
+use formation_core::run_dir::write_atomically;
+use formation_ipc::cli::Mode;
+use formation_ipc::services::{RunIdentity, sweep_abandoned_runs};
 use signal_hook::consts::{SIGINT, SIGTERM};
 use signal_hook::iterator::Signals;
 

@@ -8,7 +8,7 @@ use anyhow::{Context, Result, bail};
 use candle_core::{Device, Tensor};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
-use formation_protocol::config::ObservationModel;
+use formation_core::config::ObservationModel;
 
 use crate::actor::ActorShape;
 
@@ -256,7 +256,7 @@ pub fn save(path: &Path, tensors: &[(String, Tensor)], meta: &CheckpointMeta) ->
         .map(|(name, dims, bytes)| Ok((name.clone(), TensorView::new(Dtype::F32, dims.clone(), bytes)?)))
         .collect::<Result<Vec<_>>>()?;
     let bytes = safetensors::tensor::serialize(views, Some(meta.to_map()))?;
-    formation_protocol::cli::write_atomically(path, &bytes)
+    formation_core::run_dir::write_atomically(path, &bytes)
 }
 
 /// A loaded checkpoint.

@@ -10,7 +10,7 @@
 use std::fmt::Write as _;
 use std::mem::{align_of, offset_of, size_of};
 
-use iceoryx2::prelude::ZeroCopySend;
+use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 
 use crate::wire::*;
 use crate::{ACTION_DIM, MAX_AGENTS, MAX_OBS_DIM, MIN_AGENTS, NEIGHBOURS};
@@ -89,7 +89,7 @@ fn write_constants(out: &mut String) {
         ("NEIGHBOURS", NEIGHBOURS as u64),
         ("MAX_OBS_DIM", MAX_OBS_DIM as u64),
         ("ACTION_DIM", ACTION_DIM as u64),
-        ("SPARE_PORTS", crate::services::SPARE_PORTS as u64),
+        ("SPARE_PORTS", crate::SPARE_PORTS as u64),
     ];
     out.push_str("  \"constants\": {");
     for (i, (name, value)) in constants.iter().enumerate() {

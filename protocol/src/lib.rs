@@ -1,22 +1,14 @@
-//! The contract between the processes of a formation-control run.
+//! The wire contract between the processes of a formation-control run, free of any transport:
+//! what a client in any language must agree on to talk to the swarm.
 //!
-//! * [`wire`]: the `#[repr(C)]` payloads that travel over iceoryx2 shared memory;
-//! * [`services`]: service names, the run-unique iceoryx2 configuration and port helpers;
-//! * [`config`]: the one serde configuration every process reads (environment, ticks, learning);
-//! * [`placement`]: which CPU each process works on;
-//! * [`tick_gate`]: the shared answer counter that lets only a tick's last robot wake the sim;
-//! * [`switches`]: context-switch counters (wake-ups per tick);
-//! * [`summary`]: the figures a run leaves behind in `summary.json`;
-//! * [`layout`]: the payloads' memory layout as JSON, for bindings in other languages.
+//! * [`wire`]: the `#[repr(C)]` payloads that travel over shared memory, and the protocol version;
+//! * [`layout`]: the payloads' memory layout as JSON, for bindings in other languages;
+//! * the constants below: swarm bounds, payload room, the neighbour graph.
+//!
+//! The iceoryx2 transport that carries these payloads (services, the tick gate, placement) is
+//! `formation-ipc`; the task's settings (`RunConfig`) are `formation_core::config`.
 
-pub mod cli;
-pub mod config;
 pub mod layout;
-pub mod placement;
-pub mod services;
-pub mod summary;
-pub mod switches;
-pub mod tick_gate;
 pub mod wire;
 
 /// Largest swarm the wire types have room for.
@@ -35,18 +27,6 @@ pub fn neighbours(agent: usize, n_agents: usize) -> [usize; NEIGHBOURS] {
     [(agent + 1) % n_agents, (agent + 2) % n_agents]
 }
 
-/// True once a termination signal (SIGINT, SIGTERM) has reached this process.
-///
-/// iceoryx2's signal handler records the signal; its flag is consumed on reading, so the answer
-/// is kept here and stays true.
-pub fn termination_requested() -> bool {
-    static REQUESTED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
-    if REQUESTED.load(std::sync::atomic::Ordering::Relaxed) {
-        return true;
-    }
-    let requested = iceoryx2_bb_posix::signal::SignalHandler::termination_requested();
-    if requested {
-        REQUESTED.store(true, std::sync::atomic::Ordering::Relaxed);
-    }
-    requested
-}
+/// Ports left for processes that replace a dead one before iceoryx2 has cleaned it up, and for
+/// observers such as a viewer (or a Python `Observer`).
+pub const SPARE_PORTS: usize = 4;

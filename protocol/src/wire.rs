@@ -1,7 +1,8 @@
 //! Payloads that travel over iceoryx2. Every type is `#[repr(C)]`, `Copy`, fixed size and
 //! carries an explicit type name, so any language binding that agrees on the layout can read it.
 
-use iceoryx2::prelude::ZeroCopySend;
+use iceoryx2_bb_derive_macros::ZeroCopySend;
+use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 
 use crate::{ACTION_DIM, MAX_AGENTS, MAX_OBS_DIM, NEIGHBOURS};
 

@@ -2,9 +2,9 @@
 
 use std::collections::VecDeque;
 
+use formation_core::config::EnvConfig;
 use formation_core::physics::Pose;
 use formation_core::scene::Scene;
-use formation_protocol::config::EnvConfig;
 use formation_protocol::{ACTION_DIM, MAX_OBS_DIM, NEIGHBOURS};
 
 /// One tick of one episode, for every robot: what the state stream carried for it and what the

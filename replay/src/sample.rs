@@ -8,11 +8,11 @@
 //! HER recomputes with the sim's own code on the replay's [`formation_core::scene::Scene`]s:
 //! the observation model ([`Observer`]) and the reward ([`score`]).
 
+use formation_core::config::{CriticArchitecture, EnvConfig};
 use formation_core::features::CriticFeatures;
 use formation_core::observation::Observer;
 use formation_core::task::score;
 use formation_protocol::ACTION_DIM;
-use formation_protocol::config::{CriticArchitecture, EnvConfig};
 use rand::Rng;
 
 use crate::buffer::{Episode, ReplayBuffer};

@@ -2,13 +2,13 @@
 //! the same ticks, the replay's ticks are the sim's scenes (with the commands applied), and
 //! HER relabelling equals recomputing everything from them with the sim's own code.
 
+use formation_core::config::{CriticArchitecture, EnvConfig, ObservationModel};
 use formation_core::features::CriticFeatures;
 use formation_core::formation::random_episode;
 use formation_core::observation::Observer;
 use formation_core::task::score;
 use formation_core::world::World;
 use formation_protocol::ACTION_DIM;
-use formation_protocol::config::{CriticArchitecture, EnvConfig, ObservationModel};
 use formation_replay::buffer::{Episode, ReplayBuffer};
 use formation_replay::record::record_episode;
 use formation_replay::sample::Sampler;

@@ -6,8 +6,8 @@
 use std::time::{Duration, Instant};
 
 use anyhow::Result;
-use formation_protocol::services::{self, FileDescriptorBased};
-use formation_protocol::tick_gate::TickGate;
+use formation_ipc::services::{self, FileDescriptorBased};
+use formation_ipc::tick_gate::TickGate;
 use formation_protocol::wire::{CommandMsg, FLAG_HELLO, Header, PROTOCOL_VERSION};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::prelude::*;
@@ -284,7 +284,7 @@ impl CommandRound {
 mod tests {
     use std::time::Duration;
 
-    use formation_protocol::services::{RunIdentity, Sizing};
+    use formation_ipc::services::{RunIdentity, Sizing};
 
     use super::*;
 
@@ -476,7 +476,7 @@ mod tests {
 
     #[test]
     fn with_the_gate_only_the_last_answer_wakes_the_sim_every_answer_is_read_and_the_bell_is_for_members() {
-        use formation_protocol::tick_gate::{ALL_ANSWERED_EVENT_ID, Answer, TickGate};
+        use formation_ipc::tick_gate::{ALL_ANSWERED_EVENT_ID, Answer, TickGate};
         let (_node, ports, robots) = sim_and_robots(3, "cmdgate");
         let identity = test_identity("cmdgate");
         let mut round = CommandRound::new(3).with_gate(TickGate::create(&identity).expect("gate"));
@@ -567,7 +567,7 @@ mod tests {
 
     #[test]
     fn at_the_deadline_the_quiet_answers_of_gate_members_are_read() {
-        use formation_protocol::tick_gate::{ALL_ANSWERED_EVENT_ID, Answer, TickGate};
+        use formation_ipc::tick_gate::{ALL_ANSWERED_EVENT_ID, Answer, TickGate};
         let (_node, ports, robots) = sim_and_robots(3, "cmddeadline");
         let identity = test_identity("cmddeadline");
         let mut round = CommandRound::new(3).with_gate(TickGate::create(&identity).expect("gate"));

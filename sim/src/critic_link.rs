@@ -4,8 +4,8 @@
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
-use formation_protocol::services::{self, FileDescriptorBased};
-use formation_protocol::termination_requested;
+use formation_ipc::services::{self, FileDescriptorBased};
+use formation_ipc::termination_requested;
 use formation_protocol::wire::PROTOCOL_VERSION;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::prelude::*;

@@ -4,8 +4,9 @@ use std::process::ExitCode;
 
 use anyhow::Result;
 use clap::Parser;
-use formation_protocol::cli::{Mode, RunArgs, ViewerMode, parse_robot_set, prepare_run_dir};
-use formation_protocol::placement::Role;
+use formation_core::run_dir::prepare_run_dir;
+use formation_ipc::cli::{Mode, RunArgs, ViewerMode, parse_robot_set};
+use formation_ipc::placement::Role;
 use formation_sim::lockstep::{SimOptions, run};
 use formation_sim::view;
 use iceoryx2::prelude::*;

@@ -4,7 +4,7 @@
 use anyhow::{Context, Result};
 use formation_core::task::Outcome;
 use formation_core::world::World;
-use formation_protocol::services::{self, Sizing};
+use formation_ipc::services::{self, Sizing};
 use formation_protocol::wire::*;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;

@@ -3,7 +3,7 @@
 use std::path::Path;
 
 use anyhow::{Context, Result};
-use formation_protocol::summary::Summary;
+use formation_ipc::summary::Summary;
 use serde::Serialize;
 
 use formation_core::task::Outcome;

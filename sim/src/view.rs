@@ -13,8 +13,8 @@ use std::sync::mpsc::{Receiver, sync_channel};
 use std::thread::JoinHandle;
 
 use anyhow::{Context, Result};
-use formation_protocol::cli::ViewerMode;
-use formation_protocol::config::EnvConfig;
+use formation_core::config::EnvConfig;
+use formation_ipc::cli::ViewerMode;
 use formation_protocol::neighbours;
 use formation_protocol::wire::{FLAG_EPISODE_START, StateMsg};
 use rerun::RecordingStream;

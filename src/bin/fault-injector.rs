@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result};
 use clap::Parser;
 use formation_core::observation::Layout;
-use formation_protocol::services::{self, RunIdentity, Sizing};
+use formation_ipc::services::{self, RunIdentity, Sizing};
 use formation_protocol::wire::{CommandMsg, FLAG_HELLO, Header, PROTOCOL_VERSION};
 use iceoryx2::prelude::*;
 
@@ -37,7 +37,7 @@ fn main() -> Result<()> {
     let cli = Cli::parse();
     let identity = RunIdentity::new(&cli.run_id)?;
     let node = services::create_node::<ipc::Service>(&identity, "fault-injector")?;
-    let config = formation_protocol::config::RunConfig::default();
+    let config = formation_core::config::RunConfig::default();
     let sizing = Sizing::new(
         cli.agents,
         config.ticks.critic_window,

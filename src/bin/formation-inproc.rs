@@ -9,10 +9,10 @@ use anyhow::{Result, anyhow};
 use clap::{Parser, ValueEnum};
 use formation_agent::run::{AgentOptions, AgentPolicy, run as run_agent};
 use formation_core::baseline::{BaselineGains, ScriptedBaseline};
-use formation_protocol::cli::Mode;
-use formation_protocol::config::{RunConfig, validate_agent_count};
-use formation_protocol::placement::{self, Placement, Role};
-use formation_protocol::services::{FileDescriptorBased, RunIdentity};
+use formation_core::config::{RunConfig, validate_agent_count};
+use formation_ipc::cli::Mode;
+use formation_ipc::placement::{self, Placement, Role};
+use formation_ipc::services::{FileDescriptorBased, RunIdentity};
 use formation_sim::lockstep::{SimOptions, run as run_sim};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::prelude::*;
@@ -58,7 +58,7 @@ fn run<S: Service>(cli: &Cli, identity: &RunIdentity, config: &RunConfig) -> Res
 where
     Listener<S>: FileDescriptorBased,
 {
-    let agents = std::thread::scope(|scope| -> Result<formation_protocol::summary::Summary> {
+    let agents = std::thread::scope(|scope| -> Result<formation_ipc::summary::Summary> {
         let handles: Vec<_> = (0..cli.agents)
             .map(|agent| {
                 let options = AgentOptions {

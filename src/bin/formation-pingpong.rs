@@ -9,9 +9,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use clap::{Parser, ValueEnum};
-use formation_protocol::placement::{self, Placement, Role};
-use formation_protocol::services::RunIdentity;
-use formation_protocol::tick_gate::TickGate;
+use formation_ipc::placement::{self, Placement, Role};
+use formation_ipc::services::RunIdentity;
+use formation_ipc::tick_gate::TickGate;
 use iceoryx2::prelude::*;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -50,7 +50,7 @@ fn iox_events(
     [iceoryx2::service::port_factory::event::PortFactory<ipc::Service>; 2],
 )> {
     let identity = RunIdentity::new(name)?;
-    let node = formation_protocol::services::create_node::<ipc::Service>(&identity, "pingpong")?;
+    let node = formation_ipc::services::create_node::<ipc::Service>(&identity, "pingpong")?;
     let open = |suffix: &str| {
         node.service_builder(&ServiceName::new(&format!("pingpong/{suffix}")).map_err(anyhow::Error::from)?)
             .event()

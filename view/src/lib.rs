@@ -5,7 +5,7 @@
 use std::path::Path;
 
 use anyhow::{Context, Result};
-use formation_protocol::cli::ViewerMode;
+use formation_ipc::cli::ViewerMode;
 use rerun::{RecordingStream, RecordingStreamBuilder};
 
 /// Application id shared by every process of a run, so sim and critic land in one recording.

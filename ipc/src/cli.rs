@@ -1,13 +1,13 @@
 //! Flags every process of a run shares (one spelling everywhere).
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use clap::{Args, ValueEnum};
 
-use crate::config::{FormationShape, RunConfig, validate_agent_count};
 use crate::placement::{self, Placement, Role};
 use crate::services::RunIdentity;
+use formation_core::config::{FormationShape, RunConfig, validate_agent_count};
 
 /// Train (explore, learn, checkpoint) or evaluate (no noise, no learning).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, serde::Serialize, serde::Deserialize)]
@@ -155,20 +155,6 @@ impl RunArgs {
     pub fn place(&self, role: Role) -> Result<Option<Vec<usize>>> {
         placement::apply(self.placement, role)
     }
-}
-
-/// Creates the run directory and writes the configuration as run into it.
-pub fn prepare_run_dir(run_dir: &Path, config: &RunConfig) -> Result<()> {
-    std::fs::create_dir_all(run_dir).with_context(|| format!("cannot create run directory {}", run_dir.display()))?;
-    let path = run_dir.join("config.toml");
-    std::fs::write(&path, config.to_toml()).with_context(|| format!("cannot write {}", path.display()))
-}
-
-/// Writes `contents` to `path` atomically (write a temporary file, then rename).
-pub fn write_atomically(path: &Path, contents: &[u8]) -> Result<()> {
-    let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, contents).with_context(|| format!("cannot write {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("cannot rename {} to {}", tmp.display(), path.display()))
 }
 
 #[cfg(test)]

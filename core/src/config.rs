@@ -8,7 +8,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use crate::{MAX_AGENTS, MIN_AGENTS};
+use formation_protocol::{MAX_AGENTS, MIN_AGENTS};
 
 /// Everything a run is configured by. Unknown keys are rejected.
 #[derive(Serialize, Deserialize, Clone, Debug, Default, PartialEq)]
@@ -105,9 +105,10 @@ impl Default for EnvConfig {
 }
 
 /// What each robot observes (layouts in `formation_core::observation`).
-#[derive(Serialize, Deserialize, Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(any(test, feature = "clap"), derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
-#[value(rename_all = "snake_case")]
+#[cfg_attr(any(test, feature = "clap"), value(rename_all = "snake_case"))]
 pub enum ObservationModel {
     /// The paper's 12 floats: each neighbour's position, relative heading and desired distance,
     /// then the goal.
@@ -141,9 +142,10 @@ impl ObservationModel {
 
 /// Formation shapes an episode may start in (every shape is drawn at a random size and
 /// orientation, with every observed edge in [edge_min_m, edge_max_m]).
-#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(any(test, feature = "clap"), derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
-#[value(rename_all = "snake_case")]
+#[cfg_attr(any(test, feature = "clap"), value(rename_all = "snake_case"))]
 pub enum FormationShape {
     /// A random rigid shape (a perturbed, relaxed ring).
     Random,

@@ -19,12 +19,10 @@ use iceoryx2::service::port_factory::{event, publish_subscribe};
 /// has one). Generic code over the service type names it in a `where` clause.
 pub use iceoryx2_bb_posix::file_descriptor::FileDescriptorBased;
 
-use crate::MAX_AGENTS;
-use crate::wire::{CommandMsg, CriticProgressMsg, ObservationMsg, StateMsg, WeightsHeader};
+use formation_protocol::MAX_AGENTS;
+use formation_protocol::wire::{CommandMsg, CriticProgressMsg, ObservationMsg, StateMsg, WeightsHeader};
 
-/// Ports left for processes that replace a dead one before iceoryx2 has cleaned it up, and for
-/// observers such as a viewer (or a Python `Observer`).
-pub const SPARE_PORTS: usize = 4;
+pub use formation_protocol::SPARE_PORTS;
 
 /// Where POSIX shared memory lives: iceoryx2's segments and the tick gate.
 pub const SHM_DIR: &str = "/dev/shm";
@@ -83,7 +81,7 @@ impl RunIdentity {
     pub fn write_iceoryx_config(&self, run_dir: &std::path::Path) -> Result<PathBuf> {
         let path = run_dir.join(ICEORYX_CONFIG_FILE);
         let text = toml::to_string(&self.iceoryx_config()?).context("cannot serialise the iceoryx2 config")?;
-        crate::cli::write_atomically(&path, text.as_bytes())?;
+        formation_core::run_dir::write_atomically(&path, text.as_bytes())?;
         Ok(path)
     }
 
@@ -376,7 +374,7 @@ impl Sizing {
     /// The attributes every service of the run is created with and checked against.
     pub fn contract(&self) -> Result<AttributeVerifier> {
         let values = [
-            crate::wire::PROTOCOL_VERSION.to_string(),
+            formation_protocol::wire::PROTOCOL_VERSION.to_string(),
             self.n_agents.to_string(),
             self.observation_dim.to_string(),
         ];
@@ -396,7 +394,7 @@ impl Sizing {
     fn mismatch_hint(&self) -> String {
         format!(
             "this process speaks protocol {}, {} robots, observations of {} floats; every process of a run needs the same build, --agents and --config",
-            crate::wire::PROTOCOL_VERSION,
+            formation_protocol::wire::PROTOCOL_VERSION,
             self.n_agents,
             self.observation_dim
         )

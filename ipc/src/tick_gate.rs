@@ -36,8 +36,8 @@ use memmap2::MmapMut;
 use rustix::io::Errno;
 use rustix::thread::futex;
 
-use crate::MAX_AGENTS;
 use crate::services::{RunIdentity, SHM_DIR};
+use formation_protocol::MAX_AGENTS;
 
 /// Event id with which the last robot of a tick wakes the sim: every answer is in, read them all.
 pub const ALL_ANSWERED_EVENT_ID: usize = MAX_AGENTS;
