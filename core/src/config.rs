@@ -10,6 +10,9 @@ use serde::{Deserialize, Serialize};
 
 use formation_protocol::{MAX_AGENTS, MIN_AGENTS};
 
+use crate::baseline::BaselineGains;
+use crate::reality::RealityConfig;
+
 /// Everything a run is configured by. Unknown keys are rejected.
 #[derive(Serialize, Deserialize, Clone, Debug, Default, PartialEq)]
 #[serde(deny_unknown_fields, default)]
@@ -22,6 +25,11 @@ pub struct RunConfig {
     pub learn: LearnConfig,
     /// Live view and recordings.
     pub view: ViewConfig,
+    /// The robots' own sensors, radio and motors between the truth and the robots (all off by
+    /// default: the ideal world).
+    pub reality: RealityConfig,
+    /// Gains of the scripted baseline.
+    pub baseline: BaselineGains,
 }
 
 /// The environment: unicycle robots, formation, goal and the paper's reward table (Table I).
@@ -517,6 +525,8 @@ impl RunConfig {
         self.env.validate()?;
         self.ticks.validate()?;
         self.learn.validate()?;
+        self.reality.validate()?;
+        self.baseline.validate()?;
         check(
             self.view.world_every_episodes >= 1,
             "view.world_every_episodes",

@@ -28,8 +28,8 @@ use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
 use crate::observation::Layout;
 
-/// The largest actuation delay accepted, ticks.
-pub const MAX_DELAY_TICKS: u32 = 10;
+/// The largest actuation delay accepted, ticks (the state message's room for queued commands).
+pub const MAX_DELAY_TICKS: u32 = formation_protocol::MAX_DELAY_TICKS as u32;
 
 /// A unicycle command or velocity: (linear m/s, angular rad/s).
 pub type Command = (f64, f64);
@@ -204,7 +204,8 @@ pub struct RealityConfig {
     pub dead_robot: DeadRobot,
 }
 
-/// A file holding only a `[reality]` table (the presets in `configs/reality/`).
+/// A file holding only a `[reality]` table (the presets `configs/reality-lab.toml` and
+/// `configs/reality-field.toml`).
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RealityFile {
@@ -981,8 +982,8 @@ mod tests {
 
     #[test]
     fn the_presets_parse_validate_and_the_field_one_is_as_harsh_as_the_issue_asks() {
-        let lab = RealityConfig::from_toml_str(include_str!("../../configs/reality/lab.toml")).expect("lab");
-        let field = RealityConfig::from_toml_str(include_str!("../../configs/reality/field.toml")).expect("field");
+        let lab = RealityConfig::from_toml_str(include_str!("../../configs/reality-lab.toml")).expect("lab");
+        let field = RealityConfig::from_toml_str(include_str!("../../configs/reality-field.toml")).expect("field");
         // Mild ends: the low end of noise, delay and loss, the high end of the accelerations.
         assert!(field.position_noise_m.lo >= 0.05 && field.heading_noise_rad.lo >= 0.05);
         assert!(field.actuation_delay_ticks.lo >= 1.0 && field.actuation_delay_ticks.hi >= 3.0);

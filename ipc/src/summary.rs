@@ -43,8 +43,18 @@ pub struct Summary {
     pub tick_p50_us: f64,
     /// 99th percentile tick duration, microseconds.
     pub tick_p99_us: f64,
-    /// Agent-ticks on which a command was missing and the last one was held.
+    /// Robot-ticks missed: nothing new arrived by the deadline (no answer to the tick, no newer
+    /// late one, nothing lost), so the command in use stayed.
     pub missed_ticks: u64,
+    /// Robot-ticks that took up a late answer to an earlier tick (docs/PROTOCOL.md).
+    #[serde(default)]
+    pub late_commands: u64,
+    /// Commands lost on the way (`[reality]`'s `command_loss`); not counted as missed.
+    #[serde(default)]
+    pub lost_commands: u64,
+    /// Observations not delivered (`[reality]`'s `observation_loss`); not counted as missed.
+    #[serde(default)]
+    pub lost_observations: u64,
     /// Commands rejected as malformed (non-finite, wrong tick or protocol).
     pub rejected_commands: u64,
     /// Robots that greeted again after being absent (restarted agent processes).
@@ -117,6 +127,11 @@ impl Summary {
                 format!("{:.1} / {:.1}", self.tick_p50_us, self.tick_p99_us),
             ),
             ("missed ticks", self.missed_ticks.to_string()),
+            (
+                "late / lost commands",
+                format!("{} / {}", self.late_commands, self.lost_commands),
+            ),
+            ("lost observations", self.lost_observations.to_string()),
             ("rejected commands", self.rejected_commands.to_string()),
             ("deadline misses", self.deadline_misses.to_string()),
             ("rejoined robots", self.rejoined_agents.to_string()),

@@ -13,7 +13,7 @@ use std::mem::{align_of, offset_of, size_of};
 use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 
 use crate::wire::*;
-use crate::{ACTION_DIM, MAX_AGENTS, MAX_OBS_DIM, MIN_AGENTS, NEIGHBOURS};
+use crate::{ACTION_DIM, MAX_AGENTS, MAX_DELAY_TICKS, MAX_OBS_DIM, MIN_AGENTS, NEIGHBOURS};
 
 /// One field: name, byte offset, byte size and element type (`u32`, `f32[16]`, `f32[64][3]`, or
 /// another payload's type name).
@@ -72,7 +72,7 @@ pub fn layout_json_with(more: &str) -> String {
 
 /// The `"constants"` object.
 fn write_constants(out: &mut String) {
-    let constants: [(&str, u64); 17] = [
+    let constants: [(&str, u64); 18] = [
         ("PROTOCOL_VERSION", u64::from(PROTOCOL_VERSION)),
         ("FLAG_EPISODE_START", u64::from(FLAG_EPISODE_START)),
         ("FLAG_EPISODE_END", u64::from(FLAG_EPISODE_END)),
@@ -89,6 +89,7 @@ fn write_constants(out: &mut String) {
         ("NEIGHBOURS", NEIGHBOURS as u64),
         ("MAX_OBS_DIM", MAX_OBS_DIM as u64),
         ("ACTION_DIM", ACTION_DIM as u64),
+        ("MAX_DELAY_TICKS", MAX_DELAY_TICKS as u64),
         ("SPARE_PORTS", crate::SPARE_PORTS as u64),
     ];
     out.push_str("  \"constants\": {");
@@ -147,8 +148,13 @@ fn write_payloads(out: &mut String) {
             field!(StateMsg, reward, "f32"),
             field!(StateMsg, missed, "u32"),
             field!(StateMsg, sequence, "u64"),
+            field!(StateMsg, observation_lost, "u64"),
             field!(StateMsg, poses, "f32[64][3]"),
             field!(StateMsg, applied, "f32[64][2]"),
+            field!(StateMsg, acting, "f32[64][2]"),
+            field!(StateMsg, queued, "f32[64][10][2]"),
+            field!(StateMsg, queued_len, "u32[64]"),
+            field!(StateMsg, observations, "f32[64][16]"),
             field!(StateMsg, desired, "f32[64][2]"),
             field!(StateMsg, slots, "f32[64][2]"),
             field!(StateMsg, goal, "f32[2]"),
@@ -188,6 +194,6 @@ mod tests {
     fn spelled_dimensions_match_the_constants() {
         assert_eq!(MAX_OBS_DIM, 16);
         assert_eq!(MAX_AGENTS, 64);
-        assert_eq!((NEIGHBOURS, ACTION_DIM), (2, 2));
+        assert_eq!((NEIGHBOURS, ACTION_DIM, MAX_DELAY_TICKS), (2, 2, 10));
     }
 }

@@ -21,6 +21,8 @@ pub const NEIGHBOURS: usize = 2;
 pub const MAX_OBS_DIM: usize = 16;
 /// Actions are (v, w).
 pub const ACTION_DIM: usize = 2;
+/// Largest actuation delay, ticks: room for the commands queued at a robot's motors.
+pub const MAX_DELAY_TICKS: usize = 10;
 
 /// The agents agent `agent` observes in a swarm of `n_agents`.
 pub fn neighbours(agent: usize, n_agents: usize) -> [usize; NEIGHBOURS] {

@@ -4,10 +4,10 @@
 use iceoryx2_bb_derive_macros::ZeroCopySend;
 use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 
-use crate::{ACTION_DIM, MAX_AGENTS, MAX_OBS_DIM, NEIGHBOURS};
+use crate::{ACTION_DIM, MAX_AGENTS, MAX_DELAY_TICKS, MAX_OBS_DIM, NEIGHBOURS};
 
 /// Bumped whenever a payload's layout or meaning changes.
-pub const PROTOCOL_VERSION: u32 = 2;
+pub const PROTOCOL_VERSION: u32 = 3;
 
 /// `Header::flags`: first tick of an episode (agents reset their history).
 pub const FLAG_EPISODE_START: u32 = 1;
@@ -115,14 +115,32 @@ pub struct StateMsg {
     pub outcome: u32,
     /// Shared reward of the transition into this tick (0 at tick 0).
     pub reward: f32,
-    /// How many robots' commands for the previous tick were missing (their last ones were held).
+    /// How many robots missed the previous tick (nothing new arrived: the command in use stayed).
     pub missed: u32,
     /// Counts every state the sim publishes in this run, from 1 (flow control).
     pub sequence: u64,
+    /// Bit i set: robot i's observation of this tick was lost (`observations[i]` is what it
+    /// would have been told; it was not published to it).
+    pub observation_lost: u64,
     /// World poses (x, y, theta).
     pub poses: [[f32; 3]; MAX_AGENTS],
-    /// Commands (v, w) applied in the transition into this tick.
+    /// The command (v, w) in use for the transition into this tick, clamped to the limits: the
+    /// one the robot sent for the previous tick when it was on time, else the one the accounting
+    /// rule kept or took up late (docs/PROTOCOL.md). The replay's action. Zero at tick 0.
     pub applied: [[f32; ACTION_DIM]; MAX_AGENTS],
+    /// The velocity (v, w) that acted on the physics in the transition into this tick: `applied`
+    /// after the actuation delay, the motor lag and a dead controller (`[reality]`); equal to
+    /// `applied` with the reality model off.
+    pub acting: [[f32; ACTION_DIM]; MAX_AGENTS],
+    /// The commands queued at each robot's motors after that transition, the next to act first
+    /// (`queued_len` of them; the rest zero): with `acting`, what keeps the state Markov under
+    /// delay and lag.
+    pub queued: [[[f32; ACTION_DIM]; MAX_DELAY_TICKS]; MAX_AGENTS],
+    /// How many of `queued` are in use for each robot (its actuation delay, ticks).
+    pub queued_len: [u32; MAX_AGENTS],
+    /// What each robot was told at this tick (its observation after the sensor noise, as
+    /// published on its `obs/i` stream; entries past the observation model's size are zero).
+    pub observations: [[f32; MAX_OBS_DIM]; MAX_AGENTS],
     /// Desired distance of each robot's two observed edges.
     pub desired: [[f32; NEIGHBOURS]; MAX_AGENTS],
     /// Each robot's offset from the goal in the goal formation, world frame.
@@ -140,8 +158,13 @@ impl Default for StateMsg {
             reward: 0.0,
             missed: 0,
             sequence: 0,
+            observation_lost: 0,
             poses: [[0.0; 3]; MAX_AGENTS],
             applied: [[0.0; ACTION_DIM]; MAX_AGENTS],
+            acting: [[0.0; ACTION_DIM]; MAX_AGENTS],
+            queued: [[[0.0; ACTION_DIM]; MAX_DELAY_TICKS]; MAX_AGENTS],
+            queued_len: [0; MAX_AGENTS],
+            observations: [[0.0; MAX_OBS_DIM]; MAX_AGENTS],
             desired: [[0.0; NEIGHBOURS]; MAX_AGENTS],
             slots: [[0.0; 2]; MAX_AGENTS],
             goal: [0.0; 2],

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Dict, Optional, Tuple
 
 #: Bumped whenever a payload's layout or meaning changes (``wire::PROTOCOL_VERSION``).
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 
 #: ``Header.flags``: first tick of an episode (robots reset their history).
 FLAG_EPISODE_START = 1
@@ -55,6 +55,8 @@ NEIGHBOURS = 2
 MAX_OBS_DIM = 16
 #: Actions are (v, w).
 ACTION_DIM = 2
+#: Largest actuation delay, ticks: room for the commands queued at a robot's motors.
+MAX_DELAY_TICKS = 10
 #: Ports each service keeps for replacements and observers (``services::SPARE_PORTS``).
 SPARE_PORTS = 4
 
@@ -129,8 +131,13 @@ class State(ctypes.Structure):
         ("reward", ctypes.c_float),
         ("missed", ctypes.c_uint32),
         ("sequence", ctypes.c_uint64),
+        ("observation_lost", ctypes.c_uint64),
         ("poses", (ctypes.c_float * 3) * MAX_AGENTS),
         ("applied", (ctypes.c_float * ACTION_DIM) * MAX_AGENTS),
+        ("acting", (ctypes.c_float * ACTION_DIM) * MAX_AGENTS),
+        ("queued", ((ctypes.c_float * ACTION_DIM) * MAX_DELAY_TICKS) * MAX_AGENTS),
+        ("queued_len", ctypes.c_uint32 * MAX_AGENTS),
+        ("observations", (ctypes.c_float * MAX_OBS_DIM) * MAX_AGENTS),
         ("desired", (ctypes.c_float * NEIGHBOURS) * MAX_AGENTS),
         ("slots", (ctypes.c_float * 2) * MAX_AGENTS),
         ("goal", ctypes.c_float * 2),

@@ -1,11 +1,21 @@
 //! One tick's commands: waiting (event-driven) until every present robot has answered or the
-//! deadline passes, keeping each robot's valid answer, rejecting malformed ones, dropping late
-//! ones, and holding the last command of a robot that missed the tick. With the tick gate the
-//! sim sleeps through the robots' answers until the last one it expects is in.
+//! deadline passes, keeping each robot's valid answer, rejecting malformed ones, and settling
+//! each robot by one accounting rule. With the tick gate the sim sleeps through the robots'
+//! answers until the last one it expects is in.
+//!
+//! The rule, at each tick's deadline, for each robot: *on time* (its answer to this tick
+//! arrived: it is used), *late* (no answer to this tick, but an answer to an earlier tick of
+//! the episode arrived after that tick's deadline and is newer than the command in use: it is
+//! used from now on, the newest winning), or *missed* (nothing new: the command in use stays).
+//! Two more cases come from the reality model ([`formation_core::reality`]): a command lost on
+//! the radio is dropped as if never received (and the sim stops waiting for an answer lost to
+//! this tick), and a robot whose observation was lost is not waited for; both keep the command
+//! in use, are counted apart and do not count towards the robot's absence.
 
 use std::time::{Duration, Instant};
 
 use anyhow::Result;
+use formation_core::reality::Reality;
 use formation_ipc::services::{self, FileDescriptorBased};
 use formation_ipc::tick_gate::TickGate;
 use formation_protocol::wire::{CommandMsg, FLAG_HELLO, Header, PROTOCOL_VERSION};
@@ -40,13 +50,6 @@ impl Presence {
     /// True while the sim does not wait for `agent`.
     pub fn is_absent(&self, agent: usize) -> bool {
         self.consecutive_misses[agent] >= ABSENT_AFTER
-    }
-
-    fn all_present_answered(&self, received: &[bool]) -> bool {
-        received
-            .iter()
-            .enumerate()
-            .all(|(agent, &got)| got || self.is_absent(agent))
     }
 
     fn record(&mut self, agent: usize, answered: bool) {
@@ -102,8 +105,15 @@ pub fn rejection(cmd: &CommandMsg, agent: usize, now: (u32, u32)) -> Option<&'st
 /// What the command rounds have counted, over the run.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct CommandCounters {
-    /// Robot-ticks whose command was missing.
+    /// Robot-ticks with nothing new (no answer to the tick, no newer late one, nothing lost):
+    /// the command in use stayed.
     pub missed: u64,
+    /// Robot-ticks that took up a late answer to an earlier tick.
+    pub late: u64,
+    /// Commands lost on the way (the reality model's `command_loss`).
+    pub lost_commands: u64,
+    /// Observations not delivered (the reality model's `observation_loss`).
+    pub lost_observations: u64,
     /// Malformed commands refused.
     pub rejected: u64,
     /// Robots that greeted again from a new process.
@@ -112,12 +122,37 @@ pub struct CommandCounters {
     pub belled: u64,
 }
 
+/// How one robot's round ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Settled {
+    /// Its answer to this tick arrived.
+    OnTime,
+    /// A late answer to an earlier tick, newer than the command in use, is used from now on.
+    Late,
+    /// Nothing new arrived: the command in use stays.
+    Missed,
+    /// Its answer to this tick was lost, or nothing arrived after its observation was lost:
+    /// the command in use stays, and the robot's absence is not counted.
+    Lost,
+}
+
 /// Collects the commands of one tick after another; allocation-free after construction.
 #[derive(Debug)]
 pub struct CommandRound {
     received: Vec<bool>,
     notified: Vec<usize>,
+    /// The command in use by each robot.
     last_commands: Vec<(f64, f64)>,
+    /// The tick of the answer in use, per robot (None: none this episode).
+    in_use_tick: Vec<Option<u32>>,
+    /// The newest late answer to an earlier tick read this round and not yet taken up.
+    late: Vec<Option<(u32, (f64, f64))>>,
+    /// This round's answer was lost on the way: not waited for any more.
+    lost: Vec<bool>,
+    /// This round's observation was not delivered: not waited for.
+    unasked: Vec<bool>,
+    /// How each robot's last round ended.
+    settled: Vec<Settled>,
     /// The shared answer counter and tick bell, when the sim could create them.
     gate: Option<TickGate>,
     /// The robots this round wakes with the bell, not their own event.
@@ -135,6 +170,11 @@ impl CommandRound {
             received: vec![false; n],
             notified: Vec::with_capacity(n),
             last_commands: vec![(0.0, 0.0); n],
+            in_use_tick: vec![None; n],
+            late: vec![None; n],
+            lost: vec![false; n],
+            unasked: vec![false; n],
+            settled: vec![Settled::OnTime; n],
             gate: None,
             belled: vec![false; n],
             presence: Presence::new(n),
@@ -148,16 +188,23 @@ impl CommandRound {
         self
     }
 
-    /// Before tick `header` is published: the gate expects an answer from every robot that is
+    /// Before tick `header` is published, with the robots whose observation of it is lost
+    /// (`unasked`: not waited for): the gate expects an answer from every other robot that is
     /// waited for and counts itself in with the session it greeted with, and the bell is for
     /// the robots asleep on it with that session.
-    pub fn open_round(&mut self, header: Header) {
+    pub fn open_round(&mut self, header: Header, unasked: &[bool]) {
+        self.unasked.copy_from_slice(unasked);
+        self.counters.lost_observations += unasked.iter().filter(|&&u| u).count() as u64;
         if let Some(gate) = &self.gate {
             let mut counted = 0;
             for (agent, belled) in self.belled.iter_mut().enumerate() {
                 let session = self.presence.session(agent);
                 let greeted = session != 0;
-                if greeted && !self.presence.is_absent(agent) && gate.member_session(agent) == session {
+                if greeted
+                    && !self.presence.is_absent(agent)
+                    && !unasked[agent]
+                    && gate.member_session(agent) == session
+                {
                     counted += 1;
                 }
                 *belled = greeted && gate.bell_session(agent) == session;
@@ -186,11 +233,19 @@ impl CommandRound {
     /// A new episode: nothing is held from the last one.
     pub fn reset_episode(&mut self) {
         self.last_commands.iter_mut().for_each(|c| *c = (0.0, 0.0));
+        self.in_use_tick.iter_mut().for_each(|t| *t = None);
+        self.late.iter_mut().for_each(|l| *l = None);
     }
 
-    /// The commands to apply: each robot's answer of this round, or its last one held.
+    /// The commands in use: each robot's answer of this round, a late one taken up, or the
+    /// one it had.
     pub fn commands(&self) -> &[(f64, f64)] {
         &self.last_commands
+    }
+
+    /// How each robot's last round ended.
+    pub fn settled(&self) -> &[Settled] {
+        &self.settled
     }
 
     /// Waits until every present robot has answered `header` or `deadline` passes, reading
@@ -199,15 +254,26 @@ impl CommandRound {
     /// is absent, it reads every robot's stream once more without waiting: a robot counted in
     /// the gate answers without an event of its own, so an on-time answer that went out
     /// quietly would otherwise be lost with a tick that one late robot never completed.
-    pub fn collect<S: Service>(&mut self, ports: &SimPorts<S>, header: Header, deadline: Instant) -> Result<()>
+    ///
+    /// Each command read passes `reality`'s radio ([`Reality::command_lost`]) first.
+    pub fn collect<S: Service>(
+        &mut self,
+        ports: &SimPorts<S>,
+        header: Header,
+        deadline: Instant,
+        reality: &mut Reality,
+    ) -> Result<()>
     where
         Listener<S>: FileDescriptorBased,
     {
         let n = self.received.len();
         self.received.iter_mut().for_each(|r| *r = false);
+        self.lost.iter_mut().for_each(|l| *l = false);
         loop {
             let now = Instant::now();
-            let answered = self.presence.all_present_answered(&self.received);
+            let answered = (0..n).all(|agent| {
+                self.received[agent] || self.lost[agent] || self.unasked[agent] || self.presence.is_absent(agent)
+            });
             if answered || now >= deadline {
                 // Absent robots are not waited for, but what they sent is taken in: an answer
                 // makes a robot present again, even when every robot was absent.
@@ -215,7 +281,7 @@ impl CommandRound {
                     services::wait_for_events(&ports.command_ready, Duration::ZERO, |_| {})?;
                     self.notified.clear();
                     self.notified.extend(0..n);
-                    self.drain(ports, header);
+                    self.drain(ports, header, reality);
                 }
                 return Ok(());
             }
@@ -233,23 +299,46 @@ impl CommandRound {
                 self.notified.clear();
                 self.notified.extend(0..n);
             }
-            self.drain(ports, header);
+            self.drain(ports, header, reality);
         }
     }
 
-    /// Ends the round: records who answered; returns how many robots missed it.
-    pub fn settle(&mut self) -> u32 {
+    /// Ends round `tick` by the accounting rule: on time, late (the newest late answer newer
+    /// than the command in use is taken up), lost, or missed; records who answered (a lost
+    /// message counts neither way); returns how many robots missed it.
+    pub fn settle(&mut self, tick: u32) -> u32 {
         let mut missed = 0;
-        for (agent, &got) in self.received.iter().enumerate() {
-            self.presence.record(agent, got);
-            missed += u32::from(!got);
+        for agent in 0..self.received.len() {
+            let late = self.late[agent].take();
+            let settled = if self.received[agent] {
+                self.in_use_tick[agent] = Some(tick);
+                Settled::OnTime
+            } else if let Some((answered, command)) = late.filter(|&(t, _)| self.in_use_tick[agent] < Some(t)) {
+                self.last_commands[agent] = command;
+                self.in_use_tick[agent] = Some(answered);
+                self.counters.late += 1;
+                Settled::Late
+            } else if self.lost[agent] || self.unasked[agent] {
+                Settled::Lost
+            } else {
+                missed += 1;
+                Settled::Missed
+            };
+            match settled {
+                Settled::OnTime | Settled::Late => self.presence.record(agent, true),
+                Settled::Missed => self.presence.record(agent, false),
+                Settled::Lost => {}
+            }
+            self.settled[agent] = settled;
         }
         self.counters.missed += u64::from(missed);
         missed
     }
 
-    /// Takes every pending command of the notified robots, keeping this tick's valid one.
-    fn drain<S: Service>(&mut self, ports: &SimPorts<S>, header: Header) {
+    /// Takes every pending command of the notified robots: this tick's valid one is used, a
+    /// newer answer to an earlier tick of the episode is kept for the accounting, and each
+    /// passes `reality`'s radio first.
+    fn drain<S: Service>(&mut self, ports: &SimPorts<S>, header: Header, reality: &mut Reality) {
         let now = (header.episode, header.tick);
         for &agent in &self.notified {
             while let Ok(Some(sample)) = ports.agents[agent].command.receive() {
@@ -268,12 +357,29 @@ impl CommandRound {
                     }
                     continue;
                 }
-                if (cmd.header.episode, cmd.header.tick) < now || self.received[agent] {
-                    // A late answer to an earlier tick: already counted as missed.
-                    self.presence.heard_late(agent);
+                if reality.command_lost(agent) {
+                    // Dropped as if never received; an answer to this tick is not waited for.
+                    self.counters.lost_commands += 1;
+                    if (cmd.header.episode, cmd.header.tick) == now {
+                        self.lost[agent] = true;
+                    }
                     continue;
                 }
-                self.last_commands[agent] = (f64::from(cmd.v), f64::from(cmd.w));
+                let command = (f64::from(cmd.v), f64::from(cmd.w));
+                if (cmd.header.episode, cmd.header.tick) < now {
+                    // An answer to an earlier tick, after its deadline: a sign of life, and a
+                    // candidate for the command in use when it is newer (newest wins).
+                    self.presence.heard_late(agent);
+                    if cmd.header.episode == now.0 && self.late[agent].is_none_or(|(t, _)| t < cmd.header.tick) {
+                        self.late[agent] = Some((cmd.header.tick, command));
+                    }
+                    continue;
+                }
+                if self.received[agent] {
+                    // A second answer to this tick: the first counts.
+                    continue;
+                }
+                self.last_commands[agent] = command;
                 self.received[agent] = true;
             }
         }
@@ -322,9 +428,17 @@ mod tests {
                 ports,
                 Header::new(0, tick, 0),
                 Instant::now() + Duration::from_millis(wait_ms),
+                &mut ideal(),
             )
             .expect("collect");
-        round.settle()
+        round.settle(tick)
+    }
+
+    /// Every robot's reality off: no loss, no draw.
+    fn ideal() -> Reality {
+        use formation_core::config::EnvConfig;
+        use formation_core::reality::RealityConfig;
+        Reality::new(&RealityConfig::default(), &EnvConfig::default(), 0, 0, 8)
     }
 
     fn test_identity(run: &str) -> RunIdentity {
@@ -360,22 +474,22 @@ mod tests {
         let (_node, ports, robots) = sim_and_robots(3, "cmdround");
         let mut round = CommandRound::new(3);
         let tick = Header::new(2, 5, 0);
-        // Robot 0 answers; robot 1 sends a late answer, a malformed one, then nothing valid;
-        // robot 2 answers twice (the first counts).
+        // Robot 0 answers; robot 1 sends an answer to the last episode, a malformed one, then
+        // nothing valid; robot 2 answers twice (the first counts).
         robots.answer(0, command(0, 2, 5, 0.3));
-        robots.answer(1, command(1, 2, 4, 0.9));
+        robots.answer(1, command(1, 1, 4, 0.9));
         robots.answer(1, command(0, 2, 5, 0.9));
         robots.answer(2, command(2, 2, 5, 0.2));
         robots.answer(2, command(2, 2, 5, 0.4));
         let started = Instant::now();
         round
-            .collect(&ports, tick, started + Duration::from_millis(300))
+            .collect(&ports, tick, started + Duration::from_millis(300), &mut ideal())
             .expect("collect");
         assert!(
             started.elapsed() >= Duration::from_millis(300),
             "robot 1 is waited for until the deadline"
         );
-        assert_eq!(round.settle(), 1, "robot 1 missed the tick");
+        assert_eq!(round.settle(5), 1, "robot 1 missed the tick");
         assert_eq!(
             round.commands(),
             &[
@@ -389,8 +503,7 @@ mod tests {
             CommandCounters {
                 missed: 1,
                 rejected: 1,
-                rejoins: 0,
-                belled: 0
+                ..CommandCounters::default()
             }
         );
 
@@ -399,9 +512,9 @@ mod tests {
         robots.answer(1, command(1, 2, 6, 0.5));
         robots.answer(2, command(2, 2, 6, 0.1));
         round
-            .collect(&ports, tick, Instant::now() + Duration::from_millis(50))
+            .collect(&ports, tick, Instant::now() + Duration::from_millis(50), &mut ideal())
             .expect("collect");
-        assert_eq!(round.settle(), 1);
+        assert_eq!(round.settle(6), 1);
         assert_eq!(round.commands()[0], (0.3f32 as f64, 0.1f32 as f64), "held");
         assert_eq!(round.commands()[1].0, 0.5f32 as f64);
     }
@@ -421,23 +534,27 @@ mod tests {
         robots.answer(1, command(1, 0, 9, 0.1));
         let started = Instant::now();
         round
-            .collect(&ports, Header::new(0, 9, 0), started + Duration::from_secs(5))
+            .collect(
+                &ports,
+                Header::new(0, 9, 0),
+                started + Duration::from_secs(5),
+                &mut ideal(),
+            )
             .expect("collect");
         assert!(started.elapsed() < Duration::from_secs(1));
-        round.settle();
-        // A late answer (to an earlier tick, as over a slow link) proves robot 2 alive: the
-        // next ticks wait for it again, until it is silent for ABSENT_AFTER ticks again.
+        round.settle(9);
+        // A late answer (to an earlier tick, as over a slow link) proves robot 2 alive and, newer
+        // than the command in use, is taken up: the next ticks wait for it again, until it is
+        // silent for ABSENT_AFTER ticks again.
         robots.answer(0, command(0, 0, 10, 0.1));
         robots.answer(1, command(1, 0, 10, 0.1));
-        robots.answer(2, command(2, 0, 8, 0.1));
-        assert_eq!(
-            play_tick(&mut round, &ports, 10, 30),
-            1,
-            "the late answer does not count for this tick"
-        );
-        assert!(!round.presence.is_absent(2), "but robot 2 is waited for again");
-        // Tick 10 was its first miss since then; absent again after ABSENT_AFTER of them.
-        let last = 10 + ABSENT_AFTER - 1;
+        robots.answer(2, command(2, 0, 8, 0.25));
+        assert_eq!(play_tick(&mut round, &ports, 10, 30), 0, "late, not missed");
+        assert_eq!(round.settled()[2], Settled::Late);
+        assert_eq!(round.commands()[2].0, 0.25f32 as f64);
+        assert!(!round.presence.is_absent(2), "robot 2 is waited for again");
+        // Tick 11 is its first miss since then; absent again after ABSENT_AFTER of them.
+        let last = 11 + ABSENT_AFTER - 1;
         for tick in 11..last {
             play_tick(&mut round, &ports, tick, 30);
             assert!(!round.presence.is_absent(2), "tick {tick}");
@@ -467,9 +584,14 @@ mod tests {
         robots.answer(0, command(0, 0, tick, 0.4));
         robots.answer(1, command(1, 0, tick, 0.2));
         round
-            .collect(&ports, Header::new(0, tick, 0), Instant::now() + Duration::from_secs(5))
+            .collect(
+                &ports,
+                Header::new(0, tick, 0),
+                Instant::now() + Duration::from_secs(5),
+                &mut ideal(),
+            )
             .expect("collect");
-        assert_eq!(round.settle(), 0, "both answers were read");
+        assert_eq!(round.settle(tick), 0, "both answers were read");
         assert!(!round.presence.is_absent(0) && !round.presence.is_absent(1));
         assert_eq!(round.commands()[0].0, 0.4f32 as f64);
     }
@@ -493,7 +615,7 @@ mod tests {
             .collect();
         round.presence.greeted(2, 12);
         let header = Header::new(1, 3, 0);
-        round.open_round(header);
+        round.open_round(header, &[false; 3]);
         assert_eq!(
             round.belled(),
             [true, false, false],
@@ -522,18 +644,18 @@ mod tests {
             .expect("notify");
         let started = Instant::now();
         round
-            .collect(&ports, header, started + Duration::from_secs(5))
+            .collect(&ports, header, started + Duration::from_secs(5), &mut ideal())
             .expect("collect");
         assert!(
             started.elapsed() < Duration::from_secs(1),
             "did not wait for the deadline"
         );
-        assert_eq!(round.settle(), 0, "robot 0's silent answer was read too");
+        assert_eq!(round.settle(3), 0, "robot 0's silent answer was read too");
         assert_eq!(round.commands()[0].0, 0.1f32 as f64);
 
         // A robot that missed three ticks is absent: the gate stops expecting it.
         for tick in 4..4 + ABSENT_AFTER {
-            round.open_round(Header::new(1, tick, 0));
+            round.open_round(Header::new(1, tick, 0), &[false; 3]);
             robots.answer(1, command(1, 1, tick, 0.1));
             robots.answer(2, command(2, 1, tick, 0.1));
             round
@@ -541,13 +663,14 @@ mod tests {
                     &ports,
                     Header::new(1, tick, 0),
                     Instant::now() + Duration::from_millis(20),
+                    &mut ideal(),
                 )
                 .expect("collect");
-            round.settle();
+            round.settle(tick);
         }
         assert!(round.presence.is_absent(0));
         let tick = 4 + ABSENT_AFTER;
-        round.open_round(Header::new(1, tick, 0));
+        round.open_round(Header::new(1, tick, 0), &[false; 3]);
         assert_eq!(
             gates[1].answer(1, tick),
             Answer::WakeSim,
@@ -561,7 +684,7 @@ mod tests {
         // A new process in robot 0's place greets with another session: until it attaches,
         // it is woken by its event, not by the bell of its predecessor's session.
         round.presence.greeted(0, 99);
-        round.open_round(Header::new(1, tick + 1, 0));
+        round.open_round(Header::new(1, tick + 1, 0), &[false; 3]);
         assert_eq!(round.belled(), [false, false, false]);
     }
 
@@ -585,7 +708,7 @@ mod tests {
         // event: only the deadline ends the wait.
         for tick in 0..ABSENT_AFTER + 2 {
             let header = Header::new(0, tick, 0);
-            round.open_round(header);
+            round.open_round(header, &[false; 3]);
             for (agent, gate) in gates.iter().enumerate().take(2) {
                 robots.commands[agent]
                     .send_copy(CommandMsg {
@@ -606,9 +729,9 @@ mod tests {
                 }
             }
             round
-                .collect(&ports, header, Instant::now() + Duration::from_millis(30))
+                .collect(&ports, header, Instant::now() + Duration::from_millis(30), &mut ideal())
                 .expect("collect");
-            assert_eq!(round.settle(), 1, "tick {tick}: only robot 2 missed it");
+            assert_eq!(round.settle(tick), 1, "tick {tick}: only robot 2 missed it");
             for agent in 0..2 {
                 assert_eq!(
                     round.commands()[agent].0,

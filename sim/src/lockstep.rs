@@ -1,9 +1,18 @@
-//! The sim's tick loop over iceoryx2: publish every observation and the state, wait for every
-//! command of the tick (or the timeout), hold missing commands, step, score, repeat.
+//! The sim's tick loop over iceoryx2: tell every robot its observation and publish the state,
+//! wait for every command of the tick (or the timeout), settle each robot's command in use,
+//! drive the motors, step, score, repeat.
 //!
 //! [`run`] is the whole process: connect ([`SimPorts`], greetings), play episodes one tick at a
 //! time ([`Lockstep::play_episode`]), then report ([`Lockstep::finish`]). The tick's command
-//! wait is [`crate::commands`], the critic's flow control [`crate::critic_link`].
+//! wait and accounting is [`crate::commands`], the critic's flow control [`crate::critic_link`].
+//!
+//! The reality model ([`formation_core::reality`], the `[reality]` section) sits at both ends
+//! of a tick, one [`Reality`] per episode seeded by (run seed, episode) apart from the episode
+//! generator: what each robot is told passes [`Reality::tell`] and may be lost
+//! ([`Reality::observation_lost`], never on an episode's last tick, which asks for no
+//! command); each command read may be lost ([`Reality::command_lost`]); the command in use
+//! goes through [`Reality::actuate`] (delay line, motor lag, dead controller) and the acting
+//! velocity drives the physics. With every key off all of it is the identity.
 //!
 //! Generic over the iceoryx2 service type: `ipc::Service` across processes, `local::Service`
 //! for all roles in one process.
@@ -16,6 +25,7 @@ use anyhow::{Context, Result, bail};
 use formation_core::config::RunConfig;
 use formation_core::formation::Episodes;
 use formation_core::observation::Layout;
+use formation_core::reality::Reality;
 use formation_core::run_dir::write_atomically;
 use formation_core::shapes::observed_edges;
 use formation_core::task::{Conditions, Outcome, edge_error};
@@ -26,15 +36,16 @@ use formation_ipc::summary::Summary;
 use formation_ipc::switches::{ThreadSwitches, machine_switches};
 use formation_ipc::termination_requested;
 use formation_ipc::tick_gate::TickGate;
+use formation_protocol::MAX_OBS_DIM;
 use formation_protocol::wire::*;
 use hdrhistogram::Histogram;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::prelude::*;
 
-use crate::commands::CommandRound;
+use crate::commands::{CommandCounters, CommandRound};
 use crate::critic_link::{CriticLink, check_protocol};
 use crate::plots::{EpisodeTrace, episode_errors, learning_curve};
-use crate::ports::{SimPorts, Transition};
+use crate::ports::{SimPorts, Told, Transition};
 use crate::report::{EpisodeLog, EpisodeRecord, fill_episode_figures};
 
 /// How the sim runs.
@@ -74,13 +85,24 @@ struct EpisodeTally {
     episode_return: f64,
     formation_ticks: u32,
     missed_ticks: u64,
+    /// The run's command counters when the episode began.
+    counters_at_start: CommandCounters,
     /// C1-C3 at the latest state.
     last: Conditions,
 }
 
 impl EpisodeTally {
-    /// The `episodes.csv` row of an episode that ended with `outcome`.
-    fn record(&self, episode: u32, outcome: Outcome, steps: u32, started: Instant) -> EpisodeRecord {
+    /// The `episodes.csv` row of an episode that ended with `outcome`, with the run's command
+    /// counters `now`.
+    fn record(
+        &self,
+        episode: u32,
+        outcome: Outcome,
+        steps: u32,
+        started: Instant,
+        now: CommandCounters,
+    ) -> EpisodeRecord {
+        let from = self.counters_at_start;
         EpisodeRecord {
             episode,
             outcome,
@@ -90,6 +112,9 @@ impl EpisodeTally {
             final_goal_distance_m: self.last.goal_distance,
             formation_hold_rate: f64::from(self.formation_ticks) / f64::from(steps.max(1)),
             missed_ticks: self.missed_ticks,
+            late_commands: now.late - from.late,
+            lost_commands: now.lost_commands - from.lost_commands,
+            lost_observations: now.lost_observations - from.lost_observations,
             wall_s: started.elapsed().as_secs_f64(),
         }
     }
@@ -132,6 +157,11 @@ where
         traced: traced_edges(options.n_agents),
         trace: EpisodeTrace::default(),
         showcase: None,
+        layout: Layout::of(options.config.env.observation),
+        told: vec![[0.0; MAX_OBS_DIM]; options.n_agents],
+        unasked: vec![false; options.n_agents],
+        applied: vec![(0.0, 0.0); options.n_agents],
+        acting: vec![(0.0, 0.0); options.n_agents],
     };
     sim.wait_for_peers()?;
     sim.started = Instant::now();
@@ -184,6 +214,16 @@ struct Lockstep<'a, S: Service> {
     trace: EpisodeTrace,
     /// The episode `episode_errors.png` shows.
     showcase: Option<EpisodeTrace>,
+    /// The run's observation model.
+    layout: Layout,
+    /// What each robot is told this tick.
+    told: Vec<[f32; MAX_OBS_DIM]>,
+    /// Robots whose observation of this tick is lost.
+    unasked: Vec<bool>,
+    /// Each robot's command in use for the last transition, clamped (the replay's action).
+    applied: Vec<(f64, f64)>,
+    /// The velocities acting on the physics in the last transition.
+    acting: Vec<(f64, f64)>,
 }
 
 impl<S: Service> Lockstep<'_, S>
@@ -235,10 +275,20 @@ where
         let eval_episode =
             options.mode == Mode::Train && episode.is_multiple_of(options.config.learn.eval_every_episodes);
         self.round.reset_episode();
+        let config = &options.config;
+        let mut reality = Reality::new(
+            &config.reality,
+            &config.env,
+            options.seed,
+            u64::from(episode),
+            options.n_agents,
+        );
+        self.applied.iter_mut().for_each(|c| *c = (0.0, 0.0));
         let mut tally = EpisodeTally {
             episode_return: 0.0,
             formation_ticks: 0,
             missed_ticks: 0,
+            counters_at_start: self.round.counters,
             last: world.conditions(),
         };
         let (mut outcome, mut reward, mut missed) = (Outcome::Running, 0.0, 0u32);
@@ -259,13 +309,14 @@ where
                 reward,
                 missed,
             };
+            self.tell(&world, &mut reality, ends);
             if !ends {
-                self.round.open_round(header);
+                self.round.open_round(header, &self.unasked);
             }
-            self.publish_tick(&world, header, &transition, &tally, log_world)?;
+            self.publish_tick(&world, header, &transition, &tally, log_world, &reality)?;
             if ends {
                 self.log
-                    .push(tally.record(episode, outcome, world.steps, self.started))?;
+                    .push(tally.record(episode, outcome, world.steps, self.started, self.round.counters))?;
                 // The figure shows the first episode of an evaluation, or the latest noise-free
                 // episode of a training run.
                 if (options.mode == Mode::Eval && self.showcase.is_none()) || eval_episode {
@@ -280,10 +331,15 @@ where
             } else {
                 tick_started + Duration::from_millis(options.config.ticks.command_timeout_ms)
             };
-            self.round.collect(&self.ports, header, deadline)?;
-            missed = self.round.settle();
+            self.round.collect(&self.ports, header, deadline, &mut reality)?;
+            missed = self.round.settle(tick);
             tally.missed_ticks += u64::from(missed);
-            let result = world.step(self.round.commands());
+            for (agent, &(v, w)) in self.round.commands().iter().enumerate() {
+                let present = !self.round.presence.is_absent(agent);
+                self.applied[agent] = config.env.clamp_command(v, w);
+                self.acting[agent] = reality.actuate(agent, tick, (v, w), present);
+            }
+            let result = world.step(&self.acting);
             self.env_steps += 1;
             reward = result.reward;
             tally.episode_return += result.reward;
@@ -306,7 +362,8 @@ where
                     reward,
                     missed,
                 };
-                self.close_on_signal(&world, header, transition, &tally)?;
+                self.tell(&world, &mut reality, true);
+                self.close_on_signal(&world, header, transition, &tally, &reality)?;
                 return Ok(Some(Stop::Signal));
             }
         }
@@ -322,17 +379,40 @@ where
         header: Header,
         mut transition: Transition,
         tally: &EpisodeTally,
+        reality: &Reality,
     ) -> Result<()> {
         if transition.outcome == Outcome::Running {
             transition.outcome = Outcome::Aborted;
         }
-        self.ports.publish_observations(world, header, self.round.belled())?;
+        let told = Told {
+            observations: &self.told,
+            lost: &self.unasked,
+            applied: &self.applied,
+            reality,
+        };
+        self.ports
+            .publish_observations(world, header, &told, self.round.belled())?;
         self.published += 1;
         self.ports
-            .publish_state(world, header, &transition, self.published, false)?;
-        self.log
-            .push(tally.record(header.episode, transition.outcome, world.steps, self.started))?;
+            .publish_state(world, header, &transition, &told, self.published, false)?;
+        self.log.push(tally.record(
+            header.episode,
+            transition.outcome,
+            world.steps,
+            self.started,
+            self.round.counters,
+        ))?;
         Ok(())
+    }
+
+    /// What each robot is told of `world` this tick (through the sensor noise), and whose
+    /// observation is lost (never on a tick that `ends` the episode: it asks for no command).
+    fn tell(&mut self, world: &World, reality: &mut Reality, ends: bool) {
+        for (agent, (told, unasked)) in self.told.iter_mut().zip(&mut self.unasked).enumerate() {
+            *told = world.observation(agent);
+            reality.tell(agent, self.layout, told);
+            *unasked = !ends && reality.observation_lost(agent);
+        }
     }
 
     /// Publishes a tick (observations, then the state), traces it, offers it to the view and
@@ -344,15 +424,23 @@ where
         transition: &Transition,
         tally: &EpisodeTally,
         log_world: bool,
+        reality: &Reality,
     ) -> Result<()> {
-        self.ports.publish_observations(world, header, self.round.belled())?;
+        let told = Told {
+            observations: &self.told,
+            lost: &self.unasked,
+            applied: &self.applied,
+            reality,
+        };
+        self.ports
+            .publish_observations(world, header, &told, self.round.belled())?;
         if !header.has(FLAG_EPISODE_END) {
             self.round.ring_bell()?;
         }
         self.published += 1;
         let state = self
             .ports
-            .publish_state(world, header, transition, self.published, log_world)?;
+            .publish_state(world, header, transition, &told, self.published, log_world)?;
         self.trace.edge_errors.extend(
             self.traced
                 .iter()
@@ -418,6 +506,9 @@ where
             tick_p50_us: self.histogram.value_at_quantile(0.5) as f64,
             tick_p99_us: self.histogram.value_at_quantile(0.99) as f64,
             missed_ticks: counters.missed,
+            late_commands: counters.late,
+            lost_commands: counters.lost_commands,
+            lost_observations: counters.lost_observations,
             rejected_commands: counters.rejected,
             rejoined_agents: counters.rejoins,
             deadline_misses: self.deadline_misses,

@@ -225,6 +225,9 @@ mod tests {
                 final_goal_distance_m: 0.2,
                 formation_hold_rate: 0.9,
                 missed_ticks: 0,
+                late_commands: 0,
+                lost_commands: 0,
+                lost_observations: 0,
                 wall_s: f64::from(i),
             })
             .collect();

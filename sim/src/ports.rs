@@ -2,10 +2,12 @@
 //! command streams and their shared wake-up, the state stream, and the critic's progress.
 
 use anyhow::{Context, Result};
+use formation_core::reality::Reality;
 use formation_core::task::Outcome;
 use formation_core::world::World;
 use formation_ipc::services::{self, Sizing};
 use formation_protocol::wire::*;
+use formation_protocol::{MAX_DELAY_TICKS, MAX_OBS_DIM};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
@@ -38,15 +40,28 @@ pub struct SimPorts<S: Service> {
     pub critic_progress_ready: Listener<S>,
 }
 
-/// What led to a published state (the commands applied are the world's scene's).
+/// What led to a published state (the velocities that acted are the world's scene's).
 #[derive(Debug, Clone, Copy)]
 pub struct Transition {
     /// How the transition into this state ended.
     pub outcome: Outcome,
     /// Its shared reward.
     pub reward: f64,
-    /// Robots whose command was missing (their last one was held).
+    /// Robots that missed the tick (nothing new arrived: the command in use stayed).
     pub missed: u32,
+}
+
+/// What the robots were told at a tick and what drove them into it, beside the world.
+#[derive(Clone, Copy)]
+pub struct Told<'a> {
+    /// Each robot's observation after the sensor noise.
+    pub observations: &'a [[f32; MAX_OBS_DIM]],
+    /// Robots whose observation is lost (not published to them).
+    pub lost: &'a [bool],
+    /// The command in use for the transition into this tick, clamped (the replay's action).
+    pub applied: &'a [(f64, f64)],
+    /// The episode's reality: the commands queued at each robot's motors.
+    pub reality: &'a Reality,
 }
 
 impl<S: Service> SimPorts<S> {
@@ -96,19 +111,22 @@ impl<S: Service> SimPorts<S> {
         })
     }
 
-    /// Sends every robot its observation of `world` (written in place) and, unless the
-    /// episode ends here, wakes it with its event, except the robots `belled` (the caller
-    /// rings the tick bell for them).
-    pub fn publish_observations(&self, world: &World, header: Header, belled: &[bool]) -> Result<()> {
+    /// Sends every robot what it is told of `world` (`told`), except those whose observation
+    /// is lost, and, unless the episode ends here, wakes it with its event, except the robots
+    /// `belled` (the caller rings the tick bell for them).
+    pub fn publish_observations(&self, world: &World, header: Header, told: &Told, belled: &[bool]) -> Result<()> {
         let n = world.n_agents() as u32;
         for (agent, agent_ports) in self.agents.iter().enumerate() {
+            if told.lost[agent] {
+                continue;
+            }
             let mut sample = agent_ports.observation.loan().context("loan observation")?;
             let msg = sample.payload_mut();
             msg.header = header;
             msg.agent = agent as u32;
             msg.n_agents = n;
             msg.dim = world.observer.dim() as u32;
-            msg.obs = world.observation(agent);
+            msg.obs = told.observations[agent];
             sample.send().context("send observation")?;
             if !header.has(FLAG_EPISODE_END) && !belled[agent] {
                 agent_ports
@@ -120,13 +138,14 @@ impl<S: Service> SimPorts<S> {
         Ok(())
     }
 
-    /// Publishes the true state as state number `sequence`; returns a copy when `keep_copy`
-    /// (for the view).
+    /// Publishes the true state as state number `sequence`, with what the robots were told and
+    /// what drove them; returns a copy when `keep_copy` (for the view).
     pub fn publish_state(
         &self,
         world: &World,
         header: Header,
         transition: &Transition,
+        told: &Told,
         sequence: u64,
         keep_copy: bool,
     ) -> Result<Option<StateMsg>> {
@@ -138,9 +157,19 @@ impl<S: Service> SimPorts<S> {
         msg.reward = transition.reward as f32;
         msg.missed = transition.missed;
         msg.sequence = sequence;
+        msg.observation_lost = 0;
         for (agent, pose) in world.poses.iter().enumerate() {
             msg.poses[agent] = [pose.x as f32, pose.y as f32, pose.theta as f32];
-            msg.applied[agent] = [world.commands[agent].0 as f32, world.commands[agent].1 as f32];
+            msg.applied[agent] = [told.applied[agent].0 as f32, told.applied[agent].1 as f32];
+            msg.acting[agent] = [world.commands[agent].0 as f32, world.commands[agent].1 as f32];
+            let queued = told.reality.queued(agent);
+            msg.queued_len[agent] = queued.len().min(MAX_DELAY_TICKS) as u32;
+            msg.queued[agent] = [[0.0; 2]; MAX_DELAY_TICKS];
+            for (slot, (v, w)) in msg.queued[agent].iter_mut().zip(queued) {
+                *slot = [v as f32, w as f32];
+            }
+            msg.observations[agent] = told.observations[agent];
+            msg.observation_lost |= u64::from(told.lost[agent]) << agent;
             msg.desired[agent] = world.desired[agent].map(|d| d as f32);
             msg.slots[agent] = world.slots[agent].map(|d| d as f32);
         }

@@ -26,8 +26,14 @@ pub struct EpisodeRecord {
     pub final_goal_distance_m: f64,
     /// Fraction of ticks on which C1 held.
     pub formation_hold_rate: f64,
-    /// Agent-ticks whose command was missing.
+    /// Robot-ticks missed (nothing new arrived: the command in use stayed).
     pub missed_ticks: u64,
+    /// Robot-ticks that took up a late answer to an earlier tick.
+    pub late_commands: u64,
+    /// Commands lost on the way (`[reality]`'s `command_loss`).
+    pub lost_commands: u64,
+    /// Observations not delivered (`[reality]`'s `observation_loss`).
+    pub lost_observations: u64,
     /// Wall-clock seconds since the run started, at the episode's end.
     pub wall_s: f64,
 }
