@@ -520,6 +520,73 @@ mod tests {
     }
 
     #[test]
+    fn a_round_takes_up_the_newest_late_answer_and_waits_for_no_robot_left_unasked() {
+        let (_node, ports, robots) = sim_and_robots(3, "cmdlate");
+        let mut round = CommandRound::new(3);
+        // Tick 5: robot 0 is on time; robot 1 answers ticks 2 and 3 only (late, the newest
+        // wins); robot 2 was not told this tick (its observation was lost): not waited for.
+        round.open_round(Header::new(0, 5, 0), &[false, false, true]);
+        robots.answer(0, command(0, 0, 5, 0.1));
+        robots.answer(1, command(1, 0, 3, 0.3));
+        robots.answer(1, command(1, 0, 2, 0.2));
+        assert_eq!(play_tick(&mut round, &ports, 5, 300), 0, "nobody missed tick 5");
+        assert_eq!(round.settled(), [Settled::OnTime, Settled::Late, Settled::Lost]);
+        assert_eq!(round.commands()[1].0, 0.3f32 as f64, "the newest late answer is in use");
+        // Tick 6: robot 1's answer to tick 2 arrives again, older than the one in use: missed.
+        round.open_round(Header::new(0, 6, 0), &[false; 3]);
+        robots.answer(0, command(0, 0, 6, 0.1));
+        robots.answer(1, command(1, 0, 2, 0.2));
+        robots.answer(2, command(2, 0, 6, 0.4));
+        assert_eq!(play_tick(&mut round, &ports, 6, 30), 1);
+        assert_eq!(round.settled(), [Settled::OnTime, Settled::Missed, Settled::OnTime]);
+        assert_eq!(round.commands()[1].0, 0.3f32 as f64, "the command in use stays");
+        assert_eq!(
+            round.counters,
+            CommandCounters {
+                missed: 1,
+                late: 1,
+                lost_observations: 1,
+                ..CommandCounters::default()
+            }
+        );
+    }
+
+    #[test]
+    fn lost_commands_are_not_waited_for_kept_out_of_the_misses_and_never_make_a_robot_absent() {
+        use formation_core::config::EnvConfig;
+        use formation_core::reality::RealityConfig;
+        let (_node, ports, robots) = sim_and_robots(3, "cmdlost");
+        let mut round = CommandRound::new(3);
+        let config = RealityConfig::from_toml_str("[reality]\ncommand_loss = 0.999999\n").expect("config");
+        let mut reality = Reality::new(&config, &EnvConfig::default(), 1, 0, 3);
+        let ticks = ABSENT_AFTER + 2;
+        for tick in 0..ticks {
+            for agent in 0..3 {
+                robots.answer(agent, command(agent as u32, 0, tick, 0.5));
+            }
+            let started = Instant::now();
+            round
+                .collect(
+                    &ports,
+                    Header::new(0, tick, 0),
+                    started + Duration::from_secs(5),
+                    &mut reality,
+                )
+                .expect("collect");
+            assert!(
+                started.elapsed() < Duration::from_secs(1),
+                "a lost answer is not waited for"
+            );
+            assert_eq!(round.settle(tick), 0, "a loss is not a miss");
+            assert_eq!(round.settled(), [Settled::Lost; 3]);
+        }
+        assert_eq!(round.commands(), [(0.0, 0.0); 3], "lost as if never received");
+        assert!((0..3).all(|agent| !round.presence.is_absent(agent)));
+        assert_eq!(round.counters.lost_commands, 3 * u64::from(ticks));
+        assert_eq!(round.counters.missed, 0);
+    }
+
+    #[test]
     fn a_robot_that_keeps_missing_is_no_longer_waited_for() {
         let (_node, ports, robots) = sim_and_robots(3, "cmdabsent");
         let mut round = CommandRound::new(3);
