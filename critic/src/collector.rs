@@ -1,22 +1,22 @@
-//! Assembles the sim's state stream and every agent's observations into whole episodes of
-//! joint ticks, and counts what went missing.
+//! Assembles the sim's state stream into whole episodes of joint ticks, and counts what went
+//! missing.
 //!
-//! The sim publishes observations(t) before state(t), and waits for commands(t) before it
-//! publishes state(t+1); so when state(t) is read, its observations are already waiting. The
-//! commands of tick t arrive with state(t+1) as the sim applied them (clamped, or held for a
-//! robot that missed the tick), which is what the replay must learn from; so the critic does
-//! not subscribe to the command streams themselves. Each state becomes one replay tick, the
-//! sim's [`Scene`] of that tick with the commands and the reward of the transition into it.
+//! State(t) carries what every robot was told at tick t (its observation after the sensor
+//! noise of `[reality]`, the one the sim published on its `obs/i` stream, or would have when
+//! it was lost), so the actor trains on what robots see; the critic does not subscribe to the
+//! observation streams. The sim waits for commands(t) before it publishes state(t+1), which
+//! carries the command in use for that transition (the robot's answer to tick t when on time,
+//! else the one the accounting rule kept or took up late; clamped): the replay's action. So the
+//! critic does not subscribe to the command streams either. Each state becomes one replay
+//! tick, the sim's [`formation_core::scene::Scene`] of that tick with the commands and the reward of the transition
+//! into it.
 
 use anyhow::{Context, Result};
-use formation_core::config::EnvConfig;
-use formation_core::observation::Observer;
 use formation_core::physics::Pose;
-use formation_core::scene::Scene;
 use formation_core::task::Outcome;
 use formation_ipc::services::{self, FileDescriptorBased, Sizing};
+use formation_protocol::NEIGHBOURS;
 use formation_protocol::wire::*;
-use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS};
 use formation_replay::buffer::{Episode, Tick};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::subscriber::Subscriber;
@@ -27,7 +27,7 @@ use iceoryx2::prelude::*;
 pub struct CollectorStats {
     /// State messages taken in (one per tick).
     pub ticks_received: u64,
-    /// Ticks that could not be used whole (a gap in the stream or a missing observation).
+    /// Ticks that could not be used whole (a gap in the stream, an unknown outcome).
     pub lost_transitions: u64,
     /// The sim announced the end of the run.
     pub run_ended: bool,
@@ -69,10 +69,7 @@ struct EpisodeBuilder {
 
 /// The critic's subscriptions.
 pub struct Collector<S: Service> {
-    env: EnvConfig,
     state: Subscriber<S, StateMsg, ()>,
-    observations: Vec<Subscriber<S, ObservationMsg, ()>>,
-    pending_observations: Vec<Option<ObservationMsg>>,
     wake: Listener<S>,
     current: Option<EpisodeBuilder>,
     /// Counters so far.
@@ -83,29 +80,14 @@ impl<S: Service> Collector<S>
 where
     Listener<S>: FileDescriptorBased,
 {
-    /// Subscribes to the state and every observation stream.
-    pub fn new(node: &Node<S>, sizing: &Sizing, env: &EnvConfig) -> Result<Self> {
-        let buffer = sizing.stream_buffer;
-        let n = sizing.n_agents;
-        let mut observations = Vec::with_capacity(n);
-        for agent in 0..n {
-            observations.push(
-                services::observation_stream(node, sizing, agent)?
-                    .subscriber_builder()
-                    .buffer_size(buffer)
-                    .create()
-                    .with_context(|| format!("critic: observation subscriber {agent}"))?,
-            );
-        }
+    /// Subscribes to the state stream.
+    pub fn new(node: &Node<S>, sizing: &Sizing) -> Result<Self> {
         Ok(Self {
-            env: env.clone(),
             state: services::state_stream(node, sizing)?
                 .subscriber_builder()
-                .buffer_size(buffer)
+                .buffer_size(sizing.stream_buffer)
                 .create()
                 .context("critic: state subscriber")?,
-            observations,
-            pending_observations: vec![None; n],
             wake: services::critic_wake_event(node, sizing)?
                 .listener_builder()
                 .create()
@@ -150,27 +132,8 @@ where
         Ok(finished)
     }
 
-    /// The observation of `agent` for (episode, tick), or `None` when it never arrived.
-    fn observation_for(&mut self, agent: usize, key: (u32, u32)) -> Option<[f32; MAX_OBS_DIM]> {
-        loop {
-            let msg = match self.pending_observations[agent].take() {
-                Some(msg) => msg,
-                None => *self.observations[agent].receive().ok()??.payload(),
-            };
-            let msg_key = (msg.header.episode, msg.header.tick);
-            if msg_key == key {
-                return Some(msg.obs);
-            }
-            if msg_key > key {
-                self.pending_observations[agent] = Some(msg);
-                return None;
-            }
-        }
-    }
-
     fn take_tick(&mut self, state: &StateMsg) -> Option<FinishedEpisode> {
         let n = state.n_agents as usize;
-        let key = (state.header.episode, state.header.tick);
         let poses: Vec<Pose> = state.poses[..n].iter().map(|&p| Pose::from(p)).collect();
         let commands: Vec<(f64, f64)> = state.applied[..n]
             .iter()
@@ -179,26 +142,7 @@ where
         let desired: Vec<[f64; NEIGHBOURS]> = state.desired[..n].iter().map(|d| d.map(f64::from)).collect();
         let slots: Vec<[f64; 2]> = state.slots[..n].iter().map(|s| s.map(f64::from)).collect();
         let goal = state.goal.map(f64::from);
-        let observer = Observer::new(&self.env);
-        let scene = Scene {
-            poses: &poses,
-            commands: &commands,
-            desired: &desired,
-            goal,
-            slots: &slots,
-        };
-        let mut missing = false;
-        let observations: Vec<[f32; MAX_OBS_DIM]> = (0..n)
-            .map(|agent| {
-                self.observation_for(agent, key).unwrap_or_else(|| {
-                    missing = true;
-                    observer.observation(agent, &scene)
-                })
-            })
-            .collect();
-        if missing {
-            self.stats.lost_transitions += 1;
-        }
+        let observations = state.observations[..n].to_vec();
         let tick = Tick {
             poses,
             commands,
@@ -264,6 +208,7 @@ where
 
 #[cfg(test)]
 mod tests {
+    use formation_core::config::EnvConfig;
     use formation_ipc::services::{RunIdentity, Sizing};
     use iceoryx2::port::publisher::Publisher;
 
@@ -291,43 +236,30 @@ mod tests {
 
     /// A fake sim over iceoryx2's in-process `local` service, facing a real collector.
     struct FakeSim {
-        observations: Vec<Publisher<local::Service, ObservationMsg, ()>>,
         state: Publisher<local::Service, StateMsg, ()>,
         sequence: u64,
     }
 
     impl FakeSim {
-        /// Publishes tick `tick` as the sim does: observations (robot `skip` left out), then
-        /// the state carrying the outcome, reward and commands of the transition into it.
-        fn tick(&mut self, episode: u32, tick: u32, applied: f32, reward: f32, outcome: u32, skip: Option<usize>) {
-            let header = Header::new(episode, tick, 0);
-            for (agent, publisher) in self.observations.iter().enumerate() {
-                if skip != Some(agent) {
-                    let mut obs = [0.0; MAX_OBS_DIM];
-                    obs[0] = tick as f32 + agent as f32 / 10.0;
-                    publisher
-                        .send_copy(ObservationMsg {
-                            header,
-                            agent: agent as u32,
-                            n_agents: 3,
-                            dim: 12,
-                            obs,
-                        })
-                        .expect("observation");
-                }
-            }
+        /// Publishes the state of tick `tick` as the sim does: the outcome, reward and commands
+        /// of the transition into it, what each robot was told (robot `lost`'s observation
+        /// marked lost), and a velocity acting on the physics unlike the command in use.
+        fn tick(&mut self, episode: u32, tick: u32, applied: f32, reward: f32, outcome: u32, lost: Option<usize>) {
             self.sequence += 1;
             let mut state = StateMsg {
-                header,
+                header: Header::new(episode, tick, 0),
                 n_agents: 3,
                 outcome,
                 reward,
                 sequence: self.sequence,
+                observation_lost: lost.map_or(0, |agent| 1 << agent),
                 ..StateMsg::default()
             };
             for agent in 0..3 {
                 state.poses[agent] = [agent as f32, tick as f32, 0.0];
                 state.applied[agent] = [applied, -applied];
+                state.acting[agent] = [applied / 2.0, 0.0];
+                state.observations[agent][0] = tick as f32 + agent as f32 / 10.0;
             }
             self.state.send_copy(state).expect("state");
         }
@@ -338,17 +270,8 @@ mod tests {
         let node = services::create_node::<local::Service>(&identity, "critic").expect("node");
         let sizing = Sizing::new(3, 8, 12);
         let env = EnvConfig::default();
-        let collector = Collector::new(&node, &sizing, &env).expect("collector");
+        let collector = Collector::new(&node, &sizing).expect("collector");
         let sim = FakeSim {
-            observations: (0..3)
-                .map(|agent| {
-                    services::observation_stream(&node, &sizing, agent)
-                        .expect("stream")
-                        .publisher_builder()
-                        .create()
-                        .expect("publisher")
-                })
-                .collect(),
             state: services::state_stream(&node, &sizing)
                 .expect("stream")
                 .publisher_builder()
@@ -387,7 +310,8 @@ mod tests {
             episode.scene(2, episode.goal).commands[2],
             (0.4f32.into(), (-0.4f32).into())
         );
-        // The action executed from tick t, as the learner sees it.
+        // The action the robots chose from tick t (the command in use, not the velocity that
+        // acted on the physics), as the learner sees it.
         assert_eq!(
             episode.action(0, 1, &env),
             env.action_from_command(0.2f32.into(), (-0.2f32).into())
@@ -396,7 +320,7 @@ mod tests {
             episode.action(1, 2, &env),
             env.action_from_command(0.4f32.into(), (-0.4f32).into())
         );
-        // Each tick holds the observations the robots were sent at that tick.
+        // Each tick holds what the robots were told at that tick.
         assert!((ticks[1].observations[2][0] - 1.2).abs() < 1e-6);
         assert_eq!(collector.stats.lost_transitions, 0);
         assert_eq!(collector.stats.ticks_received, 3);
@@ -404,21 +328,22 @@ mod tests {
     }
 
     #[test]
-    fn a_missing_observation_or_a_gap_is_counted_as_lost() {
+    fn a_lost_observation_costs_nothing_and_a_gap_is_counted_as_lost() {
         let (_node, mut collector, mut sim, _env) = collector_and_sim("colllost");
-        // Robot 1's observation of tick 1 never arrives: the tick is rebuilt from the state
-        // (the episode stays usable) and counted.
+        // Robot 1's observation of tick 1 was lost on the way to it: the state still says what
+        // it would have been told, so the tick is whole.
         sim.tick(0, 0, 0.0, 0.0, OUTCOME_RUNNING, None);
         sim.tick(0, 1, 0.1, 1.0, OUTCOME_RUNNING, Some(1));
         sim.tick(0, 2, 0.1, 1.0, OUTCOME_TIMEOUT, None);
         let finished = collector.drain().expect("drain");
-        assert_eq!(collector.stats.lost_transitions, 1);
+        assert_eq!(collector.stats.lost_transitions, 0);
         assert_eq!(finished.len(), 1);
+        assert!((finished[0].episode.ticks[1].observations[1][0] - 1.1).abs() < 1e-6);
         assert!(!finished[0].episode.terminal, "a time limit is a truncation");
         // A gap (tick 1 of episode 1 never published): the episode is dropped.
         sim.tick(1, 0, 0.0, 0.0, OUTCOME_RUNNING, None);
         sim.tick(1, 2, 0.1, 1.0, OUTCOME_SUCCESS, None);
         assert!(collector.drain().expect("drain").is_empty());
-        assert_eq!(collector.stats.lost_transitions, 2);
+        assert_eq!(collector.stats.lost_transitions, 1);
     }
 }
