@@ -7,7 +7,7 @@ use anyhow::{Result, bail};
 use clap::{Parser, ValueEnum};
 use formation_agent::policy::{Exploration, LearnedPolicy};
 use formation_agent::run::{AgentOptions, AgentPolicy, run};
-use formation_core::baseline::{BaselineGains, ScriptedBaseline};
+use formation_core::baseline::ScriptedBaseline;
 use formation_core::observation::Layout;
 use formation_ipc::cli::{Mode, RunArgs};
 use formation_ipc::placement::Role;
@@ -76,7 +76,7 @@ fn try_main(cli: Cli) -> Result<()> {
     let rng = StdRng::seed_from_u64(cli.run.seed.wrapping_mul(1_000_003).wrapping_add(cli.agent as u64));
     let (policy, weights_from) = match cli.policy {
         PolicyKind::Scripted => (
-            AgentPolicy::Fixed(Box::new(ScriptedBaseline::new(&config.env, BaselineGains::default()))),
+            AgentPolicy::Fixed(Box::new(ScriptedBaseline::new(&config.env, config.baseline))),
             None,
         ),
         PolicyKind::Learned => {

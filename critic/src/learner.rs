@@ -343,6 +343,15 @@ impl Learner {
         })
     }
 
+    /// The teacher (with `imitation_alpha` > 0) commands with these gains: the run's
+    /// `[baseline]` section. Without this, the default gains.
+    pub fn with_teacher_gains(mut self, gains: BaselineGains) -> Self {
+        if let Some((baseline, env)) = &mut self.teacher {
+            *baseline = ScriptedBaseline::new(env, gains);
+        }
+        self
+    }
+
     /// Gradient updates done.
     pub fn updates(&self) -> u64 {
         self.updates

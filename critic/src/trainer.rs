@@ -77,7 +77,8 @@ impl<S: Service> Trainer<S> {
     pub fn new(swarms: &[(&Node<S>, Sizing)], options: &CriticOptions) -> Result<Self> {
         let config = &options.config;
         let learn = &config.learn;
-        let mut learner = Learner::new(options.n_agents, &config.env, learn, options.seed)?;
+        let mut learner =
+            Learner::new(options.n_agents, &config.env, learn, options.seed)?.with_teacher_gains(config.baseline);
         if let Some(path) = &options.resume {
             learner.load(path)?;
             eprintln!(

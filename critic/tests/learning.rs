@@ -2,6 +2,7 @@
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
+use formation_core::baseline::BaselineGains;
 use formation_core::config::{Algorithm, CriticArchitecture, EnvConfig, LearnConfig};
 use formation_core::features::CriticFeatures;
 use formation_core::observation::Layout;
@@ -230,6 +231,32 @@ fn a_teacher_pulls_the_actor_towards_the_baseline() {
     // Without a teacher there is nothing to imitate.
     let plain = Learner::new(3, &env, &learn, 22).expect("learner");
     assert!(plain.imitation_error(&batch).expect("error").is_none());
+}
+
+#[test]
+fn the_teacher_commands_with_the_runs_baseline_gains() {
+    let (env, learn) = small_config(Algorithm::Td3);
+    let env = EnvConfig { history: 1, ..env };
+    let taught = LearnConfig {
+        imitation_alpha: 0.1,
+        ..learn
+    };
+    let batch = random_batch(&env, 3, 64, 31);
+    let error = |learner: &Learner| learner.imitation_error(&batch).expect("error").expect("a teacher");
+    let default_teacher = error(&Learner::new(3, &env, &taught, 32).expect("learner"));
+    let same = Learner::new(3, &env, &taught, 32)
+        .expect("learner")
+        .with_teacher_gains(BaselineGains::default());
+    assert_eq!(error(&same), default_teacher, "same actor, same teacher");
+    let goal_only = BaselineGains {
+        k_form: 0.0,
+        k_repulsion: 0.0,
+        ..BaselineGains::default()
+    };
+    let tuned = Learner::new(3, &env, &taught, 32)
+        .expect("learner")
+        .with_teacher_gains(goal_only);
+    assert_ne!(error(&tuned), default_teacher, "the same actor against another teacher");
 }
 
 #[test]

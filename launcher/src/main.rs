@@ -30,7 +30,8 @@ Examples:
   scripts/run_swarm.sh 3 --minutes 20
   scripts/run_swarm.sh 6 --mode eval --checkpoint runs/my-training
   scripts/run_swarm.sh 3 --mode eval --scripted 0,1 --external 2 --run-dir runs/py
-  scripts/run_swarm.sh 4 --extra-swarms 3,8,16 --config configs/any-n.toml --minutes 30";
+  scripts/run_swarm.sh 4 --extra-swarms 3,8,16 --config configs/any-n.toml --minutes 30
+  scripts/run_swarm.sh 12 --mode eval --reality configs/reality-field.toml --episodes 100 --seed 1000";
 
 /// Starts the physics process, N robot processes and the central critic, lockstep over
 /// iceoryx2 shared memory, and leaves results in a run directory. Ctrl-C ends the run cleanly:
@@ -78,6 +79,12 @@ pub struct LaunchArgs {
     /// TOML overrides of the defaults (see config.toml in any run directory).
     #[arg(long, value_name = "FILE")]
     pub config: Option<PathBuf>,
+    /// The robots' real world: the [reality] section of FILE (sensor noise, actuation delay,
+    /// motor lag, lost messages, dying controllers; its other sections are not read) replaces
+    /// any [reality] of --config. Presets: configs/reality-lab.toml, configs/reality-field.toml.
+    /// Every member reads the result, RUN_DIR/launch-config.toml.
+    #[arg(long, value_name = "FILE")]
+    pub reality: Option<PathBuf>,
     /// Formation of every episode (default: the config's env.shape, random): every observed
     /// edge 0.8-2.0 m, any N; mixed draws a kind per episode.
     #[arg(long, value_enum)]

@@ -5,10 +5,11 @@ use std::ffi::OsString;
 use std::path::{Path, PathBuf};
 use std::time::{SystemTime, UNIX_EPOCH};
 
-use anyhow::{Context, Result, bail, ensure};
+use anyhow::{Context, Result, anyhow, bail, ensure};
 use clap::ValueEnum;
 use formation_core::config::{FormationShape, RunConfig, extra_swarm_seed};
 use formation_core::observation::Layout;
+use formation_core::reality::RealityConfig;
 use formation_ipc::cli::{Mode, ViewerMode, parse_robot_set, robot_set_arg};
 use formation_ipc::placement::Placement;
 use formation_ipc::services::{ICEORYX_CONFIG_FILE, RunIdentity};
@@ -18,6 +19,10 @@ use crate::{LaunchArgs, Switch};
 
 /// At most this many extra swarms feed one critic.
 const MAX_EXTRA_SWARMS: usize = 8;
+
+/// With `--reality`: the run's config (`--config` with the file's `[reality]`), written into the
+/// run directory before anything starts; every member reads it as its `--config`.
+pub const LAUNCH_CONFIG_FILE: &str = "launch-config.toml";
 
 /// One swarm of the run: a sim and its robots under their own run id (own shared memory).
 #[derive(Debug)]
@@ -108,8 +113,11 @@ pub struct Plan {
     pub viewer: ViewerMode,
     /// Ticks paced at dt of wall-clock time.
     pub realtime: bool,
-    /// The `--config` file, passed on to every member.
+    /// The `--config` file, passed on to every member (with `--reality`: LAUNCH_CONFIG_FILE in
+    /// the run directory).
     pub config_path: Option<PathBuf>,
+    /// With `--reality`: the text of LAUNCH_CONFIG_FILE, written by [`Plan::write_launch_config`].
+    pub launch_config: Option<String>,
     /// The `--shape` override, passed on to every member.
     pub shape: Option<FormationShape>,
     /// CPU placement of every member.
@@ -157,6 +165,9 @@ impl Plan {
             Some(path) => RunConfig::from_toml_file(path)?,
             None => RunConfig::default(),
         };
+        if let Some(path) = &args.reality {
+            config.reality = read_reality(path)?;
+        }
         if let Some(shape) = args.shape {
             config.env.shape = shape;
         }
@@ -169,6 +180,10 @@ impl Plan {
             (given, _) => given.clone(),
         };
         let run_dir = args.run_dir.clone().unwrap_or_else(default_run_dir);
+        let (config_path, launch_config) = match &args.reality {
+            Some(_) => (Some(run_dir.join(LAUNCH_CONFIG_FILE)), Some(config.to_toml())),
+            None => (args.config.clone(), None),
+        };
         let run_id = new_run_id();
         let remote = remote
             .into_iter()
@@ -212,7 +227,8 @@ impl Plan {
             checkpoint,
             viewer: args.viewer.unwrap_or_else(default_viewer),
             realtime: args.realtime,
-            config_path: args.config,
+            config_path,
+            launch_config,
             shape: args.shape,
             placement: args.placement,
             restart: args.restart == Switch::On,
@@ -222,6 +238,18 @@ impl Plan {
             config,
             swarms,
         })
+    }
+
+    /// With `--reality`: writes the run's config where every member's `--config` points,
+    /// creating the run directory. Before any member (or preflight check) starts.
+    pub fn write_launch_config(&self) -> Result<()> {
+        let (Some(text), Some(path)) = (&self.launch_config, &self.config_path) else {
+            return Ok(());
+        };
+        let run_dir = &self.primary().run_dir;
+        std::fs::create_dir_all(run_dir).with_context(|| format!("cannot create {}", run_dir.display()))?;
+        let header = "# The run's config: --config with --reality's [reality] section (written by the launcher)\n";
+        std::fs::write(path, format!("{header}{text}")).with_context(|| format!("cannot write {}", path.display()))
     }
 
     /// The primary swarm.
@@ -550,6 +578,26 @@ impl Plan {
     }
 }
 
+/// The `[reality]` section of `path`, validated; the file's other sections are not read.
+/// Refusals name the file and the field.
+fn read_reality(path: &Path) -> Result<RealityConfig> {
+    /// Only the `[reality]` table of the file.
+    #[derive(serde::Deserialize)]
+    struct Section {
+        reality: Option<RealityConfig>,
+    }
+    let text = std::fs::read_to_string(path).with_context(|| format!("--reality: cannot read {}", path.display()))?;
+    let section: Section =
+        toml::from_str(&text).map_err(|err| anyhow!("--reality file {} does not parse: {err}", path.display()))?;
+    let reality = section
+        .reality
+        .with_context(|| format!("--reality file {} has no [reality] section", path.display()))?;
+    reality
+        .validate()
+        .map_err(|err| anyhow!("--reality file {}: {err}", path.display()))?;
+    Ok(reality)
+}
+
 /// Which robots are scripted, external and remote, checked against each other.
 struct RobotSets {
     scripted: Vec<usize>,
@@ -819,5 +867,108 @@ mod tests {
         assert_eq!(json["observation_dim"], Layout::of(plan.config.env.observation).dim());
         let root = json["root_path"].as_str().expect("root path");
         assert!(root.ends_with(&format!("/formation-iox2/{}/", plan.primary().identity.run_id)));
+    }
+
+    /// A directory of this test's own under the system's temp dir, removed when dropped.
+    struct Scratch(PathBuf);
+
+    impl Scratch {
+        fn new(name: &str) -> Self {
+            let dir = std::env::temp_dir().join(format!("formation-launcher-{name}-{}", std::process::id()));
+            std::fs::create_dir_all(&dir).expect("scratch dir");
+            Self(dir)
+        }
+
+        fn file(&self, name: &str, text: &str) -> String {
+            let path = self.0.join(name);
+            std::fs::write(&path, text).expect("scratch file");
+            path.to_string_lossy().into_owned()
+        }
+    }
+
+    impl Drop for Scratch {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+
+    #[test]
+    fn a_reality_file_replaces_the_configs_reality_and_every_member_reads_the_result() {
+        use formation_core::reality::Spread;
+
+        let scratch = Scratch::new("reality");
+        let config = scratch.file("config.toml", "[env]\nmax_steps = 90\n[reality]\ncommand_loss = 0.2\n");
+        let reality = scratch.file(
+            "reality.toml",
+            "# a preset\n[reality]\nposition_noise_m = [0.05, 0.1]\nactuation_delay_ticks = 2\n[env]\nmax_steps = 5\n",
+        );
+        let run_dir = scratch.0.join("run");
+        let run_dir_arg = run_dir.to_string_lossy().into_owned();
+        let plan = plan(&[
+            "3",
+            "--mode",
+            "eval",
+            "--scripted",
+            "all",
+            "--viewer",
+            "off",
+            "--config",
+            &config,
+            "--reality",
+            &reality,
+            "--run-dir",
+            &run_dir_arg,
+        ])
+        .expect("plan");
+        let given = &plan.config.reality;
+        assert_eq!(given.position_noise_m, Spread::range(0.05, 0.1));
+        assert_eq!(given.actuation_delay_ticks, Spread::fixed(2.0));
+        assert!(
+            given.command_loss.is_off(),
+            "the whole [reality] of --config is replaced"
+        );
+        assert_eq!(plan.config.env.max_steps, 90, "only the file's [reality] is read");
+
+        let launch_config = run_dir.join(LAUNCH_CONFIG_FILE);
+        for member in plan.members() {
+            let args: Vec<String> = plan
+                .args(member, None, None)
+                .iter()
+                .map(|a| a.to_string_lossy().into_owned())
+                .collect();
+            let given_config = args.windows(2).find(|w| w[0] == "--config").map(|w| w[1].clone());
+            assert_eq!(given_config.as_deref(), launch_config.to_str(), "{member:?}");
+        }
+        assert!(!launch_config.exists(), "the plan creates nothing");
+        plan.write_launch_config().expect("written");
+        assert_eq!(RunConfig::from_toml_file(&launch_config).expect("loads"), plan.config);
+    }
+
+    #[test]
+    fn bad_reality_files_are_refused_naming_the_file_and_the_field() {
+        let scratch = Scratch::new("bad-reality");
+        for (text, needle) in [
+            (
+                "[reality]\ncommand_loss = 1.5\n",
+                "reality.command_loss = 1.5 is invalid",
+            ),
+            (
+                "[reality]\nactuation_delay_ticks = [3, 1]\n",
+                "reality.actuation_delay_ticks",
+            ),
+            ("[reality]\nposition_noise_m = -0.1\n", "reality.position_noise_m"),
+            ("[reality]\ncomand_loss = 0.1\n", "unknown field `comand_loss`"),
+            ("[reality]\ndead_robot = \"brake\"\n", "dead_robot"),
+            ("[env]\nmax_steps = 90\n", "has no [reality] section"),
+        ] {
+            let path = scratch.file("reality.toml", text);
+            let refusal = plan(&["3", "--viewer", "off", "--reality", &path]).expect_err(needle);
+            let message = format!("{refusal:#}");
+            assert!(message.contains(needle), "{text:?}: {message}");
+            assert!(message.contains(&path), "{text:?} names the file: {message}");
+        }
+        let missing = scratch.0.join("missing.toml").to_string_lossy().into_owned();
+        let refusal = plan(&["3", "--viewer", "off", "--reality", &missing]).expect_err("missing");
+        assert!(format!("{refusal:#}").contains(&format!("--reality: cannot read {missing}")));
     }
 }

@@ -72,6 +72,7 @@ pub fn launch(plan: &Plan) -> Result<u8> {
     for (run_id, files) in sweep_abandoned_runs() {
         println!("removed {files} shared-memory files of run {run_id}, whose launcher is gone");
     }
+    plan.write_launch_config()?;
     for (program, args) in plan.preflight() {
         let status = Command::new(bin_dir.join(program))
             .args(&args)

@@ -8,7 +8,7 @@ use std::path::PathBuf;
 use anyhow::{Result, anyhow};
 use clap::{Parser, ValueEnum};
 use formation_agent::run::{AgentOptions, AgentPolicy, run as run_agent};
-use formation_core::baseline::{BaselineGains, ScriptedBaseline};
+use formation_core::baseline::ScriptedBaseline;
 use formation_core::config::{RunConfig, validate_agent_count};
 use formation_ipc::cli::Mode;
 use formation_ipc::placement::{self, Placement, Role};
@@ -67,7 +67,7 @@ where
                     weights_from: None,
                     config: config.clone(),
                 };
-                let policy = AgentPolicy::Fixed(Box::new(ScriptedBaseline::new(&config.env, BaselineGains::default())));
+                let policy = AgentPolicy::Fixed(Box::new(ScriptedBaseline::new(&config.env, config.baseline)));
                 std::thread::Builder::new()
                     .name(format!("agent{agent}"))
                     .spawn_scoped(scope, move || run_agent::<S>(identity, &options, policy))
