@@ -17,7 +17,7 @@ use formation_core::scene::Scene;
 use formation_ipc::services::{self, RunIdentity, Sizing};
 use formation_protocol::wire::{FLAG_RUN_END, ObservationMsg, StateMsg};
 use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS};
-use formation_swarm::{RunOutcome, assert_clean, run_id_of, run_swarm_with, scratch_dir};
+use formation_swarm::{RunOutcome, assert_clean, run_id_of, run_swarm, run_swarm_with, scratch_dir, shm_leftovers};
 use iceoryx2::prelude::*;
 
 /// Robots in every run here.
@@ -352,4 +352,45 @@ fn lost_messages_are_counted_apart_near_their_probability_and_never_as_missed() 
             .sum()
     };
     assert_eq!((sum(obs_col), sum(cmd_col)), (lost_obs, lost_cmd));
+}
+
+#[test]
+fn in_real_time_a_robot_behind_a_50_ms_link_reaches_the_goal_on_late_commands() {
+    let dir = scratch_dir("reality-remote-late");
+    let run = run_swarm(
+        &[
+            "3",
+            "--scripted",
+            "all",
+            "--mode",
+            "eval",
+            "--remote",
+            "2",
+            "--net-delay-ms",
+            "50",
+            "--realtime",
+            "--episodes",
+            "5",
+            "--seed",
+            "1000",
+            "--viewer",
+            "off",
+        ],
+        &dir.join("run"),
+        Duration::from_secs(240),
+    )
+    .expect("launch");
+    let summary = assert_finished(&run);
+    let host = format!("{}h2", run.run_id.as_deref().expect("run id"));
+    assert!(shm_leftovers(&host).is_empty(), "{:?}", shm_leftovers(&host));
+    // A round trip of 100 ms is a whole tick: robot 2's answers come late and are used from
+    // the next tick on (before the accounting rule they were dropped and it never moved).
+    let late = summary["late_commands"].as_u64().expect("late_commands");
+    let steps = summary["env_steps"].as_u64().expect("env_steps");
+    assert!(late > steps / 2, "{late} late commands in {steps} ticks: {summary}");
+    assert!(
+        summary["success_rate"].as_f64().expect("success_rate") >= 0.8,
+        "{summary}"
+    );
+    std::fs::remove_dir_all(&dir).expect("cleanup");
 }
