@@ -217,15 +217,10 @@ def _toml_dumps(data: Dict[str, Any], prefix: str = "") -> str:
     return out
 
 
-def swarm_config(config: Union[str, Path, None], step_timeout_s: Optional[float]) -> str:
-    """The TOML the env runs the swarm with: ``config`` (a file, or None for the defaults) with
-    ``ticks.command_timeout_ms`` set to ``step_timeout_s`` and ``ticks.startup_timeout_s``
-    raised past it (the critic waits that long for a sim that waits for the env)."""
-    text = Path(config).read_text() if config is not None else ""
-    if step_timeout_s is None:
-        return text
-    command_timeout_ms = max(1, int(round(step_timeout_s * 1000)))
-    startup_floor = int(math.ceil(step_timeout_s)) + 60
+Reality = Union[str, Path, Dict[str, Any], None]
+
+
+def _tomllib() -> Any:
     try:
         import tomllib  # Python 3.11+
     except ImportError:  # pragma: no cover - Python 3.9 and 3.10
@@ -233,7 +228,59 @@ def swarm_config(config: Union[str, Path, None], step_timeout_s: Optional[float]
             import tomli as tomllib
         except ImportError:
             tomllib = None
+    return tomllib
+
+
+def reality_section(reality: Union[str, Path, Dict[str, Any]]) -> Dict[str, Any]:
+    """The ``[reality]`` keys ``reality`` stands for: a TOML file's ``[reality]`` table (its
+    other tables are not read, as run_swarm.sh ``--reality``), or a dict of the keys themselves
+    (``{"actuation_delay_ticks": [1, 3], ...}``; a dict holding a ``"reality"`` table, a parsed
+    preset, gives that table). The values are checked by the launcher, which names the field."""
+    if isinstance(reality, dict):
+        section = reality.get("reality", reality) if isinstance(reality.get("reality"), dict) else reality
+        return dict(section)
+    path = Path(reality)
+    if not path.is_file():
+        raise FormationError(f"reality file {path} does not exist")
+    tomllib = _tomllib()
     if tomllib is None:  # pragma: no cover
+        raise FormationError("reality= with a file needs Python 3.11 or `pip install tomli`")
+    try:
+        section = tomllib.loads(path.read_text()).get("reality")
+    except tomllib.TOMLDecodeError as err:
+        raise FormationError(f"reality file {path} is not valid TOML: {err}") from err
+    if not isinstance(section, dict):
+        raise FormationError(f"reality file {path} has no [reality] section")
+    return section
+
+
+def refuse_observation_loss(section: Dict[str, Any], source: str) -> None:
+    """FormationEnv answers every robot's observation of a tick at once, so a robot whose
+    observation is lost would be waited for forever: refuses ``observation_loss`` other than 0."""
+    loss = section.get("observation_loss", 0)
+    if any(float(v) != 0.0 for v in (loss if isinstance(loss, (list, tuple)) else [loss])):
+        raise FormationError(
+            f"{source}: reality.observation_loss = {loss!r} is not supported by FormationEnv (it steps every "
+            "robot on each tick's observations, and a lost one never comes); set it to 0, or play robots one "
+            "by one with formation_swarm.run_robot"
+        )
+
+
+def swarm_config(config: Union[str, Path, None], step_timeout_s: Optional[float], reality: Reality = None) -> str:
+    """The TOML the env runs the swarm with: ``config`` (a file, or None for the defaults) with
+    ``ticks.command_timeout_ms`` set to ``step_timeout_s`` and ``ticks.startup_timeout_s``
+    raised past it (the critic waits that long for a sim that waits for the env), and with
+    ``reality`` (see :func:`reality_section`) as its ``[reality]`` section, replacing any of
+    ``config``'s."""
+    text = Path(config).read_text() if config is not None else ""
+    if step_timeout_s is None and reality is None:
+        return text
+    tomllib = _tomllib()
+    if tomllib is None:  # pragma: no cover
+        if reality is not None:
+            raise FormationError("reality= needs Python 3.11 or `pip install tomli`")
+        command_timeout_ms = max(1, int(round(step_timeout_s * 1000)))
+        startup_floor = int(math.ceil(step_timeout_s)) + 60
         if "[ticks]" in text or "ticks." in text:
             raise FormationError("a --config with a [ticks] table needs Python 3.11 or `pip install tomli`")
         return (f"{text}\n[ticks]\ncommand_timeout_ms = {command_timeout_ms}\n"
@@ -242,9 +289,14 @@ def swarm_config(config: Union[str, Path, None], step_timeout_s: Optional[float]
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise FormationError(f"{config} is not valid TOML: {err}") from err
-    ticks = data.setdefault("ticks", {})
-    ticks["command_timeout_ms"] = command_timeout_ms
-    ticks["startup_timeout_s"] = max(int(ticks.get("startup_timeout_s", 60)), startup_floor)
+    if step_timeout_s is not None:
+        command_timeout_ms = max(1, int(round(step_timeout_s * 1000)))
+        startup_floor = int(math.ceil(step_timeout_s)) + 60
+        ticks = data.setdefault("ticks", {})
+        ticks["command_timeout_ms"] = command_timeout_ms
+        ticks["startup_timeout_s"] = max(int(ticks.get("startup_timeout_s", 60)), startup_floor)
+    if reality is not None:
+        data["reality"] = reality_section(reality)
     return _toml_dumps(data)
 
 
@@ -293,7 +345,12 @@ class FormationEnv(ParallelEnv):
 
     Keyword arguments: ``n`` robots (3 to 64); ``seed``; ``shape`` (``random``, ``ring``,
     ``line``, ``wedge``, ``grid``, ``mixed``: run_swarm.sh ``--shape``); ``config`` (a TOML file of
-    overrides, run_swarm.sh ``--config``); ``max_cycles`` (steps per episode, None: the sim's
+    overrides, run_swarm.sh ``--config``); ``reality`` (the robots' real world: sensor noise,
+    actuation delay, motor lag, lost messages, as run_swarm.sh ``--reality``: a TOML file whose
+    ``[reality]`` table is read, e.g. ``configs/reality-field.toml``, or a dict of its keys;
+    written into the swarm's config over any ``[reality]`` of ``config``; ``observation_loss``
+    must be 0, since the env steps every robot at once on each tick's observations);
+    ``max_cycles`` (steps per episode, None: the sim's
     ``env.max_steps``); ``render_mode`` None or ``"rerun"`` (the sim records every tick to
     ``<run_dir>/recording.rrd``, ``--viewer save``); ``viewer`` (``spawn``, ``save``,
     ``connect=URL`` or ``off``: run_swarm.sh ``--viewer``, overrides the one render_mode picks);
@@ -323,6 +380,7 @@ class FormationEnv(ParallelEnv):
         max_cycles: Optional[int] = None,
         render_mode: Optional[str] = None,
         *,
+        reality: Reality = None,
         viewer: Optional[str] = None,
         run_dir: Union[str, Path, None] = None,
         repo: Union[str, Path, None] = None,
@@ -338,6 +396,7 @@ class FormationEnv(ParallelEnv):
         self._configure(
             dict(
                 n=n, seed=seed, shape=shape, config=resolved(config), max_cycles=max_cycles,
+                reality=dict(reality) if isinstance(reality, dict) else resolved(reality),
                 render_mode=render_mode, viewer=viewer, run_dir=resolved(run_dir), repo=resolved(repo),
                 bin_dir=resolved(bin_dir), placement=placement, step_timeout_s=step_timeout_s,
                 launch_timeout_s=launch_timeout_s, close_timeout_s=close_timeout_s,
@@ -371,6 +430,18 @@ class FormationEnv(ParallelEnv):
         self.config = None if config is None else Path(config)
         if self.config is not None and not self.config.is_file():
             raise FormationError(f"config file {self.config} does not exist")
+        reality = args.get("reality")
+        #: The ``[reality]`` section written into every swarm's config (None: the config's own).
+        self.reality: Optional[Dict[str, Any]] = None if reality is None else reality_section(reality)
+        if self.reality is not None:
+            refuse_observation_loss(self.reality, "reality")
+        elif self.config is not None and _tomllib() is not None:
+            try:
+                in_config = _tomllib().loads(self.config.read_text()).get("reality")
+            except ValueError as err:
+                raise FormationError(f"{self.config} is not valid TOML: {err}") from err
+            if isinstance(in_config, dict):
+                refuse_observation_loss(in_config, str(self.config))
         self.viewer = args["viewer"] or ("save" if render_mode == "rerun" else "off")
         self.placement = args["placement"]
         self.step_timeout_s = args["step_timeout_s"]
@@ -642,8 +713,9 @@ class FormationEnv(ParallelEnv):
         run_dir = self.base_dir / f"swarm-{k}"
         config = self.base_dir / f"config-{k}.toml"
         config.write_text(
-            f"# FormationEnv: {self.config or 'the defaults'}, with the env's tick deadline\n"
-            + swarm_config(self.config, self.step_timeout_s)
+            f"# FormationEnv: {self.config or 'the defaults'}, with the env's tick deadline"
+            + (" and reality=" if self.reality is not None else "") + "\n"
+            + swarm_config(self.config, self.step_timeout_s, self.reality)
         )
         args = [
             str(self.launcher.command), str(self.n),

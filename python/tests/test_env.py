@@ -20,7 +20,7 @@ from pettingzoo.test import parallel_api_test  # noqa: E402
 import formation_swarm as fs  # noqa: E402
 from formation_swarm.env import swarm_config  # noqa: E402
 
-from conftest import bin_dir, processes_mentioning, remove_leftovers, root_path, shm_leftovers  # noqa: E402
+from conftest import REPO, bin_dir, processes_mentioning, remove_leftovers, root_path, shm_leftovers  # noqa: E402
 
 WATCHDOG_S = 180
 
@@ -217,6 +217,51 @@ def test_swarm_config_keeps_the_users_settings(tmp_path):
     assert merged["ticks"] == {"startup_timeout_s": 2000, "command_timeout_ms": 12500}
     assert tomllib.loads(swarm_config(None, 600))["ticks"] == {"command_timeout_ms": 600_000, "startup_timeout_s": 660}
     assert swarm_config(config, None) == config.read_text()
+
+
+def test_swarm_config_takes_reality_from_a_file_or_a_dict_over_the_configs(tmp_path):
+    tomllib = pytest.importorskip("tomllib")
+    config = tmp_path / "user.toml"
+    config.write_text('[env]\nmax_steps = 80\n\n[reality]\ncommand_loss = 0.2\n')
+    preset = tmp_path / "preset.toml"
+    preset.write_text('# mine\n[reality]\nposition_noise_m = [0.05, 0.1]\ndead_robot = "stop"\n\n[env]\nmax_steps = 5\n')
+    from_file = tomllib.loads(swarm_config(config, None, preset))
+    assert from_file["reality"] == {"position_noise_m": [0.05, 0.1], "dead_robot": "stop"}, "replaces the config's"
+    assert from_file["env"] == {"max_steps": 80}, "only the file's [reality] is read"
+    from_dict = tomllib.loads(swarm_config(None, 30, {"actuation_delay_ticks": [2, 2]}))
+    assert from_dict["reality"] == {"actuation_delay_ticks": [2, 2]}
+    assert from_dict["ticks"]["command_timeout_ms"] == 30_000
+    parsed_preset = {"reality": {"observation_loss": 0.05}}
+    assert tomllib.loads(swarm_config(None, None, parsed_preset))["reality"] == {"observation_loss": 0.05}
+    no_section = tmp_path / "none.toml"
+    no_section.write_text("[env]\nmax_steps = 5\n")
+    with pytest.raises(fs.FormationError, match="has no \\[reality\\] section"):
+        swarm_config(None, None, no_section)
+    with pytest.raises(fs.FormationError, match="does not exist"):
+        swarm_config(None, None, tmp_path / "missing.toml")
+
+
+def test_reality_reaches_the_swarms_config_and_bad_values_are_refused_by_name(make_env, tmp_path):
+    """reality= (a preset file) is the run's [reality], as the sim and the critic read it
+    (config.toml in the run directory); an out-of-range value is refused naming the field."""
+    tomllib = pytest.importorskip("tomllib")
+    field = REPO / "configs" / "reality-field.toml"
+    # The env steps every robot on each tick's observations: a lost one would never come.
+    with pytest.raises(fs.FormationError, match="observation_loss"):
+        fs.FormationEnv(n=3, reality=field, bin_dir=bin_dir(), run_dir=tmp_path / "refused")
+    preset = tmp_path / "field-without-observation-loss.toml"
+    preset.write_text(field.read_text().replace("observation_loss = [0.05, 0.1]", "observation_loss = 0.0"))
+    config = tmp_path / "user.toml"
+    config.write_text("[env]\nmax_steps = 80\n")
+    env = make_env(n=3, seed=7, config=config, reality=preset)
+    written = tomllib.loads((env.base_dir / "swarm-1" / "config.toml").read_text())
+    assert written["reality"] == tomllib.loads(preset.read_text())["reality"]
+    assert written["reality"]["actuation_delay_ticks"] == [1, 3]
+    assert written["env"]["max_steps"] == 80
+    env.reset()
+    env.step({a: [0.0, 0.0] for a in env.agents})
+    with pytest.raises(fs.FormationError, match="reality.command_loss"):
+        make_env(n=3, seed=7, reality={"command_loss": 1.5})
 
 
 def test_action_units(make_env):
