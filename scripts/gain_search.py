@@ -9,7 +9,7 @@ and up). "Scripted tuned" is the most successful set (success averaged over the 
 broken by fewer mean steps to the goal; it is written as OUT/tuned-ROW.toml, which
 scripts/reality_grid.py --tuned OUT reads.
 
-  scripts/gain_search.py --row field --n 3,12 --episodes 20
+  scripts/gain_search.py --row field --n 3,12,32 --episodes 20
   FORMATION_BIN_DIR=target/debug scripts/gain_search.py --row ideal --sets 20 --episodes 10
 
 The sets: the defaults, the issue's softer gains (k_form 0.75, k_goal 0.3, k_turn 1.25), the
@@ -28,7 +28,8 @@ import sys
 import time
 from pathlib import Path
 
-import reality_runs as rr
+sys.dont_write_bytecode = True  # no __pycache__ in scripts/
+import reality_runs as rr  # noqa: E402
 
 #: Search ranges of each gain (lo, hi), drawn log-uniformly.
 RANGES = {
@@ -67,13 +68,15 @@ def rank_key(result: dict):
 
 
 def pooled(summaries: list[dict | None]) -> dict:
-    """Success, collisions and steps averaged over the N list (a failed run counts as 0 success)."""
+    """Success and collisions averaged over the N list (a failed run counts as 0 success), and the
+    mean steps to the goal of every successful episode of the N list (infinity: none)."""
     ok = [s for s in summaries if s is not None]
-    steps = [rr.steps_or_inf(s) for s in ok]
+    reached = [(s["success_rate"] * s["episodes"], s["mean_steps_to_goal"]) for s in ok if s.get("mean_steps_to_goal") is not None]
+    successes = sum(count for count, _ in reached)
     return {
         "success": sum(s["success_rate"] for s in ok) / len(summaries),
         "collisions": sum(s["collision_rate"] for s in ok) / max(1, len(ok)),
-        "steps": sum(steps) / len(steps) if steps else math.inf,
+        "steps": sum(count * steps for count, steps in reached) / successes if successes else math.inf,
         "failed_runs": len(summaries) - len(ok),
     }
 
@@ -129,7 +132,7 @@ def plot(results: list[dict], learned: dict | None, tuned: dict, ns: list[int], 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--row", default="field", choices=rr.ROW_NAMES, help="grid condition to search (default field)")
-    ap.add_argument("--n", default="3,12", help="swarm sizes, comma-separated (default 3,12)")
+    ap.add_argument("--n", default="3,12,32", help="swarm sizes, comma-separated (default 3,12,32)")
     ap.add_argument("--episodes", type=int, default=20, help="episodes per gain set and N (default 20)")
     ap.add_argument("--seed", type=int, default=2000, help="episode seed (default 2000; the held-out seeds are 1000 and up, below 2000)")
     ap.add_argument("--sets", type=int, default=24, help="gain sets (default 24, at least 20 for the issue)")

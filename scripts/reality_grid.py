@@ -26,7 +26,8 @@ import sys
 import time
 from pathlib import Path
 
-import reality_runs as rr
+sys.dont_write_bytecode = True  # no __pycache__ in scripts/
+import reality_runs as rr  # noqa: E402
 
 COLUMNS = ("scripted", "tuned", "learned")
 COLUMN_TITLES = {"scripted": "scripted", "tuned": "scripted tuned", "learned": "learned"}
