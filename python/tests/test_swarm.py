@@ -12,7 +12,7 @@ import sys
 import time
 
 
-from formation_swarm import Observer, connect
+from formation_swarm import Observer, connect, wire
 from formation_swarm.run import OBSERVATION_DIMS
 
 from conftest import assert_clean, kill_group, launch, python_robot, remove_leftovers, wait_or_kill
@@ -302,7 +302,7 @@ def test_services_python_creates_first_open_in_rust(tmp_path):
     run_dir.mkdir()
     (run_dir / "run.json").write_text(json.dumps({
         "run_id": run_id, "n_agents": 3, "shm_prefix": f"fc_{run_id}_",
-        "root_path": f"{root_path(run_id)}/", "protocol_version": 2, "observation": "slot_proximity",
+        "root_path": f"{root_path(run_id)}/", "protocol_version": wire.PROTOCOL_VERSION, "observation": "slot_proximity",
         "observation_dim": 16, "critic_window": 64, "startup_timeout_s": 60, "sim_silence_ms": 2000,
         "command_timeout_ms": 200, "v_max": 0.5, "w_max": 1.0, "proximity_range_m": 1.0, "mode": "eval",
         "external": [2], "launcher_pid": 0}))
