@@ -847,6 +847,25 @@ mod tests {
     }
 
     #[test]
+    fn reality_is_off_and_the_baseline_default_unless_configured() {
+        let config = RunConfig::default();
+        assert_eq!(config.reality, RealityConfig::default());
+        assert_eq!(config.baseline, BaselineGains::default());
+        let tuned = RunConfig::from_toml_str(
+            "[reality]\nactuation_delay_ticks = [1, 3]\ndead_robot = \"stop\"\n[baseline]\nk_form = 0.75\n",
+        )
+        .expect("parses");
+        assert_eq!(
+            tuned.reality.actuation_delay_ticks,
+            crate::reality::Spread::range(1.0, 3.0)
+        );
+        assert_eq!(tuned.reality.dead_robot, crate::reality::DeadRobot::Stop);
+        assert_eq!(tuned.baseline.k_form, 0.75);
+        assert_eq!(tuned.baseline.k_goal, BaselineGains::default().k_goal);
+        assert_eq!(RunConfig::from_toml_str(&tuned.to_toml()).expect("round trip"), tuned);
+    }
+
+    #[test]
     fn overrides_keep_other_defaults() {
         let config = RunConfig::from_toml_str("[env]\ndt_s = 0.05\n").expect("parses");
         assert_eq!(config.env.dt_s, 0.05);
@@ -865,6 +884,13 @@ mod tests {
             ("[learn]\ncritic = \"attention\"\n", "critic"),
             ("[learn]\nselection_seed = 1000\n", "learn.selection_seed"),
             ("[learn]\nselection_episodes = 0\n", "learn.selection_episodes"),
+            ("[reality]\ncommand_loss = 1.0\n", "reality.command_loss"),
+            (
+                "[reality]\nactuation_delay_ticks = [3, 2]\n",
+                "reality.actuation_delay_ticks",
+            ),
+            ("[reality]\nposition_noise_m = -0.1\n", "reality.position_noise_m"),
+            ("[baseline]\nk_turn = 0.0\n", "baseline.k_turn"),
         ] {
             let err = RunConfig::from_toml_str(text).expect_err(text);
             assert!(err.to_string().contains(field), "{err} should name {field}");
