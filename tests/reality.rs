@@ -129,6 +129,11 @@ fn observe(log: &Path, config: &RunConfig) -> Streamed {
     streamed
 }
 
+/// Removes the scratch directory of `run` (the test passed).
+fn remove_scratch(run: &RunOutcome) {
+    std::fs::remove_dir_all(run.run_dir.parent().expect("scratch dir")).expect("cleanup");
+}
+
 /// The run finished cleanly and left nothing behind.
 fn assert_finished(run: &RunOutcome) -> serde_json::Value {
     assert_eq!(run.status, Some(0), "{}", run.output);
@@ -172,6 +177,7 @@ fn with_two_ticks_of_delay_each_robots_acting_velocity_is_its_command_of_two_tic
     for key in ["missed_ticks", "late_commands", "lost_commands", "lost_observations"] {
         assert_eq!(summary[key], 0, "{key}");
     }
+    remove_scratch(&run);
 }
 
 #[test]
@@ -229,6 +235,7 @@ fn a_failed_controller_with_stop_comes_to_rest_within_v_max_over_the_acceleratio
         episodes_checked += 1;
     }
     assert!(episodes_checked >= 1, "no episode ran past its failure's braking time");
+    remove_scratch(&run);
 }
 
 #[test]
@@ -306,6 +313,7 @@ fn position_noise_reaches_what_robots_are_told_with_the_configured_spread_and_le
         "spread {spread} for sigma {sigma}"
     );
     assert_eq!(summary["lost_observations"], 0);
+    remove_scratch(&run);
 }
 
 #[test]
@@ -352,6 +360,7 @@ fn lost_messages_are_counted_apart_near_their_probability_and_never_as_missed() 
             .sum()
     };
     assert_eq!((sum(obs_col), sum(cmd_col)), (lost_obs, lost_cmd));
+    remove_scratch(&run);
 }
 
 #[test]
