@@ -90,7 +90,7 @@ def plot(results: dict, rows: list[str], ns: list[int], columns: list[str], titl
     import matplotlib.pyplot as plt
 
     colours = {"scripted": "tab:gray", "tuned": "tab:green", "learned": "tab:red"}
-    fig, axes = plt.subplots(2, len(ns), figsize=(max(6.0, 1.1 * len(rows)) * len(ns), 7), squeeze=False, sharex="col")
+    fig, axes = plt.subplots(2, len(ns), figsize=(max(4.5, 0.65 * len(rows)) * len(ns), 6.5), squeeze=False, sharex="col")
     width = 0.8 / len(columns)
     for j, n in enumerate(ns):
         for k, col in enumerate(columns):
@@ -113,7 +113,7 @@ def plot(results: dict, rows: list[str], ns: list[int], columns: list[str], titl
     fig.legend(handles, labels, loc="upper right", ncol=len(columns), fontsize=8)
     fig.suptitle(title, x=0.02, ha="left")
     fig.tight_layout(rect=(0, 0, 1, 0.95))
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
