@@ -35,7 +35,11 @@ fn long_eval_hurt_by(name: &str, hurt: impl FnOnce(&str, u32)) -> (formation_swa
     let log = run_dir.with_extension("log");
     let run = run_swarm_with(&LONG_EVAL, &run_dir, Duration::from_secs(180), |launcher| {
         let run_id = run_id_of(&log);
-        std::thread::sleep(Duration::from_millis(1500));
+        // Hurt a run that is under way (every member has heard the sim), however loaded the
+        // machine: once its first episode is on record.
+        announced(&run_dir.join("episodes.csv"), "a first episode", |line| {
+            line.starts_with(|c: char| c.is_ascii_digit()).then_some(())
+        });
         hurt(&run_id, launcher);
     })
     .expect("launch");

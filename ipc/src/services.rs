@@ -649,19 +649,38 @@ fn take_events<S: Service>(listener: &Listener<S>, seen: &mut impl FnMut(usize))
 /// True while a live process of the run holds a node named `name` (tells a silent peer from a
 /// dead one: iceoryx2 marks the node of a process that died as dead, and a clean exit removes it).
 pub fn node_alive<S: Service>(identity: &RunIdentity, name: &str) -> Result<bool> {
+    Ok(node_presence::<S>(identity, name)? == NodePresence::Alive)
+}
+
+/// What the run's iceoryx2 node list says of the node named `name`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum NodePresence {
+    /// A live process holds it.
+    Alive,
+    /// Its process died without removing it (killed).
+    Dead,
+    /// Not listed: not started yet, or ended cleanly.
+    Absent,
+}
+
+fn node_presence<S: Service>(identity: &RunIdentity, name: &str) -> Result<NodePresence> {
     let config = identity.iceoryx_config()?;
-    let mut alive = false;
+    let named =
+        |details: &Option<iceoryx2::node::NodeDetails>| details.as_ref().is_some_and(|d| d.name().as_str() == name);
+    let mut presence = NodePresence::Absent;
     Node::<S>::list(&config, |state| {
-        if let NodeState::Alive(view) = &state
-            && view.details().as_ref().is_some_and(|d| d.name().as_str() == name)
-        {
-            alive = true;
-            return CallbackProgression::Stop;
+        match &state {
+            NodeState::Alive(view) if named(view.details()) => {
+                presence = NodePresence::Alive;
+                return CallbackProgression::Stop;
+            }
+            NodeState::Dead(view) if named(view.details()) => presence = NodePresence::Dead,
+            _ => {}
         }
         CallbackProgression::Continue
     })
     .context("cannot list the run's iceoryx2 nodes")?;
-    Ok(alive)
+    Ok(presence)
 }
 
 /// Tells a sim that has gone from one that is silent but alive: a sim waiting for a slow critic,
@@ -701,12 +720,16 @@ impl SimWatch {
     }
 
     /// `Some(silence)` when the sim is to be given up: silent past `silence` and its process
-    /// gone, or silent past `startup` whatever its state. `who` names the caller in the one
+    /// gone (never heard: its process killed), or silent past `startup` whatever its state. `who` names the caller in the one
     /// warning printed while a live sim is waited for.
     pub fn gone<S: Service>(&mut self, identity: &RunIdentity, who: &str) -> Result<Option<std::time::Duration>> {
         let quiet = self.last_heard.elapsed();
-        let gone = if !self.heard_any || quiet <= self.silence {
+        let gone = if quiet <= self.silence {
             quiet > self.startup
+        } else if !self.heard_any {
+            // Never heard: a sim that has not started yet is waited for up to `startup`, one
+            // killed before its first message (its node left dead) is given up at once.
+            quiet > self.startup || node_presence::<S>(identity, "sim")? == NodePresence::Dead
         } else if quiet > self.startup || !node_alive::<S>(identity, "sim")? {
             true
         } else {
