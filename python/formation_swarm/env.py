@@ -254,18 +254,6 @@ def reality_section(reality: Union[str, Path, Dict[str, Any]]) -> Dict[str, Any]
     return section
 
 
-def refuse_observation_loss(section: Dict[str, Any], source: str) -> None:
-    """FormationEnv answers every robot's observation of a tick at once, so a robot whose
-    observation is lost would be waited for forever: refuses ``observation_loss`` other than 0."""
-    loss = section.get("observation_loss", 0)
-    if any(float(v) != 0.0 for v in (loss if isinstance(loss, (list, tuple)) else [loss])):
-        raise FormationError(
-            f"{source}: reality.observation_loss = {loss!r} is not supported by FormationEnv (it steps every "
-            "robot on each tick's observations, and a lost one never comes); set it to 0, or play robots one "
-            "by one with formation_swarm.run_robot"
-        )
-
-
 def swarm_config(config: Union[str, Path, None], step_timeout_s: Optional[float], reality: Reality = None) -> str:
     """The TOML the env runs the swarm with: ``config`` (a file, or None for the defaults) with
     ``ticks.command_timeout_ms`` set to ``step_timeout_s`` and ``ticks.startup_timeout_s``
@@ -337,6 +325,16 @@ class FormationEnv(ParallelEnv):
     (``running`` while it goes on, ``max_cycles`` for the env's own cut). An episode that ends
     empties :attr:`agents`.
 
+    Lost observations (``[reality]``'s ``observation_loss``): the sim does not publish a lost
+    observation and does not wait for that robot's command at that tick (the robot keeps the
+    command it had). The env follows the sim's state of the tick (``State.observation_lost``):
+    it waits only for the observations that were sent, and for a robot whose observation was
+    lost it returns, with ``infos[agent]["observation_lost"] = True`` (False otherwise, also in
+    ``reset``), the last observation that robot received in this episode (zeros when tick 0's
+    was lost) and sends nothing of its action for that tick (the sim does not ask for it).
+    Rewards, terminations and truncations stay the team's. An episode's last tick is never
+    lost. A tick at which every observation was lost may be passed over (``skipped_ticks``).
+
     Lockstep: the sim waits for every robot's command, so by default the env sets the run's
     ``ticks.command_timeout_ms`` to ``step_timeout_s`` (600 s): the swarm pauses while the caller
     thinks between steps. ``step_timeout_s=None`` keeps the configuration's deadline (200 ms by
@@ -348,8 +346,7 @@ class FormationEnv(ParallelEnv):
     overrides, run_swarm.sh ``--config``); ``reality`` (the robots' real world: sensor noise,
     actuation delay, motor lag, lost messages, as run_swarm.sh ``--reality``: a TOML file whose
     ``[reality]`` table is read, e.g. ``configs/reality-field.toml``, or a dict of its keys;
-    written into the swarm's config over any ``[reality]`` of ``config``; ``observation_loss``
-    must be 0, since the env steps every robot at once on each tick's observations);
+    written into the swarm's config over any ``[reality]`` of ``config``);
     ``max_cycles`` (steps per episode, None: the sim's
     ``env.max_steps``); ``render_mode`` None or ``"rerun"`` (the sim records every tick to
     ``<run_dir>/recording.rrd``, ``--viewer save``); ``viewer`` (``spawn``, ``save``,
@@ -433,15 +430,6 @@ class FormationEnv(ParallelEnv):
         reality = args.get("reality")
         #: The ``[reality]`` section written into every swarm's config (None: the config's own).
         self.reality: Optional[Dict[str, Any]] = None if reality is None else reality_section(reality)
-        if self.reality is not None:
-            refuse_observation_loss(self.reality, "reality")
-        elif self.config is not None and _tomllib() is not None:
-            try:
-                in_config = _tomllib().loads(self.config.read_text()).get("reality")
-            except ValueError as err:
-                raise FormationError(f"{self.config} is not valid TOML: {err}") from err
-            if isinstance(in_config, dict):
-                refuse_observation_loss(in_config, str(self.config))
         self.viewer = args["viewer"] or ("save" if render_mode == "rerun" else "off")
         self.placement = args["placement"]
         self.step_timeout_s = args["step_timeout_s"]
@@ -545,21 +533,32 @@ class FormationEnv(ParallelEnv):
             # The episode is still running (max_cycles, or reset before its end): play it out
             # with every robot holding still; the sim ends it (at the latest on its time limit).
             for robot, tick in zip(self._robots, self._current):
-                robot.answer(tick, 0.0, 0.0)
+                if tick is not None:
+                    robot.answer(tick, 0.0, 0.0)
             self._owed = False
         self.agents = []
         heads = self._next_episode()
-        episode = heads[0].episode
+        episode = self._last_state.header.episode
         self._current = heads
         self._owed = True
         self._key = (episode, 0)
+        self._observations = [np.zeros(self.run.observation_dim, dtype=np.float32) for _ in range(self.n)]
+        lost = self._observe(heads)
         self._last_episode = episode
         self._cycles = 0
         self._return = 0.0
         self.agents = list(self.possible_agents)
         info = {"episode": episode, "tick": 0, "outcome": "running", "seed": self._seed, "run_id": self.run.run_id}
-        observations = {agent: np.array(heads[i].obs, dtype=np.float32) for i, agent in enumerate(self.possible_agents)}
-        return observations, {agent: dict(info) for agent in self.possible_agents}
+        observations = {agent: self._observations[i].copy() for i, agent in enumerate(self.possible_agents)}
+        infos = {agent: dict(info, observation_lost=lost[i]) for i, agent in enumerate(self.possible_agents)}
+        return observations, infos
+
+    def _observe(self, heads: List[Optional[Tick]]) -> List[bool]:
+        """Keeps each robot's observation of ``heads``; whose was lost (None: kept as it was)."""
+        for i, head in enumerate(heads):
+            if head is not None:
+                self._observations[i] = np.array(head.obs, dtype=np.float32)
+        return [head is None for head in heads]
 
     def step(self, actions: Dict[str, Any]):
         """Answers the current tick with ``actions`` (normalised, see the class) for every
@@ -573,22 +572,25 @@ class FormationEnv(ParallelEnv):
             raise FormationError(f"step() needs an action for every live agent; missing {missing}")
         for i, agent in enumerate(self.possible_agents):
             v, w = self.command_from_action(actions[agent])
-            self._robots[i].answer(self._current[i], v, w)
+            if self._current[i] is not None:  # else its observation was lost: the sim asks nothing
+                self._robots[i].answer(self._current[i], v, w)
         self._owed = False
         self._cycles += 1
         heads, reward, state, skipped = self._next_tick(self._key)
         if heads is None:  # the episode's end went unseen (a stream overflowed): cut it here
             outcome, terminated, truncated = OUTCOME_LOST, False, True
-            heads = self._current
+            lost = [False] * self.n
         else:
             self._last_state = state
-            self._key = heads[0].key
+            self._key = (state.header.episode, state.header.tick)
             self._current = heads
+            lost = self._observe(heads)
             outcome_code = int(state.outcome)
             outcome = wire.OUTCOME_NAMES.get(outcome_code, str(outcome_code))
             terminated = outcome_code in _TERMINAL
-            truncated = heads[0].episode_end and not terminated
-            if not heads[0].episode_end:
+            ends = state.header.has(wire.FLAG_EPISODE_END)
+            truncated = ends and not terminated
+            if not ends:
                 self._owed = True
                 if self.max_cycles is not None and self._cycles >= self.max_cycles:
                     outcome, truncated = OUTCOME_MAX_CYCLES, True
@@ -603,11 +605,11 @@ class FormationEnv(ParallelEnv):
         if terminated or truncated:
             info["episode_return"] = self._return
         agents = self.agents
-        observations = {a: np.array(heads[self._index[a]].obs, dtype=np.float32) for a in agents}
+        observations = {a: self._observations[self._index[a]].copy() for a in agents}
         rewards = {a: reward for a in agents}
         terminations = {a: terminated for a in agents}
         truncations = {a: truncated for a in agents}
-        infos = {a: dict(info) for a in agents}
+        infos = {a: dict(info, observation_lost=lost[self._index[a]]) for a in agents}
         if terminated or truncated:
             self.agents = []
         return observations, rewards, terminations, truncations, infos
@@ -764,7 +766,8 @@ class FormationEnv(ParallelEnv):
         self._slice = iox2.Duration.from_secs_f64(WAIT_SLICE_S)
         self._queues: List[Deque[Tick]] = [collections.deque() for _ in range(self.n)]
         self._states: Deque[wire.State] = collections.deque()
-        self._current: List[Tick] = []
+        self._current: List[Optional[Tick]] = []
+        self._observations: List[np.ndarray] = []
         self._owed = False
         self._key = (0, 0)
         self._last_episode = -1
@@ -832,69 +835,77 @@ class FormationEnv(ParallelEnv):
                 return state, reward
 
     def _next_tick(self, key: Tuple[int, int]):
-        """Waits for every robot's next tick of episode ``key[0]`` after ``key`` and its state.
+        """Waits for the newest state of episode ``key[0]`` after ``key`` and for the tick's
+        observation at every robot whose observation was not lost (``State.observation_lost``).
 
-        Returns (heads, reward, state, skipped ticks); heads None when the episode's end was
-        lost (a later episode showed up first)."""
+        Returns (heads, reward, state, skipped ticks), a robot whose observation was lost
+        having None in heads; heads None when the episode's end was lost (a later episode
+        showed up first)."""
         episode = key[0]
         came = True
         while True:
             if not came:
                 self._idle()
-            heads = []
             for queue in self._queues:
                 while queue and queue[0].key <= key:
                     queue.popleft()  # already answered (or stale)
-                heads.append(queue[0] if queue else None)
-            if all(h is not None for h in heads):
-                if any(h.run_end or h.episode != episode for h in heads):
-                    if any(h.run_end for h in heads):
-                        raise SimGone(f"the sim ended run {self.run.run_id} mid-episode{self._log_tail()}")
-                    return None, 0.0, None, 0
-                newest = max(h.tick for h in heads)
+            ahead = [q[0] for q in self._queues if q and (q[0].run_end or q[0].episode != episode)]
+            if any(h.run_end for h in ahead):
+                raise SimGone(f"the sim ended run {self.run.run_id} mid-episode{self._log_tail()}")
+            if ahead:  # a robot is past the episode without its end (never lost): it went unseen
+                return None, 0.0, None, 0
+            newest, lost = None, []
+            for state in self._states:
+                if state.header.episode == episode and state.header.tick > key[1]:
+                    newest, lost = state.header.tick, self._lost(state)
+            if newest is not None:
                 for queue in self._queues:
                     while queue and queue[0].episode == episode and queue[0].tick < newest:
                         queue.popleft()
-                heads = [queue[0] if queue else None for queue in self._queues]
-                if all(h is not None and h.key == (episode, newest) for h in heads):
+                if all(lost[i] or (q and q[0].key == (episode, newest)) for i, q in enumerate(self._queues)):
                     state, reward = self._take_state((episode, newest), key)
                     if state is not None:
-                        for queue in self._queues:
-                            queue.popleft()
+                        heads = [None if lost[i] else q.popleft() for i, q in enumerate(self._queues)]
                         return heads, reward, state, newest - key[1] - 1
             self._wait()
             came = self._drain()
 
-    def _next_episode(self) -> List[Tick]:
-        """Waits for tick 0 of the next episode (after ``_last_episode``) at every robot and
-        its state, answering (0, 0) to any tick of an episode still running meanwhile."""
+    def _lost(self, state: wire.State) -> List[bool]:
+        """Whose observation of ``state``'s tick was lost (not published, not waited for)."""
+        mask = int(state.observation_lost)
+        return [bool(mask >> i & 1) for i in range(self.n)]
+
+    def _next_episode(self) -> List[Optional[Tick]]:
+        """Waits for the state of tick 0 of the next episode (after ``_last_episode``) and that
+        tick at every robot whose observation of it was not lost (None in the list for one
+        that was), answering (0, 0) to any tick of an episode still running meanwhile."""
         came = self._drain()
         while True:
             if not came:
                 self._idle()
-            heads = []
+            start = None
+            for state in self._states:
+                if state.header.tick == 0 and state.header.episode > self._last_episode:
+                    start = state  # the newest episode started
+            episode = None if start is None else start.header.episode
             for robot, queue in zip(self._robots, self._queues):
                 while queue:
                     m = queue[0]
                     if m.run_end:
                         raise SimGone(f"the sim ended run {self.run.run_id}{self._log_tail()}")
-                    if m.episode_start and not m.episode_end and m.episode > self._last_episode:
-                        break
+                    if episode is not None and m.episode >= episode:
+                        break  # its tick 0 (or a later tick, tick 0's observation lost)
+                    if episode is None and m.episode_start and not m.episode_end and m.episode > self._last_episode:
+                        break  # its state has not come yet
                     if len(queue) == 1 and not m.episode_end:
                         robot.answer(m, 0.0, 0.0)  # a tick of an episode played out: hold still
                     queue.popleft()
-                heads.append(queue[0] if queue else None)
-            if all(h is not None for h in heads):
-                episode = max(h.episode for h in heads)
-                if any(h.episode != episode for h in heads):
-                    for queue in self._queues:
-                        if queue[0].episode != episode:
-                            queue.popleft()  # the sim is past that episode
-                    continue
-                state, _ = self._take_state((episode, 0), (episode, -1))
-                if state is not None:
+            if start is not None:
+                lost = self._lost(start)
+                if all(lost[i] or (q and q[0].key == (episode, 0)) for i, q in enumerate(self._queues)):
+                    state, _ = self._take_state((episode, 0), (episode, -1))
                     self._last_state = state
-                    return [queue.popleft() for queue in self._queues]
+                    return [None if lost[i] else q.popleft() for i, q in enumerate(self._queues)]
             self._wait()
             came = self._drain()
 
@@ -948,7 +959,8 @@ class FormationEnv(ParallelEnv):
         """While the sim winds the run down: answer every live tick with (0, 0)."""
         if self._owed:
             for robot, tick in zip(self._robots, self._current):
-                robot.answer(tick, 0.0, 0.0)
+                if tick is not None:
+                    robot.answer(tick, 0.0, 0.0)
             self._owed = False
         while not self._run_ended and proc.poll() is None and time.monotonic() < deadline:
             self._wait()

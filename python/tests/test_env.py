@@ -245,12 +245,7 @@ def test_reality_reaches_the_swarms_config_and_bad_values_are_refused_by_name(ma
     """reality= (a preset file) is the run's [reality], as the sim and the critic read it
     (config.toml in the run directory); an out-of-range value is refused naming the field."""
     tomllib = pytest.importorskip("tomllib")
-    field = REPO / "configs" / "reality-field.toml"
-    # The env steps every robot on each tick's observations: a lost one would never come.
-    with pytest.raises(fs.FormationError, match="observation_loss"):
-        fs.FormationEnv(n=3, reality=field, bin_dir=bin_dir(), run_dir=tmp_path / "refused")
-    preset = tmp_path / "field-without-observation-loss.toml"
-    preset.write_text(field.read_text().replace("observation_loss = [0.05, 0.1]", "observation_loss = 0.0"))
+    preset = REPO / "configs" / "reality-field.toml"
     config = tmp_path / "user.toml"
     config.write_text("[env]\nmax_steps = 80\n")
     env = make_env(n=3, seed=7, config=config, reality=preset)
@@ -262,6 +257,33 @@ def test_reality_reaches_the_swarms_config_and_bad_values_are_refused_by_name(ma
     env.step({a: [0.0, 0.0] for a in env.agents})
     with pytest.raises(fs.FormationError, match="reality.command_loss"):
         make_env(n=3, seed=7, reality={"command_loss": 1.5})
+
+
+def test_lost_observations_are_not_waited_for(make_env):
+    """Under observation_loss the env steps on (it waits only for the observations the sim
+    sent): a robot whose observation was lost is told so in its infos and keeps its last
+    observation, and the sim's summary counts the lost observations."""
+    env = make_env(n=3, seed=3, reality={"observation_loss": 0.3})
+    obs, infos = env.reset()
+    lost, steps = 0, 0
+    last = dict(obs)
+    while steps < 40:
+        if not env.agents:
+            obs, infos = env.reset()
+            last = dict(obs)
+        assert all(isinstance(infos[a]["observation_lost"], bool) for a in env.agents)
+        obs, rewards, terminations, truncations, infos = env.step({a: [0.2, 0.1] for a in env.agents})
+        steps += 1
+        for agent in obs:
+            if infos[agent]["observation_lost"]:
+                lost += 1
+                assert np.array_equal(obs[agent], last[agent]), "a lost observation: the last one again"
+        last = dict(obs)
+    assert lost > 0, "some observations were lost"
+    run_dir = env.run_dir
+    env.close()
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["lost_observations"] > 0, summary
 
 
 def test_action_units(make_env):
