@@ -137,12 +137,8 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=2000, help="episode seed (default 2000; the held-out seeds are 1000 and up, below 2000)")
     ap.add_argument("--sets", type=int, default=24, help="gain sets (default 24, at least 20 for the issue)")
     ap.add_argument("--search-seed", type=int, default=7, help="seed of the hypercube sets (default 7)")
-    ap.add_argument("--checkpoint", type=Path, help="learned model (default: the launcher's shipped model)")
+    rr.add_cell_options(ap)
     ap.add_argument("--no-learned", action="store_true", help="leave out the learned policy's point")
-    ap.add_argument("--config", type=Path, help="base config under every run")
-    ap.add_argument("--field", type=Path, help="field preset (default configs/reality-field.toml)")
-    ap.add_argument("--lab", type=Path, help="lab preset (default configs/reality-lab.toml)")
-    ap.add_argument("--shape", help="formation shape of every episode (default: the config's)")
     ap.add_argument("--out", type=Path, help="output directory (default runs/gain-search-ROW-<time>)")
     args = ap.parse_args()
     if args.episodes < 1 or args.sets < 1:

@@ -126,11 +126,7 @@ def main() -> int:
     ap.add_argument("--columns", default=",".join(COLUMNS), help="teams, comma-separated (default scripted,tuned,learned)")
     ap.add_argument("--tuned", type=Path, help="gain_search.py output directories (comma-separated; tuned-ROW.toml in each), "
                     "or one TOML file with a [baseline] section for every row")
-    ap.add_argument("--checkpoint", type=Path, help="learned model (default: the launcher's shipped model)")
-    ap.add_argument("--config", type=Path, help="base config under every run")
-    ap.add_argument("--field", type=Path, help="field preset (default configs/reality-field.toml)")
-    ap.add_argument("--lab", type=Path, help="lab preset (default configs/reality-lab.toml)")
-    ap.add_argument("--shape", help="formation shape of every episode (default: the config's)")
+    rr.add_cell_options(ap)
     ap.add_argument("--out", type=Path, help="output directory (default runs/reality-grid-<time>)")
     args = ap.parse_args()
     if args.episodes < 1:

@@ -207,6 +207,16 @@ def bin_dir_note() -> str:
     return os.environ.get("FORMATION_BIN_DIR") or "release (built by scripts/run_swarm.sh)"
 
 
+def add_cell_options(ap) -> None:
+    """The options every cell of the grid and the gain search shares: the learned model, the
+    base config, the presets and the shape."""
+    ap.add_argument("--checkpoint", type=Path, help="learned model (default: the launcher's shipped model)")
+    ap.add_argument("--config", type=Path, help="base config under every run")
+    ap.add_argument("--field", type=Path, help="field preset (default configs/reality-field.toml)")
+    ap.add_argument("--lab", type=Path, help="lab preset (default configs/reality-lab.toml)")
+    ap.add_argument("--shape", help="formation shape of every episode (default: the config's)")
+
+
 def parse_list(text: str, kind=int) -> list:
     """'3,12,32' -> [3, 12, 32]."""
     return [kind(part) for part in text.split(",") if part.strip()]
