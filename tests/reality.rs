@@ -9,15 +9,19 @@ use std::time::{Duration, Instant};
 
 use formation_agent::run::{AgentOptions, AgentPolicy, run as run_agent};
 use formation_core::baseline::ScriptedBaseline;
-use formation_core::config::RunConfig;
+use formation_core::config::{LearnConfig, RunConfig};
 use formation_core::observation::{Layout, Observer};
 use formation_core::physics::{Pose, integrate};
-use formation_core::reality::Reality;
+use formation_core::reality::{Reality, RealityConfig};
 use formation_core::scene::Scene;
+use formation_critic::selection::Selector;
 use formation_ipc::services::{self, RunIdentity, Sizing};
+use formation_model::checkpoint;
 use formation_protocol::wire::{FLAG_RUN_END, ObservationMsg, StateMsg};
 use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS};
-use formation_swarm::{RunOutcome, assert_clean, run_id_of, run_swarm, run_swarm_with, scratch_dir, shm_leftovers};
+use formation_swarm::{
+    RunOutcome, assert_clean, repo_root, run_id_of, run_swarm, run_swarm_with, scratch_dir, shm_leftovers,
+};
 use iceoryx2::prelude::*;
 
 /// Robots in every run here.
@@ -401,5 +405,65 @@ fn in_real_time_a_robot_behind_a_50_ms_link_reaches_the_goal_on_late_commands() 
         summary["success_rate"].as_f64().expect("success_rate") >= 0.8,
         "{summary}"
     );
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+/// Model selection under a reality plays what a lockstep run under it plays: an eval run of the
+/// shipped model under the field preset, from the selection seed, measures the score the critic
+/// selects checkpoints by under that reality, episode for episode (every step count must agree,
+/// so each robot's noise, losses, delays and motors must).
+#[test]
+fn an_eval_run_under_the_field_preset_measures_the_selection_score_under_it() {
+    let dir = scratch_dir("field-selection");
+    let preset = repo_root().join("configs/reality-field.toml");
+    let model_path = repo_root().join("models/formation.safetensors");
+    let learn = LearnConfig {
+        selection_episodes: 30,
+        ..LearnConfig::default()
+    };
+    let seed = learn.selection_seed.to_string();
+    let run = run_swarm(
+        &[
+            "3",
+            "--mode",
+            "eval",
+            "--checkpoint",
+            model_path.to_str().expect("utf-8 path"),
+            "--reality",
+            preset.to_str().expect("utf-8 path"),
+            "--episodes",
+            "30",
+            "--seed",
+            &seed,
+            "--viewer",
+            "off",
+        ],
+        &dir.join("run"),
+        Duration::from_secs(240),
+    )
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "launcher failed:\n{}", run.output);
+    let csv = std::fs::read_to_string(run.run_dir.join("episodes.csv")).expect("episodes.csv");
+    // episode,outcome,steps,...
+    let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|line| line.split(',').collect()).collect();
+    assert_eq!(rows.len(), 30);
+    let successes = rows.iter().filter(|row| row[1] == "success").count();
+    let steps: u64 = rows.iter().map(|row| row[2].parse::<u64>().expect("steps")).sum();
+
+    let reality = RealityConfig::from_toml_str(&std::fs::read_to_string(&preset).expect("preset")).expect("valid");
+    let model = checkpoint::load(&model_path).expect("model");
+    let actors = [model.actor_weights(0).expect("weights")];
+    let scored = Selector::new(&RunConfig::default().env, &learn, &reality, &[3])
+        .score(&actors, &model.meta.actor)
+        .expect("score");
+    assert_eq!(scored.sizes[0].success, successes as f64 / 30.0, "{scored:?}");
+    assert!(
+        (scored.sizes[0].mean_steps - steps as f64 / 30.0).abs() < 1e-9,
+        "{scored:?} against {steps} steps in the run"
+    );
+    // The ideal world beside it plays the same episodes differently.
+    let ideal = scored.ideal.as_ref().expect("the ideal world is reported");
+    assert_ne!(ideal[0].mean_steps, scored.sizes[0].mean_steps);
+    assert_clean(&run);
     std::fs::remove_dir_all(&dir).expect("cleanup");
 }

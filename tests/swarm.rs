@@ -4,6 +4,7 @@
 use std::time::Duration;
 
 use formation_core::config::{LearnConfig, RunConfig};
+use formation_core::reality::RealityConfig;
 use formation_critic::selection::Selector;
 use formation_model::checkpoint;
 use formation_swarm::{assert_clean, processes_of_run, repo_root, run_swarm, scratch_dir, shm_leftovers};
@@ -240,7 +241,7 @@ fn an_eval_run_from_the_selection_seed_measures_the_selection_score() {
     let env = RunConfig::from_toml_file(&config_path).expect("config").env;
     let model = checkpoint::load(&model_path).expect("model");
     let actors = [model.actor_weights(0).expect("weights")];
-    let scored = Selector::new(&env, &learn, &[3])
+    let scored = Selector::new(&env, &learn, &RealityConfig::default(), &[3])
         .score(&actors, &model.meta.actor)
         .expect("score");
     assert!(

@@ -241,6 +241,22 @@ impl Observer {
         }
     }
 
+    /// Moves the goal of `obs`, an observation told to a robot at `pose`, from `from` to `to`
+    /// (world frame): the goal's and the slot's blocks shift by the goal's displacement in the
+    /// robot's frame, and every other float, with whatever sensor noise it was told with, stays.
+    /// HER relabels noisy observations this way, so the noise of the relabelled goal is the
+    /// noise the robot was told.
+    pub fn move_goal(&self, obs: &mut [f32], pose: &Pose, from: [f64; 2], to: [f64; 2]) {
+        let (s, c) = pose.theta.sin_cos();
+        let (dx, dy) = (to[0] - from[0], to[1] - from[1]);
+        let shift = [c * dx + s * dy, -s * dx + c * dy];
+        for at in std::iter::once(self.layout.goal()).chain(self.layout.slot()) {
+            for (value, delta) in obs[at..at + 2].iter_mut().zip(shift) {
+                *value = (f64::from(*value) + delta) as f32;
+            }
+        }
+    }
+
     /// What robot `agent` sees, as a fixed-size array (entries past `dim` are zero).
     pub fn observation(&self, agent: usize, scene: &Scene) -> [f32; MAX_OBS_DIM] {
         let mut out = [0.0; MAX_OBS_DIM];

@@ -223,6 +223,34 @@ impl RealityConfig {
         Ok(file.reality)
     }
 
+    /// Whether every effect is off: the ideal world (`dead_robot` then only matters for robots
+    /// the sim finds absent).
+    pub fn is_ideal(&self) -> bool {
+        [
+            self.position_noise_m,
+            self.heading_noise_rad,
+            self.actuation_delay_ticks,
+            self.max_linear_accel_mps2,
+            self.max_angular_accel_radps2,
+            self.command_loss,
+            self.observation_loss,
+            self.controller_failure,
+        ]
+        .iter()
+        .all(Spread::is_off)
+    }
+
+    /// The section on one line, `key = value, ...` (how a checkpoint records the reality its
+    /// selection episodes were played under).
+    pub fn one_line(&self) -> String {
+        toml::to_string(self)
+            .unwrap_or_default()
+            .lines()
+            .filter(|line| !line.trim().is_empty())
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
     /// Refuses out-of-range values, naming the field: noise >= 0, losses in [0, 1), failure in
     /// [0, 1], delays whole ticks in 0..=10, accelerations >= 0, and lo <= hi everywhere.
     pub fn validate(&self) -> Result<(), ConfigError> {
@@ -1001,5 +1029,30 @@ mod tests {
         assert!(lab.command_loss.hi < field.command_loss.lo && lab.observation_loss.hi < field.observation_loss.lo);
         assert!(lab.max_linear_accel_mps2.lo > field.max_linear_accel_mps2.hi);
         assert!(lab.max_angular_accel_radps2.lo > field.max_angular_accel_radps2.hi);
+        // Neither is the ideal world; the default is, whatever robots do when found absent.
+        assert!(!lab.is_ideal() && !field.is_ideal());
+        assert!(RealityConfig::default().is_ideal());
+        let stopping = RealityConfig {
+            dead_robot: DeadRobot::Stop,
+            ..RealityConfig::default()
+        };
+        assert!(stopping.is_ideal());
+        assert!(
+            !RealityConfig {
+                controller_failure: Spread::fixed(0.1),
+                ..RealityConfig::default()
+            }
+            .is_ideal()
+        );
+        // On one line, every key as the preset gives it.
+        let line = field.one_line();
+        assert!(!line.contains('\n'), "{line}");
+        for key in [
+            "position_noise_m = [0.05, 0.1]",
+            "actuation_delay_ticks = [1.0, 3.0]",
+            "dead_robot = \"stop\"",
+        ] {
+            assert!(line.contains(key), "{key} in {line}");
+        }
     }
 }

@@ -9,6 +9,7 @@ use std::time::Instant;
 use anyhow::Context;
 use clap::ValueEnum;
 use formation_core::config::{EnvConfig, FormationShape, LearnConfig};
+use formation_core::reality::RealityConfig;
 use formation_critic::selection::Selector;
 use formation_model::checkpoint;
 
@@ -43,7 +44,7 @@ fn main() -> anyhow::Result<()> {
     let actors = (0..model.meta.n_actors)
         .map(|k| model.actor_weights(k))
         .collect::<anyhow::Result<Vec<_>>>()?;
-    let selector = Selector::new(&env, &learn, &sizes);
+    let selector = Selector::new(&env, &learn, &RealityConfig::default(), &sizes);
     let mut times = Vec::new();
     let mut score = None;
     for _ in 0..5 {

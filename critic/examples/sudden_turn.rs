@@ -10,7 +10,8 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, ensure};
 use formation_core::config::EnvConfig;
-use formation_critic::selection::{SuddenTurn, play};
+use formation_core::reality::RealityConfig;
+use formation_critic::selection::{Played, SuddenTurn, play};
 use formation_model::actor::FrozenActor;
 use formation_model::checkpoint;
 
@@ -55,7 +56,12 @@ fn main() -> Result<()> {
         let mut actors = (0..model.meta.n_actors)
             .map(|k| FrozenActor::from_flat(&model.actor_weights(k)?, shape))
             .collect::<Result<Vec<_>>>()?;
-        let score = play(&env, n, seed, episodes, &mut actors, shape, disturbance)?;
+        let played = Played {
+            seed,
+            count: episodes,
+            reality: &RealityConfig::default(),
+        };
+        let score = play(&env, n, &played, &mut actors, shape, disturbance)?;
         println!(
             "{label:>12}: success {:.2}, formation held {:.2}, mean steps {:.1}",
             score.success, score.formation_held, score.mean_steps

@@ -1,12 +1,16 @@
-//! Model selection: a checkpoint's score is measured on a fixed set of noise-free episodes,
-//! played in-process with exactly the weights that are saved.
+//! Model selection: a checkpoint's score is measured on a fixed set of episodes, played
+//! in-process with exactly the weights that are saved, under the run's `[reality]` (the
+//! training reality distribution; the ideal world when it is off). Under a reality the ideal
+//! world is played too and reported beside the score.
 //!
 //! The episodes are the first `learn.selection_episodes` of `learn.selection_seed` for each
 //! swarm size the critic trains on: the ones a sim started with that `--seed` plays, from the
 //! same [`Episodes`]. Each robot keeps its window as an agent does ([`ObservationHistory`]) and
 //! acts through the agents' own [`FrozenActor`]; actions become commands as in an agent (scaled
-//! to the limits, sent as f32) and the world steps as in the sim. So the score is what a swarm
-//! run with that seed measures, episode for episode.
+//! to the limits, sent as f32) and the world steps as in the sim, through the sim's
+//! [`Reality`] as a lockstep sim applies it (what a robot is told, lost observations and
+//! commands, the motors). So the score is what a lockstep swarm run with that seed measures,
+//! episode for episode.
 //!
 //! Not a batched candle forward pass over every window of a tick: that measured two to three
 //! times cheaper, but its sums round differently (up to 1e-5 per action), and that alone
@@ -16,6 +20,7 @@ use anyhow::{Context, Result, ensure};
 use formation_core::config::{EnvConfig, LearnConfig};
 use formation_core::formation::Episodes;
 use formation_core::observation::Layout;
+use formation_core::reality::{Command, Reality, RealityConfig};
 use formation_core::task::Outcome;
 use formation_core::world::World;
 use formation_model::actor::{ActorShape, FrozenActor};
@@ -26,26 +31,37 @@ use formation_model::history::ObservationHistory;
 #[derive(Debug, Clone)]
 pub struct Selector {
     env: EnvConfig,
+    reality: RealityConfig,
     seed: u64,
     episodes: usize,
     sizes: Vec<usize>,
 }
 
 impl Selector {
-    /// The run's selection episodes (`learn.selection_*`) for each of the swarm sizes `sizes`.
-    pub fn new(env: &EnvConfig, learn: &LearnConfig, sizes: &[usize]) -> Self {
+    /// The run's selection episodes (`learn.selection_*`) for each of the swarm sizes `sizes`,
+    /// played under `reality`.
+    pub fn new(env: &EnvConfig, learn: &LearnConfig, reality: &RealityConfig, sizes: &[usize]) -> Self {
         Self {
             env: env.clone(),
+            reality: reality.clone(),
             seed: learn.selection_seed,
             episodes: learn.selection_episodes,
             sizes: sizes.to_vec(),
         }
     }
 
-    /// Whether `score` was measured on these episodes (seed, count and swarm sizes).
+    /// Whether `score` was measured on these episodes (seed, count, swarm sizes and reality).
     pub fn measured(&self, score: &SelectionScore) -> bool {
         let sizes: Vec<usize> = score.sizes.iter().map(|s| s.n_agents).collect();
-        score.seed == self.seed && score.episodes == self.episodes && sizes == self.sizes
+        score.seed == self.seed
+            && score.episodes == self.episodes
+            && sizes == self.sizes
+            && score.reality == self.reality_name()
+    }
+
+    /// The reality the score is played under as the checkpoint records it (`None`: ideal).
+    fn reality_name(&self) -> Option<String> {
+        (!self.reality.is_ideal()).then(|| self.reality.one_line())
     }
 
     /// Scores actors given as flat weights (one shared, or one per robot) on every size.
@@ -55,15 +71,30 @@ impl Selector {
             .map(|flat| FrozenActor::from_flat(flat, shape))
             .collect::<Result<Vec<_>>>()
             .context("selection: actor weights")?;
-        let sizes = self
-            .sizes
-            .iter()
-            .map(|&n| play(&self.env, n, self.seed, self.episodes, &mut actors, shape, None))
-            .collect::<Result<_>>()?;
+        let mut play_all = |reality: &RealityConfig| {
+            self.sizes
+                .iter()
+                .map(|&n| {
+                    let episodes = Played {
+                        seed: self.seed,
+                        count: self.episodes,
+                        reality,
+                    };
+                    play(&self.env, n, &episodes, &mut actors, shape, None)
+                })
+                .collect::<Result<Vec<_>>>()
+        };
+        let sizes = play_all(&self.reality)?;
+        let ideal = match self.reality.is_ideal() {
+            true => None,
+            false => Some(play_all(&RealityConfig::default())?),
+        };
         Ok(SelectionScore {
             seed: self.seed,
             episodes: self.episodes,
             sizes,
+            reality: self.reality_name(),
+            ideal,
         })
     }
 }
@@ -89,74 +120,117 @@ impl SuddenTurn {
     }
 }
 
-/// One selection episode: its world, each robot's window and what it has added up.
+/// One selection episode: its world and reality, each robot's window, the commands in use and
+/// what it has added up.
 struct Game {
     world: World,
+    reality: Reality,
+    layout: Layout,
     windows: Vec<ObservationHistory>,
+    /// Whether each robot has been told anything yet this episode (its window starts then).
+    heard: Vec<bool>,
+    /// Whether each robot was told this tick (a robot whose observation was lost is not asked).
+    asked: Vec<bool>,
+    in_use: Vec<Command>,
     outcome: Outcome,
     formation_ticks: u32,
 }
 
 impl Game {
-    /// Every robot's window starts padded with its first observation, as an agent's does.
-    fn new(world: World, history: usize, dim: usize) -> Self {
-        let windows = (0..world.n_agents())
-            .map(|agent| {
-                let mut window = ObservationHistory::new(history, dim);
-                window.reset(&world.observation(agent));
-                window
-            })
-            .collect();
-        Self {
+    fn new(world: World, reality: Reality, history: usize, layout: Layout) -> Self {
+        let n = world.n_agents();
+        let mut game = Self {
             world,
-            windows,
+            reality,
+            layout,
+            windows: (0..n).map(|_| ObservationHistory::new(history, layout.dim())).collect(),
+            heard: vec![false; n],
+            asked: vec![false; n],
+            in_use: vec![(0.0, 0.0); n],
             outcome: Outcome::Running,
             formation_ticks: 0,
+        };
+        game.tell();
+        game
+    }
+
+    /// What each robot is told of the world this tick, as the sim tells it: through the
+    /// sensor noise, unless the message is lost. A robot's window starts padded with the first
+    /// observation it is told in the episode, as an agent's does.
+    fn tell(&mut self) {
+        for (agent, window) in self.windows.iter_mut().enumerate() {
+            let mut told = self.world.observation(agent);
+            self.reality.tell(agent, self.layout, &mut told);
+            self.asked[agent] = !self.reality.observation_lost(agent);
+            if !self.asked[agent] {
+                continue;
+            }
+            if self.heard[agent] {
+                window.push(&told);
+            } else {
+                window.reset(&told);
+                self.heard[agent] = true;
+            }
         }
     }
 
-    /// One tick: each robot's action from its window (its own actor, or the shared one) scaled
-    /// to (v, w) as an agent does and rounded to the f32 of the wire, but for a robot in a
-    /// sudden turn; the world clamps and integrates as in the sim.
+    /// One tick: each robot that was told answers with its action from its window (its own
+    /// actor, or the shared one) scaled to (v, w) as an agent does and rounded to the f32 of the
+    /// wire, but for a robot in a sudden turn; a lost answer leaves the command in use. The
+    /// motors act through the reality and the world clamps and integrates as in the sim.
     fn step(
         &mut self,
         actors: &mut [FrozenActor],
         turn: Option<SuddenTurn>,
-        commands: &mut Vec<(f64, f64)>,
+        acting: &mut Vec<(f64, f64)>,
     ) -> Result<()> {
-        commands.clear();
+        acting.clear();
         let step = self.world.steps;
         for (agent, window) in self.windows.iter().enumerate() {
-            let actor = &mut actors[agent % actors.len()];
-            let (v, w) = self.world.env.command_from_action(actor.act(window.as_flat())?);
-            let imposed = turn.and_then(|turn| turn.command(&self.world.env, agent, step));
-            commands.push(imposed.unwrap_or((f64::from(v as f32), f64::from(w as f32))));
+            if self.asked[agent] {
+                let actor = &mut actors[agent % actors.len()];
+                let (v, w) = self.world.env.command_from_action(actor.act(window.as_flat())?);
+                let imposed = turn.and_then(|turn| turn.command(&self.world.env, agent, step));
+                let answer = imposed.unwrap_or((f64::from(v as f32), f64::from(w as f32)));
+                if !self.reality.command_lost(agent) {
+                    self.in_use[agent] = answer;
+                }
+            }
+            acting.push(self.reality.actuate(agent, step, self.in_use[agent], true));
         }
-        let result = self.world.step(commands);
+        let result = self.world.step(acting);
         self.outcome = result.outcome;
         self.formation_ticks += u32::from(result.conditions.in_formation);
         if self.outcome == Outcome::Running {
-            for (agent, window) in self.windows.iter_mut().enumerate() {
-                window.push(&self.world.observation(agent));
-            }
+            self.tell();
         }
         Ok(())
     }
 }
 
-/// Plays the first `episodes` episodes of `n` robots that `seed` starts, noise-free, with
-/// `actors` (one shared, or one per robot) and, if given, a robot's sudden turn in each; scores
-/// them.
+/// The episodes [`play`] plays: the first `count` that `seed` starts, under `reality`.
+#[derive(Debug, Clone, Copy)]
+pub struct Played<'a> {
+    /// The sim's `--seed`.
+    pub seed: u64,
+    /// How many, from the run's first.
+    pub count: usize,
+    /// The `[reality]` they are played under (the default: the ideal world).
+    pub reality: &'a RealityConfig,
+}
+
+/// Plays `episodes` of `n` robots with `actors` (one shared, or one per robot) and, if given, a
+/// robot's sudden turn in each; scores them.
 pub fn play(
     env: &EnvConfig,
     n: usize,
-    seed: u64,
-    episodes: usize,
+    episodes: &Played,
     actors: &mut [FrozenActor],
     shape: &ActorShape,
     turn: Option<SuddenTurn>,
 ) -> Result<SizeScore> {
-    let dim = Layout::of(env.observation).dim();
+    let layout = Layout::of(env.observation);
+    let dim = layout.dim();
     ensure!(
         shape.obs_dim == dim && shape.history == env.history,
         "selection: an actor of shape {shape:?} cannot read windows of {} observations of {dim} floats",
@@ -172,14 +246,18 @@ pub fn play(
         "a sudden turn of robot {} in a swarm of {n}",
         turn.map_or(0, |turn| turn.robot)
     );
-    let mut games: Vec<Game> = Episodes::new(n, env, seed)
-        .take(episodes)
-        .map(|init| Game::new(World::new(env, init), env.history, dim))
+    let mut games: Vec<Game> = Episodes::new(n, env, episodes.seed)
+        .take(episodes.count)
+        .enumerate()
+        .map(|(episode, init)| {
+            let reality = Reality::new(episodes.reality, env, episodes.seed, episode as u64, n);
+            Game::new(World::new(env, init), reality, env.history, layout)
+        })
         .collect();
-    let mut commands = Vec::with_capacity(n);
+    let mut acting = Vec::with_capacity(n);
     for game in &mut games {
         while game.outcome == Outcome::Running {
-            game.step(actors, turn, &mut commands)?;
+            game.step(actors, turn, &mut acting)?;
         }
     }
     let count = games.len().max(1) as f64;

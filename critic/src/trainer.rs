@@ -101,7 +101,7 @@ impl<S: Service> Trainer<S> {
             });
         }
         let sizes: Vec<usize> = swarms.iter().map(|(_, sizing)| sizing.n_agents).collect();
-        let selector = Selector::new(&config.env, learn, &sizes);
+        let selector = Selector::new(&config.env, learn, &config.reality, &sizes);
         // A restarted critic (resuming in its run directory) keeps its predecessor's best.
         let best = match options.resume {
             Some(_) => previous_best(&options.run_dir, &selector),
@@ -303,12 +303,25 @@ impl<S: Service> Trainer<S> {
         let actor_steps: Vec<String> = (0..self.swarms.len())
             .map(|k| format!("N={} {}", self.swarms[k].n_agents, self.learner.swarm_steps(k).actor))
             .collect();
+        // Under a reality the score is played under it; the ideal world is reported beside it.
+        let ideal = score.ideal.as_ref().map_or(String::new(), |ideal| {
+            let by_size: Vec<String> = ideal
+                .iter()
+                .map(|s| format!("N={} {:.2} in {:.1} steps", s.n_agents, s.success, s.mean_steps))
+                .collect();
+            format!("; ideal world {}", by_size.join(", "))
+        });
         eprintln!(
-            "critic: checkpoint at {} updates (actor steps {}): selection success {:.3} ({}), formation held {:.2}, {:.1} steps; scored in {} ms{}",
+            "critic: checkpoint at {} updates (actor steps {}): selection success {:.3} ({}){}, formation held {:.2}, {:.1} steps{ideal}; scored in {} ms{}",
             self.learner.updates(),
             actor_steps.join(", "),
             score.success(),
             by_size.join(", "),
+            if score.reality.is_some() {
+                " under the run's reality"
+            } else {
+                ""
+            },
             score.mean(|s| s.formation_held),
             score.mean(|s| s.mean_steps),
             took.as_millis(),

@@ -1,10 +1,12 @@
-//! Model selection: checkpoints scored on fixed noise-free episodes with exactly their weights.
+//! Model selection: checkpoints scored on fixed episodes with exactly their weights, under the
+//! run's reality (and the ideal world beside it).
 
 use std::path::PathBuf;
 
 use formation_core::config::{EnvConfig, LearnConfig};
+use formation_core::reality::RealityConfig;
 use formation_critic::learner::Learner;
-use formation_critic::selection::{Selector, SuddenTurn, play};
+use formation_critic::selection::{Played, Selector, SuddenTurn, play};
 use formation_model::actor::FrozenActor;
 use formation_model::checkpoint::{self, SelectionScore};
 
@@ -18,6 +20,20 @@ fn score(checkpoint: &checkpoint::Checkpoint, selector: &Selector) -> SelectionS
     selector.score(&actors, &checkpoint.meta.actor).expect("score")
 }
 
+/// The first `count` held-out episodes (seed 1000) under `reality`.
+fn held_out(count: usize, reality: &RealityConfig) -> Played<'_> {
+    Played {
+        seed: 1000,
+        count,
+        reality,
+    }
+}
+
+fn field() -> RealityConfig {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/reality-field.toml");
+    RealityConfig::from_toml_str(&std::fs::read_to_string(path).expect("the field preset")).expect("valid")
+}
+
 #[test]
 fn the_same_weights_and_seed_score_the_same() {
     let (env, learn) = (EnvConfig::default(), LearnConfig::default());
@@ -28,6 +44,7 @@ fn the_same_weights_and_seed_score_the_same() {
             selection_episodes: 20,
             ..learn
         },
+        &RealityConfig::default(),
         &[3, 4],
     );
     let first = score(&model, &selector);
@@ -38,8 +55,9 @@ fn the_same_weights_and_seed_score_the_same() {
 
 #[test]
 fn the_shipped_model_scores_high_and_a_fresh_actor_low() {
+    let ideal = RealityConfig::default();
     let (env, learn) = (EnvConfig::default(), LearnConfig::default());
-    let selector = Selector::new(&env, &learn, &[3]);
+    let selector = Selector::new(&env, &learn, &ideal, &[3]);
     let shipped = score(&shipped_model(), &selector);
     assert_eq!((shipped.seed, shipped.episodes), (learn.selection_seed, 50));
     assert!(shipped.success() >= 0.9, "{shipped:?}");
@@ -54,6 +72,7 @@ fn the_shipped_model_scores_high_and_a_fresh_actor_low() {
 
 #[test]
 fn independent_actors_drive_only_their_own_swarm_size() {
+    let ideal = RealityConfig::default();
     let env = EnvConfig::default();
     let learn = LearnConfig {
         shared_actor: false,
@@ -62,9 +81,9 @@ fn independent_actors_drive_only_their_own_swarm_size() {
     };
     let learner = Learner::new(3, &env, &learn, 3).expect("learner");
     let actors: Vec<Vec<f32>> = (0..3).map(|k| learner.actor_weights(k).expect("weights")).collect();
-    let three = Selector::new(&env, &learn, &[3]).score(&actors, learner.actor_shape());
+    let three = Selector::new(&env, &learn, &ideal, &[3]).score(&actors, learner.actor_shape());
     assert_eq!(three.expect("one actor per robot").sizes[0].n_agents, 3);
-    let four = Selector::new(&env, &learn, &[4]).score(&actors, learner.actor_shape());
+    let four = Selector::new(&env, &learn, &ideal, &[4]).score(&actors, learner.actor_shape());
     assert!(
         four.expect_err("a robot without an actor")
             .to_string()
@@ -82,6 +101,7 @@ fn the_score_travels_with_the_saved_weights() {
             selection_episodes: 5,
             ..learn
         },
+        &RealityConfig::default(),
         &[3],
     );
     let actors = [learner.actor_weights(0).expect("weights")];
@@ -105,12 +125,13 @@ fn the_score_travels_with_the_saved_weights() {
 
 #[test]
 fn a_neighbours_sudden_turn_is_played_and_costs_formation() {
+    let ideal = RealityConfig::default();
     let env = EnvConfig::default();
     let model = shipped_model();
     let play_with = |turn: Option<SuddenTurn>| {
         let mut actors =
             [FrozenActor::from_flat(&model.actor_weights(0).expect("weights"), &model.meta.actor).expect("actor")];
-        play(&env, 3, 1000, 20, &mut actors, &model.meta.actor, turn).expect("play")
+        play(&env, 3, &held_out(20, &ideal), &mut actors, &model.meta.actor, turn).expect("play")
     };
     let calm = play_with(None);
     let turn = |ticks| SuddenTurn {
@@ -127,5 +148,58 @@ fn a_neighbours_sudden_turn_is_played_and_costs_formation() {
     let mut actors =
         [FrozenActor::from_flat(&model.actor_weights(0).expect("weights"), &model.meta.actor).expect("actor")];
     let outside = SuddenTurn { robot: 3, ..turn(5) };
-    assert!(play(&env, 3, 1000, 1, &mut actors, &model.meta.actor, Some(outside)).is_err());
+    assert!(
+        play(
+            &env,
+            3,
+            &held_out(1, &ideal),
+            &mut actors,
+            &model.meta.actor,
+            Some(outside)
+        )
+        .is_err()
+    );
+}
+
+#[test]
+fn under_a_reality_the_score_is_played_in_it_and_the_ideal_world_is_reported_beside() {
+    let env = EnvConfig::default();
+    let learn = LearnConfig {
+        selection_episodes: 10,
+        ..LearnConfig::default()
+    };
+    let model = shipped_model();
+    let (ideal, field) = (RealityConfig::default(), field());
+    let in_field = Selector::new(&env, &learn, &field, &[3, 6]);
+    let scored = score(&model, &in_field);
+    let noise_free = score(&model, &Selector::new(&env, &learn, &ideal, &[3, 6]));
+    assert_eq!(noise_free.reality, None);
+    assert_eq!(noise_free.ideal, None);
+    assert_eq!(scored.reality, Some(field.one_line()));
+    assert_eq!(
+        scored.ideal.as_ref(),
+        Some(&noise_free.sizes),
+        "the ideal world, reported beside"
+    );
+    // The field's noise, delay and lag cost formation on the same episodes.
+    assert!(
+        scored.mean(|s| s.formation_held) < noise_free.mean(|s| s.formation_held) - 0.1,
+        "{scored:?} vs {noise_free:?}"
+    );
+    // A score of another reality was not measured on these episodes.
+    assert!(in_field.measured(&scored) && !in_field.measured(&noise_free));
+    // Played again, the same draws: the same score.
+    assert_eq!(score(&model, &in_field), scored);
+    // play() with the field reality gives the selection's figures.
+    let mut actors =
+        [FrozenActor::from_flat(&model.actor_weights(0).expect("weights"), &model.meta.actor).expect("actor")];
+    let played = Played {
+        seed: learn.selection_seed,
+        count: 10,
+        reality: &field,
+    };
+    assert_eq!(
+        play(&env, 3, &played, &mut actors, &model.meta.actor, None).expect("play"),
+        scored.sizes[0]
+    );
 }

@@ -132,6 +132,10 @@ pub struct SelectionScore {
     pub episodes: usize,
     /// The figures of each swarm size.
     pub sizes: Vec<SizeScore>,
+    /// The `[reality]` the episodes were played under, on one line; `None`: the ideal world.
+    pub reality: Option<String>,
+    /// Under a reality, the same episodes' figures in the ideal world (reported, not scored).
+    pub ideal: Option<Vec<SizeScore>>,
 }
 
 /// The selection figures of one swarm size.
@@ -166,7 +170,9 @@ impl SelectionScore {
 
     /// Adds the `selection_*` metadata keys: the score, seed and episodes, the formation-held
     /// rate and steps averaged over the sizes, and `selection_by_size`, each size's
-    /// `N:success:formation_held:mean_steps`, comma-separated.
+    /// `N:success:formation_held:mean_steps`, comma-separated; under a reality
+    /// `selection_reality` (its keys on one line) and `selection_ideal_by_size` (the ideal
+    /// world's figures, the same way).
     pub fn to_metadata(&self, extra: &mut HashMap<String, String>) {
         extra.insert("selection_success".into(), format!("{:.3}", self.success()));
         extra.insert("selection_seed".into(), self.seed.to_string());
@@ -179,13 +185,13 @@ impl SelectionScore {
             "selection_mean_steps".into(),
             format!("{:.1}", self.mean(|s| s.mean_steps)),
         );
-        // Shortest round-trip decimals: the score reads back exactly.
-        let by_size: Vec<String> = self
-            .sizes
-            .iter()
-            .map(|s| format!("{}:{}:{}:{}", s.n_agents, s.success, s.formation_held, s.mean_steps))
-            .collect();
-        extra.insert("selection_by_size".into(), by_size.join(","));
+        extra.insert("selection_by_size".into(), by_size(&self.sizes));
+        if let Some(reality) = &self.reality {
+            extra.insert("selection_reality".into(), reality.clone());
+        }
+        if let Some(ideal) = &self.ideal {
+            extra.insert("selection_ideal_by_size".into(), by_size(ideal));
+        }
     }
 
     /// Reads the keys written by [`SelectionScore::to_metadata`]; `None` when there are none.
@@ -194,16 +200,29 @@ impl SelectionScore {
             return Ok(None);
         };
         let field = |key: &str| map.get(key).with_context(|| format!("no {key}"));
+        let sizes = |text: &str| text.split(',').map(SizeScore::parse).collect::<Result<Vec<_>>>();
         Ok(Some(Self {
             seed: field("selection_seed")?.parse().context("selection_seed")?,
             episodes: field("selection_episodes")?.parse().context("selection_episodes")?,
-            sizes: by_size
-                .split(',')
-                .map(SizeScore::parse)
-                .collect::<Result<_>>()
-                .context("selection_by_size")?,
+            sizes: sizes(by_size).context("selection_by_size")?,
+            reality: map.get("selection_reality").cloned(),
+            ideal: map
+                .get("selection_ideal_by_size")
+                .map(|text| sizes(text))
+                .transpose()
+                .context("selection_ideal_by_size")?,
         }))
     }
+}
+
+/// Each size's `N:success:formation_held:mean_steps`, comma-separated, in shortest round-trip
+/// decimals (a score reads back exactly).
+fn by_size(sizes: &[SizeScore]) -> String {
+    let fields: Vec<String> = sizes
+        .iter()
+        .map(|s| format!("{}:{}:{}:{}", s.n_agents, s.success, s.formation_held, s.mean_steps))
+        .collect();
+    fields.join(",")
 }
 
 impl SizeScore {
@@ -357,6 +376,8 @@ mod tests {
                     mean_steps: 50.0,
                 })
                 .collect(),
+            reality: None,
+            ideal: None,
         };
         assert_eq!(score(&[1.0, 0.6]).success(), 0.6);
         assert!(score(&[0.1]).beats(None));
@@ -413,6 +434,13 @@ mod tests {
                     mean_steps: 70.0,
                 },
             ],
+            reality: Some("position_noise_m = [0.05, 0.1], dead_robot = \"hold\"".into()),
+            ideal: Some(vec![SizeScore {
+                n_agents: 3,
+                success: 1.0,
+                formation_held: 0.95,
+                mean_steps: 55.5,
+            }]),
         };
         score.to_metadata(&mut meta.extra);
         save(&path, &tensors, &meta).expect("save");

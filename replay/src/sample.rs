@@ -5,8 +5,10 @@
 //! at the same ticks. Ticks before the episode's start repeat tick 0 (the padding the agents use
 //! too).
 //!
-//! HER recomputes with the sim's own code on the replay's [`formation_core::scene::Scene`]s:
-//! the observation model ([`Observer`]) and the reward ([`score`]).
+//! HER recomputes the reward with the sim's own code ([`score`]) on the replay's
+//! [`formation_core::scene::Scene`]s; a relabelled observation is the one the robot was told,
+//! its goal and slot moved to the new goal ([`Observer::move_goal`]), so the sensor noise it
+//! was told with stays.
 
 use formation_core::config::{CriticArchitecture, EnvConfig};
 use formation_core::features::CriticFeatures;
@@ -197,11 +199,10 @@ impl Sampler {
                 let scene = episode.scene(window_tick(end, k), goal);
                 for agent in 0..n {
                     let offset = ((b * n + agent) * h + k) * od;
-                    let obs = if relabel {
-                        observer.observation(agent, &scene)
-                    } else {
-                        tick.observations[agent]
-                    };
+                    let mut obs = tick.observations[agent];
+                    if relabel {
+                        observer.move_goal(&mut obs, &tick.poses[agent], episode.goal, goal);
+                    }
                     observations[offset..offset + od].copy_from_slice(&obs[..od]);
                 }
                 let offset = (b * h + k) * sd;

@@ -1,11 +1,13 @@
 //! The replay's public contract: sequences stay inside one episode, every robot's window covers
-//! the same ticks, the replay's ticks are the sim's scenes (with the commands applied), and
-//! HER relabelling equals recomputing everything from them with the sim's own code.
+//! the same ticks, the replay's ticks are the sim's scenes (with the commands applied), HER
+//! relabelling equals recomputing everything from them with the sim's own code, and under
+//! sensor noise it keeps the noise the robots were told.
 
 use formation_core::config::{CriticArchitecture, EnvConfig, ObservationModel};
 use formation_core::features::CriticFeatures;
 use formation_core::formation::random_episode;
 use formation_core::observation::Observer;
+use formation_core::reality::{Reality, RealityConfig, Spread};
 use formation_core::task::score;
 use formation_core::world::World;
 use formation_protocol::ACTION_DIM;
@@ -147,15 +149,23 @@ fn her_relabelling_matches(env: &EnvConfig) {
             for k in 0..h {
                 let tick = (t + k + 1).saturating_sub(h);
                 let offset = ((b * n + agent) * h + k) * od;
+                // Up to f32 rounding, what the sim would have told the robot with that goal.
                 let expected = observer.observation(agent, &episode.scene(tick, goal));
                 let got = &batch.observations[offset..offset + od];
-                assert_eq!(got, &expected[..od]);
-                // The neighbours (and the proximity term) are what the robot saw, up to the
-                // f32 rounding of the poses on the wire; the goal and the slot moved.
+                for i in 0..od {
+                    assert!(
+                        (got[i] - expected[i]).abs() < 1e-5,
+                        "float {i}: {} vs {}",
+                        got[i],
+                        expected[i]
+                    );
+                }
+                // The neighbours (and the proximity term) are exactly what the robot was told;
+                // the goal and the slot moved.
                 let seen = &episode.ticks[tick].observations[agent];
                 let unchanged = (0..layout.goal()).chain(layout.proximity().map_or(0..0, |at| at..at + 2));
                 for i in unchanged {
-                    assert!((got[i] - seen[i]).abs() < 1e-5, "float {i}: {} vs {}", got[i], seen[i]);
+                    assert_eq!(got[i], seen[i], "float {i}");
                 }
                 // The goal and the slot in the robot's frame, checked by hand: rotate (g - p)
                 // by -theta.
@@ -183,6 +193,80 @@ fn her_relabelling_matches(env: &EnvConfig) {
     assert!(
         saw_success,
         "relabelling to a reached centroid should produce some successes"
+    );
+}
+
+/// Under sensor noise a relabelled observation is the one the robot was told with its goal and
+/// slot moved: the noise on every block stays (recomputing from the true state would drop it).
+#[test]
+fn her_relabelling_keeps_the_noise_the_robots_were_told() {
+    let n = 4;
+    let h = 3;
+    let env = EnvConfig {
+        observation: ObservationModel::SlotProximity,
+        ..EnvConfig::default()
+    };
+    let observer = Observer::new(&env);
+    let layout = observer.layout;
+    let od = observer.dim();
+    let noise = RealityConfig {
+        position_noise_m: Spread::range(0.05, 0.1),
+        heading_noise_rad: Spread::fixed(0.05),
+        ..RealityConfig::default()
+    };
+    // What the collector stores under noise: each tick's observation as the robot was told it.
+    let mut episodes = recorded_episodes(&env, 6, n, 11);
+    for episode in &mut episodes {
+        let mut reality = Reality::new(&noise, &env, 11, u64::from(episode.number), n);
+        for tick in &mut episode.ticks {
+            for (agent, obs) in tick.observations.iter_mut().enumerate() {
+                reality.tell(agent, layout, obs);
+            }
+        }
+    }
+    let buffer = buffer_of(&episodes);
+    let sampler = Sampler {
+        history: h,
+        her_probability: 1.0,
+        n_step: 1,
+        gamma: 0.98,
+        env: env.clone(),
+        critic: CriticArchitecture::Mlp,
+    };
+    let mut rng = StdRng::seed_from_u64(12);
+    let batch = sampler.sample(&buffer, 64, &mut rng).expect("batch");
+    let mut goal_noise = 0.0f64;
+    for b in 0..batch.batch_size {
+        let (number, t) = batch.origins[b];
+        let episode = &episodes[number as usize];
+        let goal = batch.goals[b];
+        for agent in 0..n {
+            for k in 0..h {
+                let tick = (t + k + 1).saturating_sub(h);
+                let offset = ((b * n + agent) * h + k) * od;
+                let got = &batch.observations[offset..offset + od];
+                let told = &episode.ticks[tick].observations[agent];
+                let truth = observer.observation(agent, &episode.scene(tick, goal));
+                for at in std::iter::once(layout.goal()).chain(layout.slot()) {
+                    // Told with the old goal, moved to the new one: the told noise stays.
+                    let was_told_noise = f64::from(told[at])
+                        - f64::from(observer.observation(agent, &episode.scene(tick, episode.goal))[at]);
+                    let noise_now = f64::from(got[at]) - f64::from(truth[at]);
+                    assert!(
+                        (was_told_noise - noise_now).abs() < 1e-4,
+                        "block at {at}: {was_told_noise} vs {noise_now}"
+                    );
+                    goal_noise = goal_noise.max(noise_now.abs());
+                }
+                for i in (0..layout.goal()).chain(layout.proximity().map_or(0..0, |at| at..at + 2)) {
+                    assert_eq!(got[i], told[i], "float {i} is what the robot was told");
+                }
+            }
+        }
+    }
+    assert!(
+        goal_noise > 0.03,
+        "the relabelled goals carry the told noise (largest {goal_noise})"
     );
 }
 
