@@ -57,6 +57,24 @@ pub struct Summary {
     pub lost_observations: u64,
     /// Commands rejected as malformed (non-finite, wrong tick or protocol).
     pub rejected_commands: u64,
+    /// Robots played by ROS 2 nodes (`--ros2`); the `ros2_*` counts below are the ROS 2
+    /// side's (`formation-ros2`), added by the launcher at the run's end.
+    #[serde(default)]
+    pub ros2_agents: Vec<usize>,
+    /// `cmd_vel` Twists passed to the sim as a robot's command.
+    #[serde(default)]
+    pub ros2_twists: Option<u64>,
+    /// Twists dropped because none of their robot's observations had been published yet.
+    #[serde(default)]
+    pub ros2_twists_dropped: Option<u64>,
+    /// Twists not passed on: a newer one for the same robot came with it, or the robot's newest
+    /// observation was already answered.
+    #[serde(default)]
+    pub ros2_twists_superseded: Option<u64>,
+    /// Twists rejected: malformed (bad CDR header or length, non-finite values, no rmw_zenoh
+    /// attachment) or for a robot the ROS 2 side does not carry.
+    #[serde(default)]
+    pub ros2_twists_rejected: Option<u64>,
     /// Robots that greeted again after being absent (restarted agent processes).
     pub rejoined_agents: u64,
     /// Real-time mode: ticks that overran their deadline.

@@ -30,6 +30,7 @@ Examples:
   scripts/run_swarm.sh 3 --minutes 20
   scripts/run_swarm.sh 6 --mode eval --checkpoint runs/my-training
   scripts/run_swarm.sh 3 --mode eval --scripted 0,1 --external 2 --run-dir runs/py
+  scripts/run_swarm.sh 3 --mode eval --scripted 0,1 --ros2 2   (then: python3 -m formation_swarm ros2-node 2)
   scripts/run_swarm.sh 4 --extra-swarms 3,8,16 --config configs/any-n.toml --minutes 30
   scripts/run_swarm.sh 12 --mode eval --reality configs/reality-field.toml --episodes 100 --seed 1000";
 
@@ -113,6 +114,22 @@ pub struct LaunchArgs {
     /// With --remote: every message a bridge sends is lost with this probability.
     #[arg(long, value_name = "P", default_value_t = 0.0, value_parser = probability)]
     pub net_loss: f64,
+    /// Robots played by ROS 2 nodes: one `formation-ros2` process carries them as ROS 2 topics
+    /// over rmw_zenoh's wire format (/NAMESPACE/robot_<i>/odom, observation, cmd_vel and
+    /// /clock); the sim waits ticks.startup_timeout_s for each robot's node. See docs/ROS2.md.
+    #[arg(long, value_name = "all|i,j")]
+    pub ros2: Option<String>,
+    /// With --ros2: the topics' namespace.
+    #[arg(long, value_name = "NS", default_value = "formation")]
+    pub ros2_namespace: String,
+    /// With --ros2: the ROS_DOMAIN_ID of the keys.
+    #[arg(long, value_name = "ID", default_value_t = 0)]
+    pub ros2_domain: u32,
+    /// With --ros2: where ROS 2 nodes reach the swarm: a Zenoh endpoint to listen on as a peer
+    /// (the default, where rmw_zenoh nodes look for their router), or connect=ENDPOINT to dial
+    /// a router (`ros2 run rmw_zenoh_cpp rmw_zenohd`).
+    #[arg(long, value_name = "ENDPOINT", default_value = "tcp/127.0.0.1:7447")]
+    pub ros2_endpoint: String,
     /// Restart an agent or the critic that dies mid-run (a restarted agent rejoins at once with
     /// the latest weights, a restarted critic resumes from the run's last checkpoint).
     #[arg(long, value_enum, default_value_t = Switch::On)]

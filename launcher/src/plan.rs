@@ -41,6 +41,8 @@ pub struct Swarm {
     pub external: Vec<usize>,
     /// Robots on a host of their own, joined over Zenoh (see [`RemoteHost`]).
     pub remote: Vec<RemoteHost>,
+    /// Robots played by ROS 2 nodes through the `formation-ros2` member.
+    pub ros2: Vec<usize>,
 }
 
 /// A robot "on another computer": its own iceoryx2 (run id, prefix, root path) and run
@@ -70,6 +72,8 @@ pub enum Member {
         /// The remote robot whose host this bridge is on, if any.
         host: Option<usize>,
     },
+    /// The ROS 2 side of the primary swarm's `--ros2` robots.
+    Ros2,
     /// Remote robot `index` of the primary swarm, on its own host.
     RemoteRobot {
         /// The robot.
@@ -130,6 +134,8 @@ pub struct Plan {
     pub net_delay_ms: f64,
     /// Loss probability of the emulated network.
     pub net_loss: f64,
+    /// With `--ros2`: the topics' namespace, the domain id and the Zenoh endpoint.
+    pub ros2: Ros2Link,
     /// The configuration every member reads (defaults, the file, the shape).
     pub config: RunConfig,
     /// The primary swarm first, then the extra swarms.
@@ -144,7 +150,9 @@ impl Plan {
             scripted,
             external,
             remote,
+            ros2,
         } = RobotSets::new(&args)?;
+        let ros2_link = Ros2Link::new(&args)?;
         if !args.extra_swarms.is_empty() {
             ensure!(
                 args.mode == Mode::Train,
@@ -174,7 +182,7 @@ impl Plan {
         if args.mode == Mode::Train {
             config.learn.check_training_seeds(args.seed, args.extra_swarms.len())?;
         }
-        let learned = n - scripted.len() - external.len();
+        let learned = n - scripted.len() - external.len() - ros2.len();
         let checkpoint = match (&args.checkpoint, args.mode) {
             (None, Mode::Eval) if learned > 0 => Some(shipped_model()?),
             (given, _) => given.clone(),
@@ -208,6 +216,7 @@ impl Plan {
             scripted,
             external,
             remote,
+            ros2,
         }];
         for (k, &size) in (1..).zip(&args.extra_swarms) {
             swarms.push(Swarm {
@@ -218,6 +227,7 @@ impl Plan {
                 scripted: Vec::new(),
                 external: Vec::new(),
                 remote: Vec::new(),
+                ros2: Vec::new(),
             });
         }
         Ok(Self {
@@ -235,6 +245,7 @@ impl Plan {
             bridge_endpoint,
             net_delay_ms: args.net_delay_ms,
             net_loss: args.net_loss,
+            ros2: ros2_link,
             config,
             swarms,
         })
@@ -270,10 +281,17 @@ impl Plan {
                 members.push(Member::RemoteRobot { index: host.robot });
             }
         }
+        if !self.primary().ros2.is_empty() {
+            members.push(Member::Ros2);
+        }
         let robots = |swarm: usize| {
             let s = &self.swarms[swarm];
             (0..s.n)
-                .filter(move |index| !s.external.contains(index) && !s.remote.iter().any(|h| h.robot == *index))
+                .filter(move |index| {
+                    !s.external.contains(index)
+                        && !s.ros2.contains(index)
+                        && !s.remote.iter().any(|h| h.robot == *index)
+                })
                 .map(move |index| Member::Robot { swarm, index })
         };
         for swarm in 1..self.swarms.len() {
@@ -291,7 +309,9 @@ impl Plan {
             Member::Sim { swarm: 0 } => Restart::EndsTheRun,
             _ if !self.restart => Restart::Never,
             Member::Sim { .. } => Restart::Never,
-            Member::Robot { .. } | Member::RemoteRobot { .. } | Member::Bridge { .. } => Restart::OnFailure,
+            Member::Robot { .. } | Member::RemoteRobot { .. } | Member::Bridge { .. } | Member::Ros2 => {
+                Restart::OnFailure
+            }
             Member::Critic => Restart::OnFailureResuming,
         }
     }
@@ -303,6 +323,7 @@ impl Plan {
             Member::Sim { .. } => "formation-sim",
             Member::Robot { .. } | Member::RemoteRobot { .. } => "formation-agent",
             Member::Bridge { .. } => "formation-bridge",
+            Member::Ros2 => "formation-ros2",
         }
     }
 
@@ -315,6 +336,7 @@ impl Plan {
             Member::Bridge { host: None } => self.primary().run_dir.join("logs/bridge.log"),
             Member::Bridge { host: Some(robot) } => self.host(robot).run_dir.join("logs/bridge.log"),
             Member::RemoteRobot { index } => self.host(index).run_dir.join(format!("logs/agent-{index}.log")),
+            Member::Ros2 => self.primary().run_dir.join("logs/ros2.log"),
         }
     }
 
@@ -331,6 +353,7 @@ impl Plan {
             Member::Bridge { host: None } => "the sim's bridge".into(),
             Member::Bridge { host: Some(robot) } => format!("robot {robot}'s bridge"),
             Member::RemoteRobot { index } => format!("agent {index} (remote)"),
+            Member::Ros2 => "the ROS 2 side".into(),
         }
     }
 
@@ -425,6 +448,23 @@ impl Plan {
                 args
             }
             Member::Bridge { host } => self.bridge_args(host),
+            Member::Ros2 => {
+                let link = &self.ros2;
+                let mut args = self.common_args(0);
+                args.extend([
+                    "--robots".into(),
+                    robot_set_arg(&self.primary().ros2).into(),
+                    "--namespace".into(),
+                    link.namespace.clone().into(),
+                    "--domain".into(),
+                    link.domain.to_string().into(),
+                ]);
+                match &link.endpoint {
+                    Ros2Endpoint::Listen(endpoint) => args.extend(["--listen".into(), endpoint.into()]),
+                    Ros2Endpoint::Connect(endpoint) => args.extend(["--connect".into(), endpoint.into()]),
+                }
+                args
+            }
             Member::RemoteRobot { index } => {
                 let mut args = self.host_args(index);
                 args.extend(["--agent".into(), index.to_string().into()]);
@@ -527,9 +567,9 @@ impl Plan {
         // Eval: one learned robot loads the checkpoint. The highest index, so that a checkpoint
         // of independent actors is refused when it holds fewer robots than the swarm.
         let primary = self.primary();
-        let last_learned = (0..primary.n)
-            .rev()
-            .find(|&index| self.learned(0, index) && !primary.external.contains(&index));
+        let last_learned = (0..primary.n).rev().find(|&index| {
+            self.learned(0, index) && !primary.external.contains(&index) && !primary.ros2.contains(&index)
+        });
         if let (Mode::Eval, Some(index), Some(_)) = (self.mode, last_learned, &self.checkpoint) {
             let member = Member::Robot { swarm: 0, index };
             let mut args = self.args(member, None, None);
@@ -568,6 +608,7 @@ impl Plan {
             "proximity_range_m": env.proximity_range_m,
             "mode": self.mode.as_str(),
             "external": s.external,
+            "ros2": s.ros2,
             "extra_swarms": self.swarms[1..].iter().map(|x| serde_json::json!({
                 "run_id": x.identity.run_id,
                 "n_agents": x.n,
@@ -598,11 +639,61 @@ fn read_reality(path: &Path) -> Result<RealityConfig> {
     Ok(reality)
 }
 
-/// Which robots are scripted, external and remote, checked against each other.
+/// Where the ROS 2 side meets ROS 2 nodes.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Ros2Endpoint {
+    /// Listen as a Zenoh peer (where rmw_zenoh nodes look for their router).
+    Listen(String),
+    /// Dial a Zenoh router.
+    Connect(String),
+}
+
+/// `--ros2-namespace`, `--ros2-domain` and `--ros2-endpoint`.
+#[derive(Debug, Clone)]
+pub struct Ros2Link {
+    /// The topics' namespace.
+    pub namespace: String,
+    /// ROS_DOMAIN_ID.
+    pub domain: u32,
+    /// Listen or dial.
+    pub endpoint: Ros2Endpoint,
+}
+
+impl Ros2Link {
+    fn new(args: &LaunchArgs) -> Result<Self> {
+        let endpoint = match args.ros2_endpoint.strip_prefix("connect=") {
+            Some(endpoint) => Ros2Endpoint::Connect(endpoint.to_string()),
+            None => Ros2Endpoint::Listen(args.ros2_endpoint.clone()),
+        };
+        let locator = match &endpoint {
+            Ros2Endpoint::Listen(locator) | Ros2Endpoint::Connect(locator) => locator,
+        };
+        ensure!(
+            locator
+                .split_once('/')
+                .is_some_and(|(proto, addr)| !proto.is_empty() && !addr.is_empty()),
+            "--ros2-endpoint takes a Zenoh endpoint like tcp/127.0.0.1:7447 or connect=tcp/10.0.0.2:7447, got {:?}",
+            args.ros2_endpoint
+        );
+        ensure!(
+            args.ros2_domain <= 232,
+            "--ros2-domain must be a ROS_DOMAIN_ID, 0 to 232, got {}",
+            args.ros2_domain
+        );
+        Ok(Self {
+            namespace: args.ros2_namespace.clone(),
+            domain: args.ros2_domain,
+            endpoint,
+        })
+    }
+}
+
+/// Which robots are scripted, external, remote and ROS 2, checked against each other.
 struct RobotSets {
     scripted: Vec<usize>,
     external: Vec<usize>,
     remote: Vec<usize>,
+    ros2: Vec<usize>,
 }
 
 impl RobotSets {
@@ -614,18 +705,27 @@ impl RobotSets {
             external_flag.trim().is_empty() || !external.is_empty(),
             "--external takes 'all' or indices like 0,2; got {external_flag:?}"
         );
+        let ros2 = parse_robot_set("--ros2", args.ros2.as_deref().unwrap_or(""), n)?;
         let scripted_flag = args.scripted.as_deref().unwrap_or("");
         let mut scripted = parse_robot_set("--scripted", scripted_flag, n)?;
         if scripted_flag.trim() == "all" {
             // `--scripted all --external 2`: every robot this launcher starts is scripted.
-            scripted.retain(|robot| !external.contains(robot));
+            scripted.retain(|robot| !external.contains(robot) && !ros2.contains(robot));
         } else if let Some(both) = scripted.iter().find(|robot| external.contains(robot)) {
             bail!("robot {both} cannot be both --scripted and --external");
+        } else if let Some(both) = scripted.iter().find(|robot| ros2.contains(robot)) {
+            bail!("robot {both} cannot be both --scripted and --ros2");
+        }
+        if let Some(both) = ros2.iter().find(|robot| external.contains(robot)) {
+            bail!("robot {both} cannot be both --ros2 and --external");
         }
         let remote_flag = args.remote.as_deref().unwrap_or("");
         let remote = parse_robot_set("--remote", remote_flag, n)?;
         if let Some(both) = remote.iter().find(|robot| external.contains(robot)) {
             bail!("robot {both} cannot be both --remote and --external");
+        }
+        if let Some(both) = remote.iter().find(|robot| ros2.contains(robot)) {
+            bail!("robot {both} cannot be both --remote and --ros2");
         }
         ensure!(
             remote.is_empty() || args.extra_swarms.is_empty(),
@@ -639,6 +739,7 @@ impl RobotSets {
             scripted,
             external,
             remote,
+            ros2,
         })
     }
 }
@@ -794,6 +895,109 @@ mod tests {
         assert_eq!(after("--external").as_deref(), Some("2"));
         assert!(plan.checkpoint.is_none(), "no learned robot: no model needed");
         assert!(plan.preflight().is_empty());
+    }
+
+    /// The flags `member` of `plan` starts with, as text.
+    fn text_of(plan: &Plan, member: Member) -> Vec<String> {
+        plan.args(member, None, None)
+            .iter()
+            .map(|a| a.to_string_lossy().into_owned())
+            .collect()
+    }
+
+    #[test]
+    fn ros2_robots_are_carried_by_one_ros2_member_need_no_checkpoint_and_conflict_with_other_roles() {
+        let carried = plan(&[
+            "4",
+            "--mode",
+            "eval",
+            "--scripted",
+            "all",
+            "--ros2",
+            "1,3",
+            "--viewer",
+            "off",
+        ])
+        .expect("plan");
+        assert_eq!(
+            carried.primary().scripted,
+            vec![0, 2],
+            "scripted all leaves the ROS 2 robots"
+        );
+        assert_eq!(carried.primary().ros2, vec![1, 3]);
+        let members = carried.members();
+        assert!(members.contains(&Member::Ros2));
+        assert!(!members.contains(&Member::Robot { swarm: 0, index: 1 }));
+        assert!(!members.contains(&Member::Robot { swarm: 0, index: 3 }));
+        assert!(carried.checkpoint.is_none(), "no learned robot: no model needed");
+        assert!(carried.preflight().is_empty());
+        assert_eq!(Plan::program(Member::Ros2), "formation-ros2");
+        assert_eq!(carried.restart_policy(Member::Ros2), Restart::OnFailure);
+        let args = text_of(&carried, Member::Ros2);
+        for pair in [
+            ["--robots", "1,3"],
+            ["--namespace", "formation"],
+            ["--domain", "0"],
+            ["--listen", "tcp/127.0.0.1:7447"],
+        ] {
+            assert!(args.windows(2).any(|w| w == pair), "{pair:?} in {args:?}");
+        }
+        assert_eq!(carried.run_json()["ros2"], serde_json::json!([1, 3]));
+
+        let dialled = plan(&[
+            "3",
+            "--mode",
+            "eval",
+            "--scripted",
+            "0,1",
+            "--ros2",
+            "2",
+            "--ros2-namespace",
+            "lab",
+            "--ros2-domain",
+            "7",
+            "--ros2-endpoint",
+            "connect=tcp/10.0.0.2:7447",
+            "--viewer",
+            "off",
+        ])
+        .expect("plan");
+        let args = text_of(&dialled, Member::Ros2);
+        for pair in [
+            ["--connect", "tcp/10.0.0.2:7447"],
+            ["--namespace", "lab"],
+            ["--domain", "7"],
+        ] {
+            assert!(args.windows(2).any(|w| w == pair), "{pair:?} in {args:?}");
+        }
+        assert!(dialled.checkpoint.is_none());
+
+        for (args, needle) in [
+            (
+                vec!["3", "--scripted", "1,2", "--ros2", "2"],
+                "robot 2 cannot be both --scripted and --ros2",
+            ),
+            (
+                vec!["3", "--external", "2", "--ros2", "2"],
+                "robot 2 cannot be both --ros2 and --external",
+            ),
+            (
+                vec!["3", "--remote", "0,2", "--ros2", "2"],
+                "robot 2 cannot be both --remote and --ros2",
+            ),
+            (vec!["3", "--ros2", "3"], "--ros2: robot 3 does not exist"),
+            (
+                vec!["3", "--ros2", "2", "--ros2-endpoint", "7447"],
+                "--ros2-endpoint takes a Zenoh endpoint",
+            ),
+            (
+                vec!["3", "--ros2", "2", "--ros2-domain", "300"],
+                "--ros2-domain must be",
+            ),
+        ] {
+            let refusal = plan(&args).expect_err(needle);
+            assert!(format!("{refusal:#}").contains(needle), "{args:?}: {refusal:#}");
+        }
     }
 
     #[test]

@@ -7,7 +7,7 @@ use std::collections::HashMap;
 use std::fs::{File, OpenOptions};
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::process::CommandExt;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Command, ExitStatus, Stdio};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, channel};
 use std::thread::JoinHandle;
@@ -17,6 +17,7 @@ use anyhow::{Context, Result};
 use formation_core::run_dir::write_atomically;
 use formation_ipc::cli::Mode;
 use formation_ipc::services::{RunIdentity, sweep_abandoned_runs};
+use formation_ipc::summary::Summary;
 use signal_hook::consts::{SIGINT, SIGTERM};
 use signal_hook::iterator::Signals;
 
@@ -125,12 +126,46 @@ pub fn launch(plan: &Plan) -> Result<u8> {
         identity.wait_for_clients(CLIENT_GRACE);
         identity.remove_leftovers();
     }
+    if !plan.primary().ros2.is_empty() {
+        let run_dir = &plan.primary().run_dir;
+        if let Err(err) = fold_ros2_counts(run_dir) {
+            eprintln!("run_swarm.sh: the ROS 2 side's counts are not in summary.json: {err:#}");
+        }
+    }
     let code = result?;
     println!(
         "results: {} (summary.json, episodes.csv, config.toml, logs/)",
         plan.primary().run_dir.display()
     );
     Ok(code)
+}
+
+/// Adds the ROS 2 side's counts (`ros2.json`, written when it ends) to the sim's
+/// `summary.json`; after every member has exited, so no other writer is left.
+fn fold_ros2_counts(run_dir: &Path) -> Result<()> {
+    #[derive(serde::Deserialize)]
+    struct Counts {
+        ros2_agents: Vec<usize>,
+        ros2_twists: u64,
+        ros2_twists_dropped: u64,
+        ros2_twists_superseded: u64,
+        ros2_twists_rejected: u64,
+    }
+    let read = |name: &str| {
+        let path = run_dir.join(name);
+        std::fs::read_to_string(&path).with_context(|| format!("cannot read {}", path.display()))
+    };
+    let counts: Counts = serde_json::from_str(&read("ros2.json")?).context("ros2.json")?;
+    let mut summary: Summary = serde_json::from_str(&read("summary.json")?).context("summary.json")?;
+    summary.ros2_agents = counts.ros2_agents;
+    summary.ros2_twists = Some(counts.ros2_twists);
+    summary.ros2_twists_dropped = Some(counts.ros2_twists_dropped);
+    summary.ros2_twists_superseded = Some(counts.ros2_twists_superseded);
+    summary.ros2_twists_rejected = Some(counts.ros2_twists_rejected);
+    write_atomically(
+        &run_dir.join("summary.json"),
+        serde_json::to_string_pretty(&summary)?.as_bytes(),
+    )
 }
 
 /// Where the member binaries are: `FORMATION_BIN_DIR`, else beside this launcher.
@@ -237,7 +272,7 @@ impl Supervisor<'_> {
     /// attach the external robots.
     fn announce(&self) {
         let primary = self.plan.primary();
-        let started = primary.n - primary.external.len() - primary.remote.len();
+        let started = primary.n - primary.external.len() - primary.remote.len() - primary.ros2.len();
         println!(
             "run {}: sim, {started} agents and the critic started; results in {} (logs in {}/logs)",
             primary.identity.run_id,
@@ -262,6 +297,29 @@ impl Supervisor<'_> {
                 primary.run_dir.display(),
                 primary.run_dir.display()
             );
+        }
+        if !primary.ros2.is_empty() {
+            let link = &self.plan.ros2;
+            let list: Vec<String> = primary.ros2.iter().map(usize::to_string).collect();
+            let (how, endpoint) = match &link.endpoint {
+                crate::plan::Ros2Endpoint::Listen(e) => ("listening at", e),
+                crate::plan::Ros2Endpoint::Connect(e) => ("dialling the router at", e),
+            };
+            println!(
+                "ROS 2 robots {}: topics /{}/robot_<i>/{{odom,observation,cmd_vel}} and /clock on domain {}, rmw_zenoh's wire format, {how} {endpoint}; the sim waits {} s for each robot's node. Drive one with",
+                list.join(","),
+                link.namespace.trim_matches('/'),
+                link.domain,
+                self.plan.config.ticks.startup_timeout_s
+            );
+            for index in &primary.ros2 {
+                println!(
+                    "  python3 -m formation_swarm ros2-node {index} --endpoint {endpoint} --namespace {} --domain {}",
+                    link.namespace.trim_matches('/'),
+                    link.domain
+                );
+            }
+            println!("or any ROS 2 node over rmw_zenoh_cpp (docs/ROS2.md)");
         }
         for host in &primary.remote {
             println!(

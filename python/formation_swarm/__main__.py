@@ -2,6 +2,7 @@
 
     python -m formation_swarm robot RUN_DIR INDEX [--policy baseline|MODULE:CALLABLE]
     python -m formation_swarm observe RUN_DIR [--count K]
+    python -m formation_swarm ros2-node INDEX [--endpoint tcp/127.0.0.1:7447] [--namespace formation] [--domain 0]
 """
 
 from __future__ import annotations
@@ -25,6 +26,27 @@ def _load_policy(spec: str, run):
     return policy() if isinstance(policy, type) else policy
 
 
+def _ros2_node(args) -> int:
+    from .ros2 import Ros2Node
+
+    try:
+        node = Ros2Node(args.index, args.endpoint, args.namespace, args.domain)
+    except FormationError as err:
+        print(f"formation_swarm: error: {err}", file=sys.stderr)
+        return 1
+    print(f"robot {args.index}: ROS 2 node /{node.namespace}/{node.node_name} on domain {args.domain}, "
+          f"zenoh {node.zid} dialling {args.endpoint}", flush=True)
+    try:
+        node.spin(args.idle_exit)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        print(f"robot {args.index}: sent {node.twists} twists, received {node.odometry_count} odometry messages",
+              flush=True)
+        node.close()
+    return 0
+
+
 def _terminate(signum, frame):
     raise KeyboardInterrupt
 
@@ -42,10 +64,21 @@ def main(argv=None) -> int:
     observe = sub.add_parser("observe", help="print the live true state")
     observe.add_argument("run_dir")
     observe.add_argument("--count", type=int, default=0, help="stop after K states (default: run end)")
+    ros2 = sub.add_parser("ros2-node", help="play a --ros2 robot as a ROS 2 node over rmw_zenoh's wire format "
+                                            "(eclipse-zenoh and rosbags, no ROS 2 install), driven by the baseline")
+    ros2.add_argument("index", type=int)
+    ros2.add_argument("--endpoint", default="tcp/127.0.0.1:7447",
+                      help="the Zenoh endpoint of the swarm's ROS 2 side or of a router (default tcp/127.0.0.1:7447)")
+    ros2.add_argument("--namespace", default="formation", help="the topics' namespace (default formation)")
+    ros2.add_argument("--domain", type=int, default=0, help="ROS_DOMAIN_ID (default 0)")
+    ros2.add_argument("--idle-exit", type=float, default=None,
+                      help="leave after this many seconds without an observation (default: run until stopped)")
     args = parser.parse_args(argv)
 
     # SIGTERM ends the loop like Ctrl-C: ports and node are released on the way out.
     signal.signal(signal.SIGTERM, _terminate)
+    if args.command == "ros2-node":
+        return _ros2_node(args)
     try:
         run = connect(args.run_dir, args.connect_timeout if args.command == "robot" else 60.0)
         if args.command == "robot":
