@@ -138,6 +138,6 @@ def test_a_ros2_node_made_of_zenoh_and_rosbags_drives_robot_2(tmp_path):
     odometry = int(re.search(r"sent (\d+) twists, received (\d+) odometry", log).group(2))
     assert sent == summary["ros2_twists"] + summary["ros2_twists_dropped"] + summary["ros2_twists_superseded"], (
         summary, log)
-    assert odometry > summary["env_steps"], "one odometry per state, tick 0 included"
+    assert odometry == summary["env_steps"] + EPISODES, "one odometry per state, each tick 0 included"
     assert "ROS 2 robots 2" in swarm.output and "python3 -m formation_swarm ros2-node 2" in swarm.output
     assert_clean(swarm)

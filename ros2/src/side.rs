@@ -492,6 +492,9 @@ fn observations_out(options: &Options, session: &Session, graph: &mut Graph, sha
             }
         }
         while let Some(sample) = states.receive().context("ros2: receive state")? {
+            if sample.payload().header.has(FLAG_RUN_END) {
+                continue; // the run's end repeats the last state
+            }
             publish_state(
                 options,
                 sample.payload(),
