@@ -181,7 +181,7 @@ impl Counts {
 }
 
 /// Opens the Zenoh session: a peer listening on `listen` and dialling `connect`, no multicast
-/// scouting (as rmw_zenoh's own sessions), gossip on so ROS 2 nodes find each other through it.
+/// scouting (as rmw_zenoh's own sessions), the rest Zenoh's defaults.
 pub fn open_session(listen: &[String], connect: &[String]) -> Result<Session> {
     let mut config = Config::default();
     let list = |items: &[String]| {
