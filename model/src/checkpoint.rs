@@ -163,9 +163,12 @@ impl SelectionScore {
         self.sizes.iter().map(figure).sum::<f64>() / self.sizes.len().max(1) as f64
     }
 
-    /// Whether this beats `best`: a higher score, or the same score and a higher mean success.
+    /// Whether this beats `best`: a higher score, or the same score and a higher mean success,
+    /// or both the same and fewer steps on average (a faster policy; a time limit counts in
+    /// full, so this also rewards fewer timeouts).
     pub fn beats(&self, best: Option<&SelectionScore>) -> bool {
-        best.is_none_or(|best| (self.success(), self.mean(|s| s.success)) > (best.success(), best.mean(|s| s.success)))
+        let key = |s: &SelectionScore| (s.success(), s.mean(|s| s.success), -s.mean(|s| s.mean_steps));
+        best.is_none_or(|best| key(self) > key(best))
     }
 
     /// Adds the `selection_*` metadata keys: the score, seed and episodes, the formation-held
@@ -384,6 +387,18 @@ mod tests {
         assert!(score(&[0.7, 0.7]).beats(Some(&score(&[1.0, 0.6]))));
         assert!(score(&[0.8, 0.7]).beats(Some(&score(&[0.7, 0.7]))));
         assert!(!score(&[0.7, 0.7]).beats(Some(&score(&[0.7, 0.7]))));
+        // Equal success: the faster one.
+        let faster = |steps: f64| SelectionScore {
+            sizes: score(&[1.0])
+                .sizes
+                .into_iter()
+                .map(|s| SizeScore { mean_steps: steps, ..s })
+                .collect(),
+            ..score(&[1.0])
+        };
+        assert!(faster(60.0).beats(Some(&faster(61.0))));
+        assert!(!faster(61.0).beats(Some(&faster(60.0))));
+        assert!(!faster(60.0).beats(Some(&faster(60.0))));
     }
 
     #[test]
