@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 use formation_agent::run::{AgentOptions, AgentPolicy, run as run_agent};
 use formation_core::baseline::ScriptedBaseline;
 use formation_core::config::{LearnConfig, RunConfig};
+use formation_core::mission::observed_robots;
 use formation_core::observation::{Layout, Observer};
 use formation_core::physics::{Pose, integrate};
 use formation_core::reality::{Reality, RealityConfig};
@@ -261,10 +262,12 @@ fn position_noise_reaches_what_robots_are_told_with_the_configured_spread_and_le
             .collect();
         let desired: Vec<[f64; NEIGHBOURS]> = state.desired[..N].iter().map(|d| d.map(f64::from)).collect();
         let slots: Vec<[f64; 2]> = state.slots[..N].iter().map(|s| s.map(f64::from)).collect();
+        let slot_of: Vec<usize> = state.slot[..N].iter().map(|&s| s as usize).collect();
         let scene = Scene {
             poses: &poses,
             commands: &commands,
             desired: &desired,
+            observed: &observed_robots(&slot_of),
             goal: state.goal.map(f64::from),
             slots: &slots,
         };

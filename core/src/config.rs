@@ -82,6 +82,15 @@ pub struct EnvConfig {
     /// Ticks of history the actor and the critic see (H). The paper uses 15; the default, 1, is
     /// what learned fastest here (see docs/RESULTS.md); `configs/paper.toml` sets 15.
     pub history: usize,
+    /// Shape changes per episode (0, the default: one formation for the whole episode). Each
+    /// change gives the swarm a new formation (a shape of `change_shapes`, a random size and
+    /// orientation) at a tick drawn in [20, max_steps - 50] from a random stream of its own, so
+    /// starts, goals and first shapes are the same as without changes; the mission planner
+    /// reassigns the slots (`formation_core::mission`) and the time limit grows
+    /// ([`EnvConfig::episode_steps`]). Success means holding the last formation at the goal.
+    pub shape_changes: u32,
+    /// Shapes a change draws from, uniformly (not `mixed`).
+    pub change_shapes: Vec<FormationShape>,
 }
 
 impl Default for EnvConfig {
@@ -108,6 +117,8 @@ impl Default for EnvConfig {
             shape: FormationShape::Random,
             proximity_range_m: 1.0,
             history: 1,
+            shape_changes: 0,
+            change_shapes: FormationShape::KINDS.to_vec(),
         }
     }
 }
@@ -213,6 +224,23 @@ impl EnvConfig {
         self.arena_m.max(needed)
     }
 
+    /// The time limit of an episode of `n_agents`, steps: `max_steps`, plus for each shape
+    /// change the ticks a robot needs to cross the widest formation of `change_shapes` at top
+    /// speed (2 reach / (v_max dt)), so that a large swarm can re-form and still reach the goal
+    /// (at N = 6 each change adds 101 ticks, at N = 32 323 with every shape allowed).
+    pub fn episode_steps(&self, n_agents: usize) -> u32 {
+        if self.shape_changes == 0 {
+            return self.max_steps;
+        }
+        let reach = self
+            .change_shapes
+            .iter()
+            .map(|&shape| EnvConfig { shape, ..self.clone() }.formation_reach_m(n_agents))
+            .fold(0.0, f64::max);
+        let per_change = (2.0 * reach / (self.v_max * self.dt_s)).ceil() as u32;
+        self.max_steps + self.shape_changes * per_change
+    }
+
     /// The farthest a robot of a formation of `n_agents` (of the configured shape) can start
     /// from its centroid.
     pub fn formation_reach_m(&self, n_agents: usize) -> f64 {
@@ -243,6 +271,9 @@ pub const HELD_OUT_SEED: u64 = 1000;
 pub fn extra_swarm_seed(seed: u64, k: usize) -> u64 {
     seed.wrapping_add(7919 * k as u64)
 }
+
+/// Most shape changes an episode may carry (`env.shape_changes`).
+pub const MAX_SHAPE_CHANGES: u32 = 8;
 
 /// From this many robots on, formations are compact rings (smaller swarms get freer shapes).
 pub const LARGE_SWARM: usize = 8;
@@ -609,6 +640,24 @@ impl EnvConfig {
             "env.history",
             e.history,
             "must be in 1..=64",
+        )?;
+        check(
+            e.shape_changes <= MAX_SHAPE_CHANGES,
+            "env.shape_changes",
+            e.shape_changes,
+            "must be in 0..=8",
+        )?;
+        check(
+            e.shape_changes == 0 || e.max_steps >= 69 + e.shape_changes,
+            "env.max_steps",
+            e.max_steps,
+            "must be >= 69 + shape_changes: changes start at distinct ticks in [20, max_steps - 50]",
+        )?;
+        check(
+            !e.change_shapes.is_empty() && !e.change_shapes.contains(&FormationShape::Mixed),
+            "env.change_shapes",
+            format!("{:?}", e.change_shapes.iter().map(|s| s.as_str()).collect::<Vec<_>>()),
+            "must name at least one shape, and not mixed",
         )?;
         Ok(())
     }

@@ -15,7 +15,7 @@
 //! floats whether a scene is read from the replay or from a `World`'s stream.
 
 use crate::config::{CriticArchitecture, ObservationModel};
-use formation_protocol::{NEIGHBOURS, neighbours};
+use formation_protocol::NEIGHBOURS;
 
 use crate::observation::Layout;
 use crate::physics::Pose;
@@ -73,7 +73,6 @@ impl CriticFeatures {
     }
 
     fn write_tokens(&self, out: &mut [f32], scene: &Scene, frame: f32) {
-        let n = self.n_agents;
         let c = centroid(scene.poses);
         let (s, co) = frame.sin_cos();
         let rotate = |dx: f32, dy: f32| [co * dx + s * dy, -s * dx + co * dy];
@@ -82,7 +81,7 @@ impl CriticFeatures {
         for (i, token) in out.chunks_exact_mut(self.token_dim()).enumerate() {
             let p = position(&scene.poses[i]);
             let (hs, hc) = (scene.poses[i].theta as f32 - frame).sin_cos();
-            let [a, b] = neighbours(i, n).map(|j| {
+            let [a, b] = scene.observed[i].map(|j| {
                 let q = position(&scene.poses[j]);
                 rotate(q[0] - p[0], q[1] - p[1])
             });
@@ -167,6 +166,7 @@ mod tests {
             poses: &POSES,
             commands: &COMMANDS,
             desired: &DESIRED,
+            observed: &[[1, 2], [2, 0], [0, 1]],
             slots: &SLOTS,
             goal: [1.0, 3.0],
         }

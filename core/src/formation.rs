@@ -1,5 +1,6 @@
 //! Episodes: robots start exactly in formation (a shape from [`crate::shapes`]) around a random
-//! centroid, with a random goal 1 to 2.5 m away, at a random size and orientation.
+//! centroid, with a random goal 1 to 2.5 m away, at a random size and orientation; with
+//! `env.shape_changes`, a schedule of new formations drawn from a stream of their own.
 
 use crate::config::EnvConfig;
 use formation_protocol::{NEIGHBOURS, neighbours};
@@ -21,6 +22,70 @@ pub struct EpisodeInit {
     /// Each robot's offset from the goal in the goal formation (the start shape translated to
     /// the goal, same orientation), world frame.
     pub slots: Vec<[f64; 2]>,
+    /// The episode's shape changes, by tick (none unless `env.shape_changes`).
+    pub changes: Vec<ShapeChange>,
+}
+
+/// A new formation for the rest of an episode, from tick `tick` on.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ShapeChange {
+    /// The tick whose observations carry the new formation.
+    pub tick: u32,
+    /// Slot s's offset from the goal, world frame (rotated, centred), in the shape's tour order:
+    /// the robot in slot s observes the robots in slots s+1 and s+2 (mod N).
+    pub offsets: Vec<[f64; 2]>,
+}
+
+/// Seed of the shape changes' own stream, mixed into the run's seed: drawing changes leaves
+/// the episodes' starts, goals and first shapes alone.
+const CHANGES_STREAM: u64 = 0xC4A9_6E5F_0A3E_5D21;
+/// Draws of a change's shape and orientation before it falls back to the first shape.
+const FIT_ATTEMPTS: usize = 64;
+/// Room kept between a changed formation's slots and the arena's walls, metres.
+const WALL_MARGIN_M: f64 = 0.3;
+
+/// The shape changes of an episode of `n` robots starting as `init`: `env.shape_changes`
+/// distinct ticks in [20, max_steps - 50], each with a shape drawn uniformly from
+/// `env.change_shapes` at a random size (the shape's own) and orientation. A draw whose slots
+/// around the goal leave the arena (a long line of a large swarm) is drawn again, up to 64
+/// times, and then the change keeps the episode's first shape (its slots at the goal).
+pub fn shape_changes<R: Rng>(n: usize, init: &EpisodeInit, env: &EnvConfig, rng: &mut R) -> Vec<ShapeChange> {
+    if env.shape_changes == 0 {
+        return Vec::new();
+    }
+    let arena = env.effective_arena_m(n);
+    let span = (env.max_steps - 50 - 20 + 1) as usize;
+    let mut ticks: Vec<u32> = rand::seq::index::sample(rng, span, env.shape_changes as usize)
+        .into_iter()
+        .map(|k| 20 + k as u32)
+        .collect();
+    ticks.sort_unstable();
+    let fits = |offsets: &[[f64; 2]]| {
+        offsets.iter().all(|o| {
+            [init.goal[0] + o[0], init.goal[1] + o[1]]
+                .iter()
+                .all(|v| (WALL_MARGIN_M..=arena - WALL_MARGIN_M).contains(v))
+        })
+    };
+    ticks
+        .into_iter()
+        .map(|tick| {
+            let drawn = (0..FIT_ATTEMPTS).find_map(|_| {
+                let kind = env.change_shapes[rng.random_range(0..env.change_shapes.len())];
+                let shape = draw_shape(kind, n, env, rng);
+                let (s, c) = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI).sin_cos();
+                let offsets: Vec<[f64; 2]> = shape
+                    .iter()
+                    .map(|p| [c * p[0] - s * p[1], s * p[0] + c * p[1]])
+                    .collect();
+                fits(&offsets).then_some(offsets)
+            });
+            ShapeChange {
+                tick,
+                offsets: drawn.unwrap_or_else(|| init.slots.clone()),
+            }
+        })
+        .collect()
 }
 
 /// A random episode: a shape of the configured kind, rotated to a common random heading, placed
@@ -75,19 +140,23 @@ pub fn random_episode<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> Episode
             desired,
             goal,
             slots,
+            changes: Vec::new(),
         };
     }
     unreachable!("the attempt counter is unbounded")
 }
 
 /// The episodes of a run, in order: episode k is the k-th [`random_episode`] drawn from one
-/// generator seeded with the run's seed. The sim plays these, and the critic's model selection
-/// plays the first K of its own seed, so both start every episode from the same function.
+/// generator seeded with the run's seed, with its [`shape_changes`] drawn from a second
+/// generator (seeded with the run's seed mixed with a constant). The sim plays these, and the
+/// critic's model selection plays the first K of its own seed, so both start every episode
+/// from the same function.
 #[derive(Debug, Clone)]
 pub struct Episodes {
     n: usize,
     env: EnvConfig,
     rng: StdRng,
+    changes_rng: StdRng,
 }
 
 impl Episodes {
@@ -97,6 +166,7 @@ impl Episodes {
             n,
             env: env.clone(),
             rng: StdRng::seed_from_u64(seed),
+            changes_rng: StdRng::seed_from_u64(seed ^ CHANGES_STREAM),
         }
     }
 }
@@ -106,7 +176,9 @@ impl Iterator for Episodes {
 
     /// Never `None`: a run may play as many episodes as it likes.
     fn next(&mut self) -> Option<EpisodeInit> {
-        Some(random_episode(self.n, &self.env, &mut self.rng))
+        let mut init = random_episode(self.n, &self.env, &mut self.rng);
+        init.changes = shape_changes(self.n, &init, &self.env, &mut self.changes_rng);
+        Some(init)
     }
 }
 
@@ -114,7 +186,8 @@ impl Iterator for Episodes {
 mod tests {
     use super::*;
     use crate::config::FormationShape;
-    use crate::shapes::{edge_ok, observed_edges, random_shape};
+    use crate::scene::index_neighbours;
+    use crate::shapes::{edge_ok, observed_edges, random_shape, shape_is_valid};
     use crate::task::{centroid, conditions};
 
     #[test]
@@ -146,7 +219,7 @@ mod tests {
                 for (pose, slot) in init.poses.iter().zip(&init.slots) {
                     assert!((pose.x - start[0] - slot[0]).hypot(pose.y - start[1] - slot[1]) < 1e-9);
                 }
-                let c = conditions(&init.poses, &init.desired, init.goal, &env);
+                let c = conditions(&init.poses, &init.desired, &index_neighbours(n), init.goal, &env);
                 assert!(c.in_formation && !c.collision, "{:?} n={n}: {c:?}", env.shape);
                 for row in &init.desired {
                     for &d in row {
@@ -186,6 +259,53 @@ mod tests {
         assert_eq!(Episodes::new(3, &env, 11).take(4).collect::<Vec<_>>(), drawn);
         let other: Vec<EpisodeInit> = Episodes::new(3, &env, 12).take(4).collect();
         assert!(other.iter().all(|init| !drawn.contains(init)));
+    }
+
+    #[test]
+    fn shape_changes_leave_every_seeds_starts_goals_and_first_shapes_alone() {
+        for (n, shape) in [
+            (6, FormationShape::Random),
+            (16, FormationShape::Random),
+            (32, FormationShape::Mixed),
+        ] {
+            let plain = EnvConfig {
+                shape,
+                ..EnvConfig::default()
+            };
+            let changing = EnvConfig {
+                shape_changes: 2,
+                ..plain.clone()
+            };
+            let before: Vec<EpisodeInit> = Episodes::new(n, &plain, 1000).take(20).collect();
+            let after: Vec<EpisodeInit> = Episodes::new(n, &changing, 1000).take(20).collect();
+            for (k, (before, after)) in before.iter().zip(&after).enumerate() {
+                assert!(before.changes.is_empty());
+                let EpisodeInit { changes, .. } = after.clone();
+                assert_eq!(
+                    &EpisodeInit {
+                        changes: Vec::new(),
+                        ..after.clone()
+                    },
+                    before,
+                    "n = {n}, episode {k}"
+                );
+                assert_eq!(changes.len(), 2);
+                assert!(changes[0].tick < changes[1].tick);
+                let arena = plain.effective_arena_m(n);
+                for change in &changes {
+                    assert!((20..=plain.max_steps - 50).contains(&change.tick));
+                    let points: Vec<[f64; 2]> = change.offsets.clone();
+                    assert!(shape_is_valid(&points, &plain), "n = {n}: a valid formation");
+                    assert!(points.iter().all(|p| {
+                        [after.goal[0] + p[0], after.goal[1] + p[1]]
+                            .iter()
+                            .all(|v| (0.0..=arena).contains(v))
+                    }));
+                }
+            }
+            // The changes differ between episodes and seeds.
+            assert_ne!(after[0].changes, after[1].changes);
+        }
     }
 
     #[test]

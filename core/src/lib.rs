@@ -14,6 +14,8 @@
 //! * [`reality`]: sensor noise, lost messages, actuation delay, motor lag and dying
 //!   controllers between the truth and the robots (the `[reality]` section, off by default);
 //! * [`world`]: one episode's true state and the step that applies the robots' commands;
+//! * [`mission`]: the mission planner: an episode's shape changes, the optimal reassignment of
+//!   robots to the new slots, and when the swarm has re-formed;
 //! * [`features`]: the critic's view of a scene (poses relative to the centroid).
 
 pub mod baseline;
@@ -21,6 +23,7 @@ pub mod config;
 pub mod features;
 pub mod formation;
 pub mod layout;
+pub mod mission;
 pub mod observation;
 pub mod physics;
 pub mod reality;

@@ -18,7 +18,7 @@
 //! it and sends each robot its own.
 
 use crate::config::{EnvConfig, ObservationModel};
-use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS, neighbours};
+use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS};
 
 use crate::physics::Pose;
 use crate::scene::Scene;
@@ -211,7 +211,7 @@ impl Observer {
         out.fill(0.0);
         let me = &scene.poses[agent];
         let n = scene.poses.len();
-        let observed = neighbours(agent, n);
+        let observed = scene.observed[agent];
         for (k, &other) in observed.iter().enumerate() {
             let at = self.layout.neighbour(k);
             let rel = to_robot_frame(me, [scene.poses[other].x, scene.poses[other].y]);
@@ -268,6 +268,7 @@ impl Observer {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scene::index_neighbours;
 
     fn pose(x: f64, y: f64, theta: f64) -> Pose {
         Pose { x, y, theta }
@@ -324,6 +325,7 @@ mod tests {
             poses: &poses,
             commands: &[(0.0, 0.0); 3],
             desired: &desired,
+            observed: &index_neighbours(poses.len()),
             goal: [0.0, 2.0],
             slots: &slots,
         };
@@ -372,6 +374,7 @@ mod tests {
             poses: &poses,
             commands: &[(0.0, 0.0); 3],
             desired: &desired,
+            observed: &index_neighbours(poses.len()),
             goal: [2.0, 3.0],
             slots: &slots,
         };
@@ -400,6 +403,7 @@ mod tests {
             poses: &poses,
             commands: &[(0.0, 0.0); 5],
             desired: &desired,
+            observed: &index_neighbours(poses.len()),
             goal: [0.0, 0.0],
             slots: &slots,
         };

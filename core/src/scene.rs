@@ -14,7 +14,7 @@
 //! actions, next to the 64 bytes of each robot's observation), so HER runs the sim's own
 //! functions on them without a conversion or an allocation.
 
-use formation_protocol::NEIGHBOURS;
+use formation_protocol::{NEIGHBOURS, neighbours};
 
 use crate::physics::Pose;
 use crate::task::centroid;
@@ -29,10 +29,18 @@ pub struct Scene<'a> {
     pub commands: &'a [(f64, f64)],
     /// Desired length of each robot's two observed edges.
     pub desired: &'a [[f64; NEIGHBOURS]],
+    /// The robots each robot observes: those in the next two slots of the formation
+    /// ([`index_neighbours`] while robot i holds slot i, as every episode starts).
+    pub observed: &'a [[usize; NEIGHBOURS]],
     /// Goal of the centroid, world frame.
     pub goal: [f64; 2],
     /// Each robot's offset from the goal in the goal formation, world frame.
     pub slots: &'a [[f64; 2]],
+}
+
+/// The robots each of `n` robots observes when robot i holds slot i: (i+1) and (i+2) mod N.
+pub fn index_neighbours(n: usize) -> Vec<[usize; NEIGHBOURS]> {
+    (0..n).map(|i| neighbours(i, n)).collect()
 }
 
 impl Scene<'_> {

@@ -6,8 +6,8 @@
 //! actions goes there and HER recomputes it too.
 
 use crate::config::EnvConfig;
+use formation_protocol::NEIGHBOURS;
 use formation_protocol::wire::{OUTCOME_ABORTED, OUTCOME_COLLISION, OUTCOME_RUNNING, OUTCOME_SUCCESS, OUTCOME_TIMEOUT};
-use formation_protocol::{NEIGHBOURS, neighbours};
 
 use crate::physics::Pose;
 use crate::scene::Scene;
@@ -36,20 +36,32 @@ pub struct Conditions {
     pub goal_distance: f64,
 }
 
-/// Edge error of robot `agent`'s `k`-th observed edge.
-pub fn edge_error(agent: usize, k: usize, poses: &[Pose], desired: &[[f64; NEIGHBOURS]]) -> f64 {
-    let other = neighbours(agent, poses.len())[k];
+/// Edge error of robot `agent`'s `k`-th observed edge (to robot `observed[agent][k]`).
+pub fn edge_error(
+    agent: usize,
+    k: usize,
+    poses: &[Pose],
+    desired: &[[f64; NEIGHBOURS]],
+    observed: &[[usize; NEIGHBOURS]],
+) -> f64 {
+    let other = observed[agent][k];
     let d = (poses[agent].x - poses[other].x).hypot(poses[agent].y - poses[other].y);
     (d - desired[agent][k]).abs()
 }
 
-/// Evaluates C1, C2 and C3.
-pub fn conditions(poses: &[Pose], desired: &[[f64; NEIGHBOURS]], goal: [f64; 2], env: &EnvConfig) -> Conditions {
+/// Evaluates C1, C2 and C3; `observed` names each robot's two observed robots.
+pub fn conditions(
+    poses: &[Pose],
+    desired: &[[f64; NEIGHBOURS]],
+    observed: &[[usize; NEIGHBOURS]],
+    goal: [f64; 2],
+    env: &EnvConfig,
+) -> Conditions {
     let n = poses.len();
     let (mut sum, mut max) = (0.0f64, 0.0f64);
     for agent in 0..n {
         for k in 0..NEIGHBOURS {
-            let err = edge_error(agent, k, poses, desired);
+            let err = edge_error(agent, k, poses, desired, observed);
             sum += err;
             max = max.max(err);
         }
@@ -171,7 +183,7 @@ pub struct StepResult {
 /// Scores the transition into `scene`, the `steps`-th of its episode: C1-C3 at its poses, the
 /// reward and the outcome. The sim's step and HER's relabelling both call this.
 pub fn score(scene: &Scene, steps: u32, env: &EnvConfig) -> StepResult {
-    let conditions = conditions(scene.poses, scene.desired, scene.goal, env);
+    let conditions = conditions(scene.poses, scene.desired, scene.observed, scene.goal, env);
     let (reward, outcome) = reward(&conditions, steps, env);
     StepResult {
         reward,
@@ -183,6 +195,8 @@ pub fn score(scene: &Scene, steps: u32, env: &EnvConfig) -> StepResult {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scene::index_neighbours;
+    use formation_protocol::neighbours;
 
     fn triangle() -> (Vec<Pose>, Vec<[f64; 2]>) {
         let poses = vec![
@@ -216,26 +230,27 @@ mod tests {
     fn reward_table_and_priority() {
         let env = EnvConfig::default();
         let (poses, desired) = triangle();
+        let observed = index_neighbours(3);
         let c = centroid(&poses);
         // In formation at the goal: success.
-        let at_goal = conditions(&poses, &desired, c, &env);
+        let at_goal = conditions(&poses, &desired, &observed, c, &env);
         assert_eq!(reward(&at_goal, 5, &env), (env.r_goal, Outcome::Success));
         // In formation far from the goal: r_edge.
-        let far = conditions(&poses, &desired, [c[0] + 1.0, c[1]], &env);
+        let far = conditions(&poses, &desired, &observed, [c[0] + 1.0, c[1]], &env);
         assert_eq!(reward(&far, 5, &env), (env.r_edge, Outcome::Running));
         // Formation broken: penalty; at the time limit: timeout.
         let mut broken = poses.clone();
         broken[2].y += 0.5;
-        let off = conditions(&broken, &desired, [c[0] + 1.0, c[1]], &env);
+        let off = conditions(&broken, &desired, &observed, [c[0] + 1.0, c[1]], &env);
         assert_eq!(reward(&off, 5, &env), (env.r_penalty, Outcome::Running));
         assert_eq!(reward(&off, env.max_steps, &env), (env.r_penalty, Outcome::Timeout));
         // At the goal but out of formation is not success.
-        let off_goal = conditions(&broken, &desired, centroid(&broken), &env);
+        let off_goal = conditions(&broken, &desired, &observed, centroid(&broken), &env);
         assert_eq!(reward(&off_goal, 5, &env).1, Outcome::Running);
         // Collision beats everything, even at the goal and at the time limit.
         let mut crashed = poses.clone();
         crashed[1].x = 0.1;
-        let col = conditions(&crashed, &desired, centroid(&crashed), &env);
+        let col = conditions(&crashed, &desired, &observed, centroid(&crashed), &env);
         assert_eq!(reward(&col, env.max_steps, &env), (env.r_collision, Outcome::Collision));
         assert!(Outcome::Collision.is_terminal() && Outcome::Success.is_terminal() && !Outcome::Timeout.is_terminal());
         assert!(!Outcome::Aborted.is_terminal());

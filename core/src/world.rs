@@ -6,7 +6,7 @@ use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS};
 use crate::formation::EpisodeInit;
 use crate::observation::Observer;
 use crate::physics::{Pose, integrate};
-use crate::scene::Scene;
+use crate::scene::{Scene, index_neighbours};
 use crate::task::{Conditions, StepResult, conditions, score};
 
 /// The true state of an episode.
@@ -26,6 +26,11 @@ pub struct World {
     pub goal: [f64; 2],
     /// Each robot's offset from the goal in the goal formation, world frame.
     pub slots: Vec<[f64; 2]>,
+    /// Each robot's slot in the formation (robot i holds slot i until the mission planner
+    /// reassigns them, [`crate::mission`]).
+    pub slot_of: Vec<usize>,
+    /// The robots each robot observes: those in the next two slots.
+    pub observed: Vec<[usize; NEIGHBOURS]>,
     /// The run's observation model.
     pub observer: Observer,
     /// Steps taken in this episode.
@@ -33,18 +38,25 @@ pub struct World {
 }
 
 impl World {
-    /// A world at the start of `init`.
+    /// A world at the start of `init` (its shape changes are the mission planner's), with the
+    /// episode's time limit ([`EnvConfig::episode_steps`]) as `env.max_steps`.
     pub fn new(env: &EnvConfig, init: EpisodeInit) -> Self {
-        let arena_m = env.effective_arena_m(init.poses.len());
+        let n = init.poses.len();
+        let arena_m = env.effective_arena_m(n);
+        let mut env = env.clone();
+        env.max_steps = env.episode_steps(n);
         Self {
-            env: env.clone(),
+            observer: Observer::new(&env),
+            env,
             arena_m,
+            slot_of: (0..n).collect(),
+            observed: index_neighbours(n),
             commands: vec![(0.0, 0.0); init.poses.len()],
             poses: init.poses,
             desired: init.desired,
             goal: init.goal,
             slots: init.slots,
-            observer: Observer::new(env),
+
             steps: 0,
         }
     }
@@ -61,6 +73,7 @@ impl World {
             poses: &self.poses,
             commands: &self.commands,
             desired: &self.desired,
+            observed: &self.observed,
             goal: self.goal,
             slots: &self.slots,
         }
@@ -73,7 +86,7 @@ impl World {
 
     /// C1-C3 now.
     pub fn conditions(&self) -> Conditions {
-        conditions(&self.poses, &self.desired, self.goal, &self.env)
+        conditions(&self.poses, &self.desired, &self.observed, self.goal, &self.env)
     }
 
     /// Applies one (v, w) per robot (clamped to the limits, and kept in the scene),

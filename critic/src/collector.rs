@@ -12,12 +12,13 @@
 //! into it.
 
 use anyhow::{Context, Result};
+use formation_core::mission::observed_robots;
 use formation_core::physics::Pose;
 use formation_core::task::Outcome;
 use formation_ipc::services::{self, FileDescriptorBased, Sizing};
 use formation_protocol::NEIGHBOURS;
 use formation_protocol::wire::*;
-use formation_replay::buffer::{Episode, Tick};
+use formation_replay::buffer::{Episode, Formation, Tick};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
@@ -141,6 +142,13 @@ where
             .collect();
         let desired: Vec<[f64; NEIGHBOURS]> = state.desired[..n].iter().map(|d| d.map(f64::from)).collect();
         let slots: Vec<[f64; 2]> = state.slots[..n].iter().map(|s| s.map(f64::from)).collect();
+        let slot_of: Vec<usize> = state.slot[..n].iter().map(|&s| s as usize).collect();
+        let formation = Formation {
+            from_tick: state.header.tick as usize,
+            desired,
+            slots,
+            observed: observed_robots(&slot_of),
+        };
         let goal = state.goal.map(f64::from);
         let observations = state.observations[..n].to_vec();
         let tick = Tick {
@@ -156,9 +164,8 @@ where
             self.current = Some(EpisodeBuilder {
                 episode: Episode {
                     number: state.header.episode,
-                    desired,
                     goal,
-                    slots,
+                    formations: vec![formation],
                     ticks: vec![tick],
                     terminal: false,
                 },
@@ -179,6 +186,12 @@ where
             };
             builder.episode_return += f64::from(state.reward);
             builder.episode.ticks.push(tick);
+            // A shape change: the formation in force from this tick on.
+            let last = builder.episode.formation(formation.from_tick);
+            if last.desired != formation.desired || last.observed != formation.observed || last.slots != formation.slots
+            {
+                builder.episode.formations.push(formation);
+            }
             builder.last_tick = state.header.tick;
         }
         let outcome = match Outcome::try_from(state.outcome) {

@@ -35,6 +35,18 @@ pub struct Summary {
     pub formation_hold_rate: f64,
     /// Mean undiscounted episode return.
     pub mean_return: f64,
+    /// Shape changes applied over the episodes (`env.shape_changes`; the mission planner's
+    /// slot reassignments).
+    #[serde(default)]
+    pub reconfigurations: u64,
+    /// Changes after which the swarm re-formed within its episode: every observed edge within
+    /// `eps_form_m` for 5 consecutive ticks.
+    #[serde(default)]
+    pub reforms: u64,
+    /// Mean ticks from a change to the first of those 5 ticks, over the changes that re-formed
+    /// (`null` when none did).
+    #[serde(default)]
+    pub mean_reform_ticks: Option<f64>,
     /// Physics steps taken.
     pub env_steps: u64,
     /// Physics steps per wall-clock second of the stepping loop.
@@ -138,6 +150,11 @@ impl Summary {
             ("steps to goal", opt(self.mean_steps_to_goal, 1)),
             ("formation held (ticks)", format!("{:.3}", self.formation_hold_rate)),
             ("mean return", format!("{:.2}", self.mean_return)),
+            (
+                "shape changes / re-formed",
+                format!("{} / {}", self.reconfigurations, self.reforms),
+            ),
+            ("ticks to re-form", opt(self.mean_reform_ticks, 1)),
             ("env steps", self.env_steps.to_string()),
             ("env steps / s", format!("{:.0}", self.env_steps_per_s)),
             (

@@ -158,6 +158,7 @@ fn write_payloads(out: &mut String) {
             field!(StateMsg, desired, "f32[64][2]"),
             field!(StateMsg, slots, "f32[64][2]"),
             field!(StateMsg, goal, "f32[2]"),
+            field!(StateMsg, slot, "u32[64]"),
         ],
     );
     out.push_str(",\n");

@@ -7,7 +7,7 @@ use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 use crate::{ACTION_DIM, MAX_AGENTS, MAX_DELAY_TICKS, MAX_OBS_DIM, NEIGHBOURS};
 
 /// Bumped whenever a payload's layout or meaning changes.
-pub const PROTOCOL_VERSION: u32 = 3;
+pub const PROTOCOL_VERSION: u32 = 4;
 
 /// `Header::flags`: first tick of an episode (agents reset their history).
 pub const FLAG_EPISODE_START: u32 = 1;
@@ -141,12 +141,17 @@ pub struct StateMsg {
     /// What each robot was told at this tick (its observation after the sensor noise, as
     /// published on its `obs/i` stream; entries past the observation model's size are zero).
     pub observations: [[f32; MAX_OBS_DIM]; MAX_AGENTS],
-    /// Desired distance of each robot's two observed edges.
+    /// Desired distance of each robot's two observed edges (to the robots in the next two
+    /// slots), at this tick: a shape change rewrites them.
     pub desired: [[f32; NEIGHBOURS]; MAX_AGENTS],
-    /// Each robot's offset from the goal in the goal formation, world frame.
+    /// Each robot's offset from the goal in the formation in force, world frame.
     pub slots: [[f32; 2]; MAX_AGENTS],
     /// Goal of the formation's centroid, world frame.
     pub goal: [f32; 2],
+    /// The slot map: robot i holds slot `slot[i]` of the formation in force (i until the
+    /// mission planner reassigns the slots at a shape change); robot i observes the robots in
+    /// slots `slot[i] + 1` and `slot[i] + 2` mod N.
+    pub slot: [u32; MAX_AGENTS],
 }
 
 impl Default for StateMsg {
@@ -168,6 +173,7 @@ impl Default for StateMsg {
             desired: [[0.0; NEIGHBOURS]; MAX_AGENTS],
             slots: [[0.0; 2]; MAX_AGENTS],
             goal: [0.0; 2],
+            slot: [0; MAX_AGENTS],
         }
     }
 }

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Dict, Optional, Tuple
 
 #: Bumped whenever a payload's layout or meaning changes (``wire::PROTOCOL_VERSION``).
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 
 #: ``Header.flags``: first tick of an episode (robots reset their history).
 FLAG_EPISODE_START = 1
@@ -141,6 +141,7 @@ class State(ctypes.Structure):
         ("desired", (ctypes.c_float * NEIGHBOURS) * MAX_AGENTS),
         ("slots", (ctypes.c_float * 2) * MAX_AGENTS),
         ("goal", ctypes.c_float * 2),
+        ("slot", ctypes.c_uint32 * MAX_AGENTS),
     ]
 
     @staticmethod

@@ -27,17 +27,29 @@ pub struct Tick {
     pub reward: f32,
 }
 
+/// A formation in force from a tick of an episode on: the first from tick 0, then one per
+/// shape change (the mission planner's, `env.shape_changes`). Stored per change, not per tick.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Formation {
+    /// The first tick it is in force.
+    pub from_tick: usize,
+    /// Desired length of each robot's observed edges.
+    pub desired: Vec<[f64; NEIGHBOURS]>,
+    /// Each robot's offset from the goal in the formation, world frame.
+    pub slots: Vec<[f64; 2]>,
+    /// The robots each robot observes (those in the next two slots).
+    pub observed: Vec<[usize; NEIGHBOURS]>,
+}
+
 /// A finished episode.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Episode {
     /// Episode number in the run.
     pub number: u32,
-    /// Desired length of each robot's observed edges.
-    pub desired: Vec<[f64; NEIGHBOURS]>,
     /// Goal of the centroid, world frame.
     pub goal: [f64; 2],
-    /// Each robot's offset from the goal in the goal formation, world frame.
-    pub slots: Vec<[f64; 2]>,
+    /// The formations in force, by `from_tick` (the first from tick 0).
+    pub formations: Vec<Formation>,
     /// Ticks 0..=T; the transitions are t -> t+1 for t < T.
     pub ticks: Vec<Tick>,
     /// The last tick is terminal (success or collision): no bootstrapping from it.
@@ -47,18 +59,27 @@ pub struct Episode {
 impl Episode {
     /// Robots in the episode.
     pub fn n_agents(&self) -> usize {
-        self.desired.len()
+        self.ticks.first().map_or(0, |tick| tick.poses.len())
     }
 
-    /// Tick `t` as the sim's scene, with `goal` (the episode's own, or a relabelled one).
+    /// The formation in force at tick `t`.
+    pub fn formation(&self, t: usize) -> &Formation {
+        let at = self.formations.partition_point(|f| f.from_tick <= t).saturating_sub(1);
+        &self.formations[at]
+    }
+
+    /// Tick `t` as the sim's scene, with `goal` (the episode's own, or a relabelled one) and
+    /// the formation in force at `t`.
     pub fn scene(&self, t: usize, goal: [f64; 2]) -> Scene<'_> {
         let tick = &self.ticks[t];
+        let formation = self.formation(t);
         Scene {
             poses: &tick.poses,
             commands: &tick.commands,
-            desired: &self.desired,
+            desired: &formation.desired,
+            observed: &formation.observed,
             goal,
-            slots: &self.slots,
+            slots: &formation.slots,
         }
     }
 

@@ -5,7 +5,7 @@ use formation_core::physics::Pose;
 use formation_core::world::World;
 use formation_protocol::ACTION_DIM;
 
-use crate::buffer::{Episode, Tick};
+use crate::buffer::{Episode, Formation, Tick};
 
 /// A value as the state stream carries it (`f32`), widened back.
 fn wire(value: f64) -> f64 {
@@ -27,14 +27,26 @@ fn snapshot(world: &World, reward: f64) -> Tick {
     }
 }
 
+/// The world's formation as the state stream carries it, in force from `from_tick`.
+fn formation(world: &World, from_tick: usize) -> Formation {
+    Formation {
+        from_tick,
+        desired: world.desired.iter().map(|d| d.map(wire)).collect(),
+        slots: world.slots.iter().map(|s| s.map(wire)).collect(),
+        observed: world.observed.clone(),
+    }
+}
+
 /// Plays `world` for at most `max_steps` steps with the normalised actions `act` picks for
-/// every robot, and records the episode as number `number`.
+/// every robot, and records the episode as number `number` (one formation: the recorder plays
+/// no shape changes).
 pub fn record_episode(
     number: u32,
     mut world: World,
     max_steps: u32,
     mut act: impl FnMut(&World) -> Vec<[f32; ACTION_DIM]>,
 ) -> Episode {
+    let formations = vec![formation(&world, 0)];
     let mut ticks = vec![snapshot(&world, 0.0)];
     let mut terminal = false;
     for _ in 0..max_steps {
@@ -51,9 +63,8 @@ pub fn record_episode(
     }
     Episode {
         number,
-        desired: world.desired.iter().map(|d| d.map(wire)).collect(),
         goal: world.goal.map(wire),
-        slots: world.slots.iter().map(|s| s.map(wire)).collect(),
+        formations,
         ticks,
         terminal,
     }

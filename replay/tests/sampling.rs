@@ -179,7 +179,7 @@ fn her_relabelling_matches(env: &EnvConfig) {
                 let at = layout.goal();
                 assert!((got[at] - g[0]).abs() < 1e-4 && (got[at + 1] - g[1]).abs() < 1e-4);
                 if let Some(at) = layout.slot() {
-                    let slot = episode.slots[agent];
+                    let slot = episode.formation(tick).slots[agent];
                     let expected = in_frame([goal[0] + slot[0], goal[1] + slot[1]]);
                     assert!((got[at] - expected[0]).abs() < 1e-4 && (got[at + 1] - expected[1]).abs() < 1e-4);
                 }

@@ -24,6 +24,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use formation_core::config::RunConfig;
 use formation_core::formation::Episodes;
+use formation_core::mission::Mission;
 use formation_core::observation::Layout;
 use formation_core::reality::Reality;
 use formation_core::run_dir::write_atomically;
@@ -101,8 +102,11 @@ impl EpisodeTally {
         steps: u32,
         started: Instant,
         now: CommandCounters,
+        mission: &Mission,
     ) -> EpisodeRecord {
         let from = self.counters_at_start;
+        let reform_ticks = mission.reform_ticks();
+        let reform_ticks_sum: u64 = reform_ticks.iter().map(|&t| u64::from(t)).sum();
         EpisodeRecord {
             episode,
             outcome,
@@ -115,6 +119,10 @@ impl EpisodeTally {
             late_commands: now.late - from.late,
             lost_commands: now.lost_commands - from.lost_commands,
             lost_observations: now.lost_observations - from.lost_observations,
+            reconfigurations: mission.reconfigurations(),
+            reforms: reform_ticks.len() as u32,
+            mean_reform_ticks: (!reform_ticks.is_empty()).then(|| reform_ticks_sum as f64 / reform_ticks.len() as f64),
+            reform_ticks_sum,
             wall_s: started.elapsed().as_secs_f64(),
         }
     }
@@ -175,14 +183,15 @@ where
     let episodes = Episodes::new(options.n_agents, &options.config.env, options.seed);
     let budget = options.minutes.map(|m| Duration::from_secs_f64(m * 60.0));
     let mut stop = Stop::Budget;
-    for (episode, init) in (0u32..).zip(episodes) {
+    for (episode, mut init) in (0u32..).zip(episodes) {
         if options.episodes.is_some_and(|e| u64::from(episode) >= e)
             || budget.is_some_and(|b| sim.started.elapsed() >= b)
         {
             break;
         }
+        let mission = Mission::new(std::mem::take(&mut init.changes));
         let world = World::new(&options.config.env, init);
-        if let Some(stopped) = sim.play_episode(episode, world)? {
+        if let Some(stopped) = sim.play_episode(episode, world, mission)? {
             stop = stopped;
             break;
         }
@@ -267,8 +276,9 @@ where
         }
     }
 
-    /// Plays one episode tick by tick; `Some(Stop::Signal)` when a termination signal cut it.
-    fn play_episode(&mut self, episode: u32, mut world: World) -> Result<Option<Stop>> {
+    /// Plays one episode tick by tick, its mission planner changing the formation on schedule;
+    /// `Some(Stop::Signal)` when a termination signal cut it.
+    fn play_episode(&mut self, episode: u32, mut world: World, mut mission: Mission) -> Result<Option<Stop>> {
         let options = self.options;
         let log_world = self.tap.is_some()
             && (options.mode == Mode::Eval || episode.is_multiple_of(options.config.view.world_every_episodes));
@@ -315,8 +325,14 @@ where
             }
             self.publish_tick(&world, header, &transition, &tally, log_world, &reality)?;
             if ends {
-                self.log
-                    .push(tally.record(episode, outcome, world.steps, self.started, self.round.counters))?;
+                self.log.push(tally.record(
+                    episode,
+                    outcome,
+                    world.steps,
+                    self.started,
+                    self.round.counters,
+                    &mission,
+                ))?;
                 // The figure shows the first episode of an evaluation, or the latest noise-free
                 // episode of a training run.
                 if (options.mode == Mode::Eval && self.showcase.is_none()) || eval_episode {
@@ -339,13 +355,15 @@ where
                 self.applied[agent] = config.env.clamp_command(v, w);
                 self.acting[agent] = reality.actuate(agent, tick, (v, w), present);
             }
-            let result = world.step(&self.acting);
+            let result = mission.judge(world.step(&self.acting), world.steps, &world.env);
             self.env_steps += 1;
             reward = result.reward;
             tally.episode_return += result.reward;
             outcome = result.outcome;
             tally.last = result.conditions;
             tally.formation_ticks += u32::from(tally.last.in_formation);
+            // A shape change due at this tick reaches its observations, told next.
+            mission.after_step(&mut world, tally.last.in_formation, outcome == Outcome::Running);
             let tick_time = tick_started.elapsed();
             self.stepping_time += tick_time;
             let _ = self.histogram.record((tick_time.as_micros() as u64).max(1));
@@ -363,7 +381,7 @@ where
                     missed,
                 };
                 self.tell(&world, &mut reality, true);
-                self.close_on_signal(&world, header, transition, &tally, &reality)?;
+                self.close_on_signal(&world, header, transition, &tally, &reality, &mission)?;
                 return Ok(Some(Stop::Signal));
             }
         }
@@ -380,6 +398,7 @@ where
         mut transition: Transition,
         tally: &EpisodeTally,
         reality: &Reality,
+        mission: &Mission,
     ) -> Result<()> {
         if transition.outcome == Outcome::Running {
             transition.outcome = Outcome::Aborted;
@@ -401,6 +420,7 @@ where
             world.steps,
             self.started,
             self.round.counters,
+            mission,
         ))?;
         Ok(())
     }
@@ -444,7 +464,7 @@ where
         self.trace.edge_errors.extend(
             self.traced
                 .iter()
-                .map(|&(i, k, _)| edge_error(i, k, &world.poses, &world.desired)),
+                .map(|&(i, k, _)| edge_error(i, k, &world.poses, &world.desired, &world.observed)),
         );
         self.trace.mean_edge_error.push(tally.last.mean_edge_error);
         self.trace.goal_distance.push(tally.last.goal_distance);

@@ -228,6 +228,10 @@ mod tests {
                 late_commands: 0,
                 lost_commands: 0,
                 lost_observations: 0,
+                reconfigurations: 0,
+                reforms: 0,
+                mean_reform_ticks: None,
+                reform_ticks_sum: 0,
                 wall_s: f64::from(i),
             })
             .collect();

@@ -172,6 +172,7 @@ impl<S: Service> SimPorts<S> {
             msg.observation_lost |= u64::from(told.lost[agent]) << agent;
             msg.desired[agent] = world.desired[agent].map(|d| d as f32);
             msg.slots[agent] = world.slots[agent].map(|d| d as f32);
+            msg.slot[agent] = world.slot_of[agent] as u32;
         }
         msg.goal = world.goal.map(|g| g as f32);
         let copy = keep_copy.then_some(*msg);

@@ -34,6 +34,16 @@ pub struct EpisodeRecord {
     pub lost_commands: u64,
     /// Observations not delivered (`[reality]`'s `observation_loss`).
     pub lost_observations: u64,
+    /// Shape changes applied in the episode (the mission planner's slot reassignments).
+    pub reconfigurations: u32,
+    /// Changes after which the swarm re-formed (every observed edge within eps_form for 5
+    /// consecutive ticks, or held to a success).
+    pub reforms: u32,
+    /// Mean ticks from a change to re-forming, over the changes that re-formed (empty if none).
+    pub mean_reform_ticks: Option<f64>,
+    /// Sum of those ticks (not written: the run's mean weighs every change alike).
+    #[serde(skip)]
+    pub reform_ticks_sum: u64,
     /// Wall-clock seconds since the run started, at the episode's end.
     pub wall_s: f64,
 }
@@ -104,4 +114,8 @@ pub fn fill_episode_figures(summary: &mut Summary, records: &[EpisodeRecord]) {
         .collect();
     summary.mean_steps_to_goal =
         (!successes.is_empty()).then(|| successes.iter().sum::<f64>() / successes.len() as f64);
+    summary.reconfigurations = finished.iter().map(|r| u64::from(r.reconfigurations)).sum();
+    summary.reforms = finished.iter().map(|r| u64::from(r.reforms)).sum();
+    let reform_ticks: u64 = finished.iter().map(|r| r.reform_ticks_sum).sum();
+    summary.mean_reform_ticks = (summary.reforms > 0).then(|| reform_ticks as f64 / summary.reforms as f64);
 }

@@ -14,8 +14,8 @@ use std::thread::JoinHandle;
 
 use anyhow::{Context, Result};
 use formation_core::config::EnvConfig;
+use formation_core::mission::observed_robots;
 use formation_ipc::cli::ViewerMode;
-use formation_protocol::neighbours;
 use formation_protocol::wire::{FLAG_EPISODE_START, StateMsg};
 use rerun::RecordingStream;
 use rerun::blueprint::{Blueprint, Horizontal, Spatial2DView, TimeSeriesView, Vertical};
@@ -198,8 +198,10 @@ impl WorldView {
         let mut strips = Vec::with_capacity(2 * n);
         let mut edge_colours = Vec::with_capacity(2 * n);
         let (mut error_sum, mut error_max) = (0.0f32, 0.0f32);
+        let slot_of: Vec<usize> = state.slot[..n].iter().map(|&s| s as usize).collect();
+        let observed = observed_robots(&slot_of);
         for i in 0..n {
-            for (k, j) in neighbours(i, n).into_iter().enumerate() {
+            for (k, j) in observed[i].into_iter().enumerate() {
                 if n == 3 && j < i {
                     continue; // N = 3 observes every edge from both ends
                 }
