@@ -915,6 +915,27 @@ mod tests {
     }
 
     #[test]
+    fn shape_changes_are_off_by_default_and_lengthen_the_episode_with_the_swarm() {
+        let env = EnvConfig::default();
+        assert_eq!(env.shape_changes, 0);
+        assert_eq!(
+            env.episode_steps(32),
+            env.max_steps,
+            "no changes: the limit is max_steps"
+        );
+        let config = RunConfig::from_toml_str("[env]\nshape_changes = 2\nchange_shapes = [\"line\", \"ring\"]\n")
+            .expect("parses");
+        assert_eq!(config.env.change_shapes, [FormationShape::Line, FormationShape::Ring]);
+        assert_eq!(RunConfig::from_toml_str(&config.to_toml()).expect("round trip"), config);
+        let changing = EnvConfig {
+            shape_changes: 2,
+            ..EnvConfig::default()
+        };
+        let limits = [6, 16, 32].map(|n| changing.episode_steps(n));
+        assert_eq!(limits, [442, 516, 798], "the figures the README and RESULTS give");
+    }
+
+    #[test]
     fn overrides_keep_other_defaults() {
         let config = RunConfig::from_toml_str("[env]\ndt_s = 0.05\n").expect("parses");
         assert_eq!(config.env.dt_s, 0.05);
@@ -940,6 +961,10 @@ mod tests {
             ),
             ("[reality]\nposition_noise_m = -0.1\n", "reality.position_noise_m"),
             ("[baseline]\nk_turn = 0.0\n", "baseline.k_turn"),
+            ("[env]\nshape_changes = 9\n", "env.shape_changes"),
+            ("[env]\nshape_changes = 2\nmax_steps = 70\n", "env.max_steps"),
+            ("[env]\nchange_shapes = []\n", "env.change_shapes"),
+            ("[env]\nchange_shapes = [\"ring\", \"mixed\"]\n", "env.change_shapes"),
         ] {
             let err = RunConfig::from_toml_str(text).expect_err(text);
             assert!(err.to_string().contains(field), "{err} should name {field}");

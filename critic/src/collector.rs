@@ -296,6 +296,40 @@ mod tests {
     }
 
     #[test]
+    fn a_shape_change_in_the_state_stream_starts_a_new_formation_from_its_tick() {
+        let (_node, mut collector, mut sim, _env) = collector_and_sim("collchange");
+        // Ticks 0-2 in slots 0, 1, 2 with 1 m edges; from tick 2 robots 0 and 2 swap slots
+        // and the edges are 1.5 m.
+        for tick in 0..4u32 {
+            sim.sequence += 1;
+            let changed = tick >= 2;
+            let mut state = StateMsg {
+                header: Header::new(0, tick, 0),
+                n_agents: 3,
+                outcome: if tick == 3 { OUTCOME_SUCCESS } else { OUTCOME_RUNNING },
+                sequence: sim.sequence,
+                ..StateMsg::default()
+            };
+            for agent in 0..3 {
+                state.slot[agent] = if changed { [2, 1, 0][agent] } else { agent as u32 };
+                state.desired[agent] = [if changed { 1.5 } else { 1.0 }; NEIGHBOURS];
+            }
+            sim.state.send_copy(state).expect("state");
+        }
+        let finished = collector.drain().expect("drain");
+        let episode = &finished[0].episode;
+        assert_eq!(
+            episode.formations.iter().map(|f| f.from_tick).collect::<Vec<_>>(),
+            [0, 2]
+        );
+        assert_eq!(episode.scene(1, episode.goal).desired[0], [1.0; NEIGHBOURS]);
+        assert_eq!(episode.scene(1, episode.goal).observed[0], [1, 2]);
+        assert_eq!(episode.scene(3, episode.goal).desired[0], [1.5; NEIGHBOURS]);
+        // Robot 0 holds slot 2: it observes the robots in slots 0 and 1, robots 2 and 1.
+        assert_eq!(episode.scene(2, episode.goal).observed[0], [2, 1]);
+    }
+
+    #[test]
     fn state_t_plus_1_carries_the_commands_and_reward_of_tick_t() {
         let (_node, mut collector, mut sim, env) = collector_and_sim("collshift");
         sim.tick(0, 0, 0.0, 0.0, OUTCOME_RUNNING, None);

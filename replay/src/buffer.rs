@@ -143,3 +143,40 @@ impl ReplayBuffer {
         &self.episodes
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_tick_scene_has_the_formation_in_force_at_that_tick() {
+        let formation = |from_tick: usize, d: f64, observed: [usize; NEIGHBOURS]| Formation {
+            from_tick,
+            desired: vec![[d; NEIGHBOURS]; 3],
+            slots: vec![[d, 0.0]; 3],
+            observed: vec![observed; 3],
+        };
+        let tick = Tick {
+            poses: vec![Pose::from([0.0, 0.0, 0.0]); 3],
+            commands: vec![(0.0, 0.0); 3],
+            observations: vec![[0.0; MAX_OBS_DIM]; 3],
+            reward: 0.0,
+        };
+        let episode = Episode {
+            number: 0,
+            goal: [1.0, 2.0],
+            formations: vec![
+                formation(0, 1.0, [1, 2]),
+                formation(3, 1.5, [2, 1]),
+                formation(5, 2.0, [1, 2]),
+            ],
+            ticks: vec![tick; 8],
+            terminal: false,
+        };
+        let desired: Vec<f64> = (0..8).map(|t| episode.scene(t, episode.goal).desired[0][0]).collect();
+        assert_eq!(desired, [1.0, 1.0, 1.0, 1.5, 1.5, 2.0, 2.0, 2.0]);
+        assert_eq!(episode.scene(4, episode.goal).observed[0], [2, 1]);
+        assert_eq!(episode.scene(4, episode.goal).slots[0], [1.5, 0.0]);
+        assert_eq!(episode.n_agents(), 3);
+    }
+}
