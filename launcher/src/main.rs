@@ -134,6 +134,18 @@ pub struct LaunchArgs {
     /// the latest weights, a restarted critic resumes from the run's last checkpoint).
     #[arg(long, value_enum, default_value_t = Switch::On)]
     pub restart: Switch,
+    /// mcap: write the primary swarm's run as RUN_DIR/run.mcap (ROS 2 messages in CDR with their
+    /// schemas: each robot's odometry and applied command, the goal and target formation, reward
+    /// and outcome; in train mode only the evaluation episodes). See docs/ROS2.md.
+    #[arg(long, value_enum)]
+    pub record: Option<Record>,
+}
+
+/// What `--record` writes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Record {
+    /// RUN_DIR/run.mcap, by the `formation-mcap` member.
+    Mcap,
 }
 
 /// An on/off flag value.

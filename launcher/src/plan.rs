@@ -74,6 +74,8 @@ pub enum Member {
     },
     /// The ROS 2 side of the primary swarm's `--ros2` robots.
     Ros2,
+    /// With `--record mcap`: the recorder of the primary swarm's states (`run.mcap`).
+    Mcap,
     /// Remote robot `index` of the primary swarm, on its own host.
     RemoteRobot {
         /// The robot.
@@ -136,6 +138,8 @@ pub struct Plan {
     pub net_loss: f64,
     /// With `--ros2`: the topics' namespace, the domain id and the Zenoh endpoint.
     pub ros2: Ros2Link,
+    /// `--record mcap`: the primary swarm's run is written as `run.mcap`.
+    pub record_mcap: bool,
     /// The configuration every member reads (defaults, the file, the shape).
     pub config: RunConfig,
     /// The primary swarm first, then the extra swarms.
@@ -246,6 +250,7 @@ impl Plan {
             net_delay_ms: args.net_delay_ms,
             net_loss: args.net_loss,
             ros2: ros2_link,
+            record_mcap: args.record == Some(crate::Record::Mcap),
             config,
             swarms,
         })
@@ -268,11 +273,16 @@ impl Plan {
         &self.swarms[0]
     }
 
-    /// The process set, in the order it starts: the critic, the bridges and remote robots (if
+    /// The process set, in the order it starts: the MCAP recorder (if any: the launcher waits
+    /// for its state subscriber, so it sees the first tick), the critic, the bridges and remote robots (if
     /// any), each extra swarm's robots and sim, then the primary swarm's robots and last its
     /// sim (which starts the first tick).
     pub fn members(&self) -> Vec<Member> {
-        let mut members = vec![Member::Critic];
+        let mut members = Vec::new();
+        if self.record_mcap {
+            members.push(Member::Mcap);
+        }
+        members.push(Member::Critic);
         let remote = &self.primary().remote;
         if !remote.is_empty() {
             members.push(Member::Bridge { host: None });
@@ -307,6 +317,8 @@ impl Plan {
     pub fn restart_policy(&self, member: Member) -> Restart {
         match member {
             Member::Sim { swarm: 0 } => Restart::EndsTheRun,
+            // A restarted recorder would begin a new file without what was recorded.
+            Member::Mcap => Restart::Never,
             _ if !self.restart => Restart::Never,
             Member::Sim { .. } => Restart::Never,
             Member::Robot { .. } | Member::RemoteRobot { .. } | Member::Bridge { .. } | Member::Ros2 => {
@@ -324,6 +336,7 @@ impl Plan {
             Member::Robot { .. } | Member::RemoteRobot { .. } => "formation-agent",
             Member::Bridge { .. } => "formation-bridge",
             Member::Ros2 => "formation-ros2",
+            Member::Mcap => "formation-mcap",
         }
     }
 
@@ -337,6 +350,7 @@ impl Plan {
             Member::Bridge { host: Some(robot) } => self.host(robot).run_dir.join("logs/bridge.log"),
             Member::RemoteRobot { index } => self.host(index).run_dir.join(format!("logs/agent-{index}.log")),
             Member::Ros2 => self.primary().run_dir.join("logs/ros2.log"),
+            Member::Mcap => self.primary().run_dir.join("logs/mcap.log"),
         }
     }
 
@@ -354,6 +368,7 @@ impl Plan {
             Member::Bridge { host: Some(robot) } => format!("robot {robot}'s bridge"),
             Member::RemoteRobot { index } => format!("agent {index} (remote)"),
             Member::Ros2 => "the ROS 2 side".into(),
+            Member::Mcap => "the MCAP recorder".into(),
         }
     }
 
@@ -448,6 +463,11 @@ impl Plan {
                 args
             }
             Member::Bridge { host } => self.bridge_args(host),
+            Member::Mcap => {
+                let mut args = self.common_args(0);
+                args.extend(["--namespace".into(), self.ros2.namespace.clone().into()]);
+                args
+            }
             Member::Ros2 => {
                 let link = &self.ros2;
                 let mut args = self.common_args(0);
@@ -903,6 +923,35 @@ mod tests {
             .iter()
             .map(|a| a.to_string_lossy().into_owned())
             .collect()
+    }
+
+    #[test]
+    fn record_mcap_starts_the_recorder_first_never_restarted_with_the_ros2_namespace() {
+        let plain = plan(&["3", "--mode", "eval", "--scripted", "all", "--viewer", "off"]).expect("plan");
+        assert!(!plain.members().contains(&Member::Mcap));
+        let recorded = plan(&[
+            "3",
+            "--mode",
+            "eval",
+            "--scripted",
+            "all",
+            "--viewer",
+            "off",
+            "--record",
+            "mcap",
+            "--ros2-namespace",
+            "lab",
+        ])
+        .expect("plan");
+        let members = recorded.members();
+        assert_eq!(members[0], Member::Mcap, "started before anything else");
+        assert_eq!(members.iter().filter(|&&m| m == Member::Mcap).count(), 1);
+        assert_eq!(Plan::program(Member::Mcap), "formation-mcap");
+        assert_eq!(recorded.restart_policy(Member::Mcap), Restart::Never);
+        let args = text_of(&recorded, Member::Mcap);
+        assert!(args.windows(2).any(|w| w == ["--namespace", "lab"]), "{args:?}");
+        assert!(args.windows(2).any(|w| w == ["--mode", "eval"]), "{args:?}");
+        assert!(plan(&["3", "--record", "bag"]).is_err());
     }
 
     #[test]

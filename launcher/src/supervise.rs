@@ -60,6 +60,9 @@ struct Supervisor<'a> {
     tees: Vec<JoinHandle<()>>,
 }
 
+/// What `formation-mcap` prints once its state subscriber exists (its `READY_LINE`).
+const MCAP_READY_LINE: &str = "formation-mcap: ready";
+
 /// Runs the plan to its end; returns the launcher's exit code.
 pub fn launch(plan: &Plan) -> Result<u8> {
     let bin_dir = bin_dir()?;
@@ -240,6 +243,9 @@ impl Supervisor<'_> {
         if member == Member::Critic {
             // The critic's progress and its end-of-run table go to the terminal and its log.
             command.stdout(Stdio::piped()).stderr(Stdio::piped());
+        } else if member == Member::Mcap {
+            // Its first line says its state subscriber exists (read below).
+            command.stdout(Stdio::piped()).stderr(log.try_clone()?);
         } else {
             command.stdout(log.try_clone()?).stderr(log.try_clone()?);
         }
@@ -247,6 +253,24 @@ impl Supervisor<'_> {
         let mut child = command
             .spawn()
             .with_context(|| format!("cannot start {}", program.display()))?;
+        if let Some(stdout) = child.stdout.take_if(|_| member == Member::Mcap) {
+            // The recorder must see the first tick: nothing else starts before it is ready.
+            let mut stdout = BufReader::new(stdout);
+            let mut line = String::new();
+            stdout
+                .read_line(&mut line)
+                .context("reading the MCAP recorder's first line")?;
+            if line.trim() != MCAP_READY_LINE {
+                let _ = child.wait();
+                anyhow::bail!(
+                    "the MCAP recorder did not start: {}",
+                    tail(&plan.log_path(member), 3).trim()
+                );
+            }
+            let log = log.try_clone()?;
+            self.tees
+                .push(std::thread::spawn(move || tee_lines(stdout, std::io::sink(), log)));
+        }
         if let Some(stdout) = child.stdout.take() {
             let log = log.try_clone()?;
             self.tees

@@ -4,9 +4,6 @@
 //! program that writes the same bytes) drives the robot: odometry, observation and `/clock` out,
 //! `cmd_vel` in (docs/ROS2.md).
 
-mod side;
-mod wire;
-
 use std::process::ExitCode;
 use std::time::Duration;
 
@@ -18,7 +15,7 @@ use formation_ipc::services::Sizing;
 use iceoryx2::prelude::*;
 use zenoh::Wait;
 
-use crate::side::{Names, Options};
+use formation_ros2::side::{self, Names, Options};
 
 /// Plays robot slots of a swarm as ROS 2 topics over rmw_zenoh's wire format (started by the
 /// launcher for `--ros2`; by hand: docs/ROS2.md).
