@@ -22,8 +22,12 @@ use formation_protocol::NEIGHBOURS;
 use pathfinding::kuhn_munkres::kuhn_munkres_min;
 use pathfinding::matrix::Matrix;
 
-use crate::config::EnvConfig;
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+
+use crate::config::{EnvConfig, FormationShape};
 use crate::formation::ShapeChange;
+use crate::shapes::{draw_shape, shape_is_valid};
 use crate::task::{Outcome, StepResult};
 use crate::world::World;
 
@@ -78,6 +82,54 @@ pub fn set_formation(world: &mut World, offsets: &[[f64; 2]], slot_of: Vec<usize
     world.slot_of = slot_of;
 }
 
+/// A live formation's slot offsets: `kind` as [`draw_shape`] draws it for `world`'s robots from
+/// a generator seeded with `seed`, times `scale`, turned by `orientation` radians. Refused, saying why, when `kind` is
+/// `mixed`, `scale` is not a positive number, an observed edge leaves [edge_min, edge_max], two
+/// robots would be closer than the start margin, or a slot around the goal leaves the arena.
+pub fn live_formation(
+    world: &World,
+    kind: FormationShape,
+    scale: f64,
+    orientation: f64,
+    seed: u64,
+) -> Result<Vec<[f64; 2]>, String> {
+    if kind == FormationShape::Mixed {
+        return Err("mixed is not a shape (random, ring, line, wedge, grid)".into());
+    }
+    if !(scale.is_finite() && scale > 0.0) {
+        return Err(format!("scale {scale} is not a positive number"));
+    }
+    if !orientation.is_finite() {
+        return Err(format!("orientation {orientation} is not a number"));
+    }
+    let env = &world.env;
+    let (s, c) = orientation.sin_cos();
+    let mut rng = StdRng::seed_from_u64(seed);
+    let offsets: Vec<[f64; 2]> = draw_shape(kind, world.n_agents(), env, &mut rng)
+        .iter()
+        .map(|p| [scale * (c * p[0] - s * p[1]), scale * (s * p[0] + c * p[1])])
+        .collect();
+    if !shape_is_valid(&offsets, env) {
+        return Err(format!(
+            "scale {scale}: an edge leaves [{}, {}] m or two robots come too close",
+            env.edge_min_m, env.edge_max_m
+        ));
+    }
+    if !fits_arena(world, world.goal, &offsets) {
+        return Err(format!("scale {scale}: the formation leaves the arena"));
+    }
+    Ok(offsets)
+}
+
+/// True when every slot `offsets` gives around `goal` lies in `world`'s arena.
+pub fn fits_arena(world: &World, goal: [f64; 2], offsets: &[[f64; 2]]) -> bool {
+    offsets.iter().all(|o| {
+        [goal[0] + o[0], goal[1] + o[1]]
+            .iter()
+            .all(|v| (0.0..=world.arena_m).contains(v))
+    })
+}
+
 /// One episode's mission: its schedule of shape changes and the re-form counts.
 #[derive(Debug, Clone)]
 pub struct Mission {
@@ -130,20 +182,38 @@ impl Mission {
         let Some(change) = self.changes.get(self.next).filter(|c| c.tick == tick) else {
             return false;
         };
+        let offsets = change.offsets.clone();
+        self.next += 1;
+        self.reform(world, &offsets);
+        true
+    }
+
+    /// A live change (the control service): from the current tick on, the formation is
+    /// `offsets` (slot s's offset from the goal, in tour order) around the world's goal, the
+    /// robots assigned to its slots as at a scheduled change. Counts as a reconfiguration. The
+    /// schedule's later changes still come.
+    pub fn reform(&mut self, world: &mut World, offsets: &[[f64; 2]]) {
         let positions: Vec<[f64; 2]> = world.poses.iter().map(|p| [p.x, p.y]).collect();
-        let targets: Vec<[f64; 2]> = change
-            .offsets
+        let targets: Vec<[f64; 2]> = offsets
             .iter()
             .map(|o| [world.goal[0] + o[0], world.goal[1] + o[1]])
             .collect();
         let slot_of = assign(&positions, &targets);
-        let offsets = change.offsets.clone();
-        set_formation(world, &offsets, slot_of);
-        self.next += 1;
+        set_formation(world, offsets, slot_of);
         self.reconfigurations += 1;
-        self.pending = Some(tick);
+        self.pending = Some(world.steps);
         self.run = None;
-        true
+    }
+
+    /// A live move of the goal to `goal`: the formation in force around the new goal, the
+    /// robots assigned to its slots again (a reconfiguration, as [`Mission::reform`]).
+    pub fn move_goal(&mut self, world: &mut World, goal: [f64; 2]) {
+        let mut offsets = vec![[0.0; 2]; world.n_agents()];
+        for (robot, &slot) in world.slot_of.iter().enumerate() {
+            offsets[slot] = world.slots[robot];
+        }
+        world.goal = goal;
+        self.reform(world, &offsets);
     }
 
     /// The step's result under the mission: a success (C3) before the last change is not the
@@ -293,6 +363,48 @@ mod tests {
             // Standing still, the swarm is in the new formation at once.
             assert!(world.conditions().in_formation, "{kind:?}");
         }
+    }
+
+    #[test]
+    fn a_live_formation_is_assigned_like_a_scheduled_one_and_bad_ones_are_refused() {
+        let env = EnvConfig::default();
+        let mut rng = StdRng::seed_from_u64(12);
+        let ring = draw_shape(FormationShape::Ring, 6, &env, &mut rng);
+        let mut world = world_on(&ring);
+        let why = |r: Result<Vec<[f64; 2]>, String>| r.err().unwrap_or_default();
+        assert!(why(live_formation(&world, FormationShape::Mixed, 1.0, 0.0, 1)).contains("mixed"));
+        assert!(why(live_formation(&world, FormationShape::Line, 0.0, 0.0, 1)).contains("positive"));
+        assert!(why(live_formation(&world, FormationShape::Line, 20.0, 0.0, 1)).contains("edge"));
+        // The same seed draws the same formation; a half turn negates every offset.
+        let line = live_formation(&world, FormationShape::Line, 1.0, 0.0, 7).unwrap_or_default();
+        let turned = live_formation(&world, FormationShape::Line, 1.0, std::f64::consts::PI, 7).unwrap_or_default();
+        assert_eq!(line.len(), 6);
+        for (a, b) in line.iter().zip(&turned) {
+            assert!((a[0] + b[0]).abs() < 1e-9 && (a[1] + b[1]).abs() < 1e-9);
+        }
+        let mut mission = Mission::new(Vec::new());
+        mission.reform(&mut world, &line);
+        let positions: Vec<[f64; 2]> = world.poses.iter().map(|p| [p.x - 5.0, p.y - 5.0]).collect();
+        assert_eq!(
+            world.slot_of,
+            assign(&positions, &line),
+            "the mission planner's assignment"
+        );
+        for robot in 0..6 {
+            assert_eq!(world.slots[robot], line[world.slot_of[robot]]);
+        }
+        assert_eq!(mission.reconfigurations(), 1);
+        // A new goal keeps the formation, its slots reassigned around the goal.
+        let offsets_before: Vec<[f64; 2]> = world.slots.clone();
+        mission.move_goal(&mut world, [6.0, 5.0]);
+        assert_eq!(world.goal, [6.0, 5.0]);
+        let mut before = offsets_before.clone();
+        let mut after = world.slots.clone();
+        before.sort_by(|a, b| a.partial_cmp(b).unwrap_or(std::cmp::Ordering::Equal));
+        after.sort_by(|a, b| a.partial_cmp(b).unwrap_or(std::cmp::Ordering::Equal));
+        assert_eq!(before, after, "the same formation");
+        assert_eq!(mission.reconfigurations(), 2);
+        assert!(!fits_arena(&world, [-3.0, 5.0], &world.slots));
     }
 
     #[test]

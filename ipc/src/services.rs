@@ -13,14 +13,17 @@ use iceoryx2::prelude::*;
 use iceoryx2::service::attribute::{AttributeKey, AttributeValue, AttributeVerifier};
 use iceoryx2::service::builder::event::{EventOpenError, EventOpenOrCreateError};
 use iceoryx2::service::builder::publish_subscribe::{PublishSubscribeOpenError, PublishSubscribeOpenOrCreateError};
-use iceoryx2::service::port_factory::{event, publish_subscribe};
+use iceoryx2::service::builder::request_response::{RequestResponseOpenError, RequestResponseOpenOrCreateError};
+use iceoryx2::service::port_factory::{event, publish_subscribe, request_response};
 
 /// What [`wait_for_events`] needs of a listener: a socket to poll (every iceoryx2 service type
 /// has one). Generic code over the service type names it in a `where` clause.
 pub use iceoryx2_bb_posix::file_descriptor::FileDescriptorBased;
 
 use formation_protocol::MAX_AGENTS;
-use formation_protocol::wire::{CommandMsg, CriticProgressMsg, ObservationMsg, StateMsg, WeightsHeader};
+use formation_protocol::wire::{
+    CommandMsg, ControlReply, ControlRequest, CriticProgressMsg, ObservationMsg, StateMsg, WeightsHeader,
+};
 
 pub use formation_protocol::SPARE_PORTS;
 
@@ -340,6 +343,16 @@ pub fn weights_service_name(actor_index: usize) -> String {
     format!("formation/actor/{actor_index}/weights")
 }
 
+/// Name of the live control service (request-response: [`ControlRequest`] -> [`ControlReply`]).
+pub fn control_service_name() -> String {
+    "formation/control".into()
+}
+
+/// Name of the event the sim raises after a tick on which it answered control requests.
+pub fn control_answered_event_name() -> String {
+    "formation/control/answered".into()
+}
+
 /// Sizes of the run's services, derived from the swarm size, and the contract every service
 /// carries as iceoryx2 attributes.
 #[derive(Debug, Clone, Copy)]
@@ -411,6 +424,8 @@ pub type Stream<S, T> = publish_subscribe::PortFactory<S, T, ()>;
 pub type WeightsStream<S> = publish_subscribe::PortFactory<S, [f32], WeightsHeader>;
 /// Port factory of an event.
 pub type Event<S> = event::PortFactory<S>;
+/// Port factory of the live control service.
+pub type Control<S> = request_response::PortFactory<S, ControlRequest, (), ControlReply, ()>;
 
 /// How long opening a service waits for another process that is still creating it.
 const OPEN_PATIENCE: std::time::Duration = std::time::Duration::from_secs(10);
@@ -558,6 +573,42 @@ pub fn weights_stream<S: Service>(node: &Node<S>, sizing: &Sizing, actor_index: 
         publish_subscribe_in_creation,
     )
     .with_context(|| format!("cannot open weights service {name} ({})", sizing.mismatch_hint()))
+}
+
+/// The live control service: the sim is its one server; clients (at most [`SPARE_PORTS`])
+/// each keep a few requests in flight.
+pub fn control_service<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Control<S>> {
+    let name = control_service_name();
+    let service = service_name(&name)?;
+    let contract = sizing.contract()?;
+    open_patiently(
+        || {
+            node.service_builder(&service)
+                .request_response::<ControlRequest, ControlReply>()
+                .max_servers(1)
+                .max_clients(SPARE_PORTS)
+                .max_nodes(sizing.shared_nodes())
+                .max_active_requests_per_client(CONTROL_REQUESTS_IN_FLIGHT)
+                .max_response_buffer_size(CONTROL_REQUESTS_IN_FLIGHT)
+                .open_or_create_with_attributes(&contract)
+        },
+        |err| {
+            matches!(
+                err,
+                RequestResponseOpenOrCreateError::RequestResponseOpenError(RequestResponseOpenError::HangsInCreation)
+                    | RequestResponseOpenOrCreateError::SystemInFlux
+            )
+        },
+    )
+    .with_context(|| format!("cannot open service {name} ({})", sizing.mismatch_hint()))
+}
+
+/// Requests one control client may have waiting for their replies.
+pub const CONTROL_REQUESTS_IN_FLIGHT: usize = 4;
+
+/// Raised by the sim after a tick on which it answered control requests.
+pub fn control_answered_event<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Event<S>> {
+    event_service(node, &control_answered_event_name(), sizing, 1)
 }
 
 /// Blocks until `listener` is notified or `timeout` passes. A signal arriving meanwhile counts

@@ -184,6 +184,31 @@ fn write_payloads(out: &mut String) {
             field!(WeightsHeader, len, "u32"),
         ],
     );
+    out.push_str(",\n");
+    payload::<ControlRequest>(
+        out,
+        "ControlRequest",
+        &[
+            field!(ControlRequest, protocol_version, "u32"),
+            field!(ControlRequest, kind, "u32"),
+            field!(ControlRequest, shape, "u8[16]"),
+            field!(ControlRequest, scale, "f32"),
+            field!(ControlRequest, orientation, "f32"),
+            field!(ControlRequest, goal, "f32[2]"),
+        ],
+    );
+    out.push_str(",\n");
+    payload::<ControlReply>(
+        out,
+        "ControlReply",
+        &[
+            field!(ControlReply, protocol_version, "u32"),
+            field!(ControlReply, status, "u32"),
+            field!(ControlReply, episode, "u32"),
+            field!(ControlReply, tick, "u32"),
+            field!(ControlReply, message, "u8[120]"),
+        ],
+    );
 }
 
 #[cfg(test)]

@@ -211,3 +211,71 @@ pub struct WeightsHeader {
     /// Number of f32 values that follow.
     pub len: u32,
 }
+
+/// `ControlRequest::kind`: give the swarm a new formation (`shape`, `scale`, `orientation`).
+pub const CONTROL_SET_FORMATION: u32 = 1;
+/// `ControlRequest::kind`: move the goal to `goal`.
+pub const CONTROL_SET_GOAL: u32 = 2;
+/// `ControlReply::status`: the change is in force from `ControlReply::tick`.
+pub const CONTROL_OK: u32 = 0;
+/// `ControlReply::status`: the request was refused; `ControlReply::message` says why.
+pub const CONTROL_REFUSED: u32 = 1;
+/// Bytes of `ControlRequest::shape` (a shape's name, NUL-padded UTF-8).
+pub const CONTROL_SHAPE_BYTES: usize = 16;
+/// Bytes of `ControlReply::message` (NUL-padded UTF-8).
+pub const CONTROL_MESSAGE_BYTES: usize = 120;
+
+/// client -> sim (request-response `formation/control`): a live change to the current episode.
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("formation::ControlRequest")]
+pub struct ControlRequest {
+    /// [`PROTOCOL_VERSION`] of the client.
+    pub protocol_version: u32,
+    /// `CONTROL_SET_*`.
+    pub kind: u32,
+    /// The new formation's shape name (`random`, `ring`, `line`, `wedge`, `grid`), NUL-padded.
+    pub shape: [u8; CONTROL_SHAPE_BYTES],
+    /// The new formation's size as a multiple of the shape as drawn.
+    pub scale: f32,
+    /// The new formation's rotation, radians counter-clockwise in the world frame.
+    pub orientation: f32,
+    /// The new goal, world frame, metres.
+    pub goal: [f32; 2],
+}
+
+/// sim -> client: the answer to a [`ControlRequest`], sent at the tick the sim read it.
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("formation::ControlReply")]
+pub struct ControlReply {
+    /// [`PROTOCOL_VERSION`] of the sim.
+    pub protocol_version: u32,
+    /// `CONTROL_OK` or `CONTROL_REFUSED`.
+    pub status: u32,
+    /// The episode the change applies to.
+    pub episode: u32,
+    /// The tick whose observations and state first carry the change.
+    pub tick: u32,
+    /// Why a request was refused (empty on success), NUL-padded UTF-8.
+    pub message: [u8; CONTROL_MESSAGE_BYTES],
+}
+
+impl ControlReply {
+    /// A reply of this build's protocol version; `message` is cut to fit.
+    pub fn new(status: u32, episode: u32, tick: u32, message: &str) -> Self {
+        let mut bytes = [0u8; CONTROL_MESSAGE_BYTES];
+        let mut len = message.len().min(CONTROL_MESSAGE_BYTES);
+        while !message.is_char_boundary(len) {
+            len -= 1;
+        }
+        bytes[..len].copy_from_slice(&message.as_bytes()[..len]);
+        Self {
+            protocol_version: PROTOCOL_VERSION,
+            status,
+            episode,
+            tick,
+            message: bytes,
+        }
+    }
+}

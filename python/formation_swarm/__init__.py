@@ -3,12 +3,14 @@
     import formation_swarm as fs
     fs.run_robot("runs/demo", 2, fs.Baseline())       # robot 2 of the run in runs/demo
     env = fs.FormationEnv(n=3, seed=1)                # a whole swarm as a PettingZoo ParallelEnv
+    fs.Control("runs/demo").set_formation("ring")     # a new formation, live
 
 Built on the ``iceoryx2`` PyPI bindings (same release as the Rust crate); the payload mirrors
 in ``formation_swarm.wire`` are checked against the Rust layout (``layout.json``).
 """
 
 from .baseline import Baseline
+from .control import Control, ControlAck, ControlRefused
 from .observer import Observer, WorldState
 from .robot import Robot, RobotStats, Tick, run_robot
 from .run import FormationError, RunInfo, SimGone, connect
@@ -30,6 +32,9 @@ from .wire import (
 __all__ = [
     "Baseline",
     "Command",
+    "Control",
+    "ControlAck",
+    "ControlRefused",
     "CriticProgress",
     "FLAG_EPISODE_END",
     "FLAG_EPISODE_START",

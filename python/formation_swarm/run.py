@@ -216,6 +216,21 @@ def critic_wake_event(node: Any, run: RunInfo) -> Any:
     return _event(node, run, "formation/critic/wake", 1)
 
 
+def control_service(node: Any, run: RunInfo) -> Any:
+    """``formation/control``: the sim's live control service (request-response; the sim
+    creates it, a client only opens it)."""
+    return (
+        node.service_builder(iox2.ServiceName.new("formation/control"))
+        .request_response(wire.ControlRequest, wire.ControlReply)
+        .open_with_attributes(run_contract(run))
+    )
+
+
+def control_answered_event(node: Any, run: RunInfo) -> Any:
+    """``formation/control/answered``: the sim raises it after a tick that answered requests."""
+    return _event(node, run, "formation/control/answered", 1)
+
+
 def take_wakeups(listener: Any) -> None:
     """Consumes a listener's pending events without waiting (after a ``WaitSet`` woke up)."""
     try:

@@ -183,6 +183,51 @@ class WeightsHeader(ctypes.Structure):
         return "formation::WeightsHeader"
 
 
+#: ``ControlRequest.kind``: a new formation (``shape``, ``scale``, ``orientation``).
+CONTROL_SET_FORMATION = 1
+#: ``ControlRequest.kind``: a new goal.
+CONTROL_SET_GOAL = 2
+#: ``ControlReply.status``: in force from ``ControlReply.tick``.
+CONTROL_OK = 0
+#: ``ControlReply.status``: refused; ``ControlReply.message`` says why.
+CONTROL_REFUSED = 1
+
+
+class ControlRequest(ctypes.Structure):
+    """client -> sim (request-response ``formation/control``): a live change to the episode."""
+
+    _fields_ = [
+        ("protocol_version", ctypes.c_uint32),
+        ("kind", ctypes.c_uint32),
+        ("shape", ctypes.c_uint8 * 16),
+        ("scale", ctypes.c_float),
+        ("orientation", ctypes.c_float),
+        ("goal", ctypes.c_float * 2),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        """The iceoryx2 type name."""
+        return "formation::ControlRequest"
+
+
+class ControlReply(ctypes.Structure):
+    """sim -> client: the answer to a ``ControlRequest``."""
+
+    _fields_ = [
+        ("protocol_version", ctypes.c_uint32),
+        ("status", ctypes.c_uint32),
+        ("episode", ctypes.c_uint32),
+        ("tick", ctypes.c_uint32),
+        ("message", ctypes.c_uint8 * 120),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        """The iceoryx2 type name."""
+        return "formation::ControlReply"
+
+
 #: Every mirror, by its Rust struct name (the ``rust`` key of ``layout.json``).
 PAYLOADS = {
     "Header": Header,
@@ -191,6 +236,8 @@ PAYLOADS = {
     "StateMsg": State,
     "CriticProgressMsg": CriticProgress,
     "WeightsHeader": WeightsHeader,
+    "ControlRequest": ControlRequest,
+    "ControlReply": ControlReply,
 }
 
 

@@ -17,7 +17,7 @@ from formation_swarm import wire
 
 LAYOUT = json.loads((Path(wire.__file__).parent / "layout.json").read_text())
 
-SCALARS = {"u32": ctypes.c_uint32, "u64": ctypes.c_uint64, "f32": ctypes.c_float}
+SCALARS = {"u8": ctypes.c_uint8, "u32": ctypes.c_uint32, "u64": ctypes.c_uint64, "f32": ctypes.c_float}
 
 
 def ctype_of(spelled: str):

@@ -44,6 +44,7 @@ use iceoryx2::port::listener::Listener;
 use iceoryx2::prelude::*;
 
 use crate::commands::{CommandCounters, CommandRound};
+use crate::control::ControlServer;
 use crate::critic_link::{CriticLink, check_protocol};
 use crate::plots::{EpisodeTrace, episode_errors, learning_curve};
 use crate::ports::{SimPorts, Told, Transition};
@@ -149,6 +150,7 @@ where
     );
     let mut sim = Lockstep {
         ports: SimPorts::open(&node, &sizing)?,
+        control: ControlServer::open(&node, &sizing)?,
         options,
         tap,
         log: EpisodeLog::create(&options.run_dir)?,
@@ -202,6 +204,8 @@ where
 /// The sim's state across ticks and episodes.
 struct Lockstep<'a, S: Service> {
     ports: SimPorts<S>,
+    /// The live control service, served once a tick.
+    control: ControlServer<S>,
     options: &'a SimOptions,
     tap: Option<StateTap>,
     log: EpisodeLog,
@@ -364,6 +368,10 @@ where
             tally.formation_ticks += u32::from(tally.last.in_formation);
             // A shape change due at this tick reaches its observations, told next.
             mission.after_step(&mut world, tally.last.in_formation, outcome == Outcome::Running);
+            // Live changes asked for meanwhile, too (never waiting for one).
+            if outcome == Outcome::Running {
+                self.control.serve(&mut world, &mut mission, options.seed, episode)?;
+            }
             let tick_time = tick_started.elapsed();
             self.stepping_time += tick_time;
             let _ = self.histogram.record((tick_time.as_micros() as u64).max(1));

@@ -1,0 +1,102 @@
+"""The live control service from Python: a scripted eval run started here (real processes,
+paced in real time so that the episode is still under way), the README's example run as it
+stands, then the states checked: the desired edges and the slot map change at the tick the
+acknowledgement names, the new formation is re-formed and held at the goal within the
+episode, and bad requests get a refusal while the run goes on."""
+
+import csv
+import math
+import re
+from pathlib import Path
+
+import pytest
+
+from formation_swarm import Control, ControlRefused, Observer, connect
+
+from conftest import REPO, assert_clean, launch
+
+WATCHDOG_S = 240
+N = 6
+
+
+def readme_example(run_dir: Path) -> str:
+    """The README's live-control example, pointed at ``run_dir``."""
+    text = (REPO / "README.md").read_text()
+    section = text.split("### Live control", 1)[1]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    assert 'fs.Control("runs/live")' in code
+    return code.replace('"runs/live"', repr(str(run_dir)))
+
+
+def consistent(state):
+    """Each robot's desired edges are the distances between its slot and the slots after it."""
+    slot = [state.raw.slot[r] for r in range(N)]
+    robot_in = {s: r for r, s in enumerate(slot)}
+    for r in range(N):
+        for k in range(2):
+            other = state.slots[robot_in[(slot[r] + k + 1) % N]]
+            want = math.dist(state.slots[r], other)
+            assert abs(state.desired[r][k] - want) < 1e-4, (r, k, state.desired[r][k], want)
+    return slot
+
+
+def test_a_formation_change_sent_from_python_is_obeyed(tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    config = tmp_path / "long.toml"
+    config.write_text("[env]\nmax_steps = 400  # room to re-form after the change\n")
+    swarm = launch([str(N), "--mode", "eval", "--scripted", "all", "--episodes", "1", "--seed", "5",
+                    "--realtime", "--viewer", "off", "--config", str(config)], run_dir)
+    try:
+        run = connect(run_dir, timeout=60)
+        observer = Observer(run)
+        world = []
+        while not world or world[-1].tick < 3:
+            got = observer.wait(30)
+            assert got, f"no state within 30 s:\n{swarm.output}"
+            world.extend(got)
+        namespace = {}
+        exec(compile(readme_example(run_dir), "README.md", "exec"), namespace)
+        ack = namespace["ack"]
+        printed = capsys.readouterr().out
+        assert f"a line from tick {ack.tick} of episode 0" in printed
+        assert 'refused: unknown shape "hexagon"' in printed
+        namespace["control"].close()
+
+        with Control(run) as control:
+            for bad, why in [(lambda: control.set_formation("ring", scale=20.0), "an edge leaves"),
+                             (lambda: control.set_formation("mixed"), "mixed is not a shape"),
+                             (lambda: control.set_formation("ring", scale=-1.0), "not a positive number"),
+                             (lambda: control.set_goal(-100.0, 3.0), "leaves the arena")]:
+                with pytest.raises(ControlRefused, match=why):
+                    bad()
+        world.extend(observer.states(timeout=60))
+        observer.close()
+        status = swarm.wait(WATCHDOG_S)
+    finally:
+        if swarm.proc.poll() is None:
+            swarm.wait(0)  # kills the launcher's group and removes the run's shared memory
+    assert status == 0, swarm.output
+
+    episode = [s for s in world if not s.run_end and s.episode == 0]
+    by_tick = {s.tick: s for s in episode}
+    assert ack.episode == 0 and ack.tick >= 4, ack
+    before, after = by_tick[ack.tick - 1], by_tick[ack.tick]
+    # Until the change every tick has the first formation; from its tick on a new one.
+    first = by_tick[0]
+    assert all(by_tick[t].desired == first.desired and by_tick[t].slots == first.slots for t in range(ack.tick))
+    assert after.desired != before.desired, "the desired edges changed at the acknowledged tick"
+    consistent(before)
+    slot_map = consistent(after)
+    assert sorted(slot_map) == list(range(N))
+    # The line: its slots' spread along its main axis is well over its width (two files).
+    xs = [p[0] for p in after.slots]
+    ys = [p[1] for p in after.slots]
+    assert max(xs) - min(xs) > 2.0 * (max(ys) - min(ys)), after.slots
+    # The refused requests changed nothing after it.
+    assert all(s.desired == after.desired for s in episode if s.tick >= ack.tick)
+    # Re-formed within the episode: it ends in success, holding the line at the goal.
+    assert episode[-1].outcome_name == "success", episode[-1]
+    rows = list(csv.DictReader((run_dir / "episodes.csv").open()))
+    assert rows[0]["outcome"] == "success"
+    assert int(rows[0]["reconfigurations"]) == 1 and int(rows[0]["reforms"]) == 1, rows[0]
+    assert_clean(swarm)
