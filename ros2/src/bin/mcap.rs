@@ -10,6 +10,7 @@ use anyhow::{Context, Result};
 use clap::Parser;
 use formation_core::observation::Layout;
 use formation_ipc::cli::RunArgs;
+use formation_ipc::placement::Role;
 use formation_ipc::services::Sizing;
 use formation_ros2::record::{self, Options, READY_LINE};
 use formation_ros2::side::Names;
@@ -38,6 +39,8 @@ fn main() -> ExitCode {
 
 fn try_main(cli: Cli) -> Result<()> {
     let (identity, config) = cli.run.load()?;
+    // Off the CPU of the sim's tick thread and the robots, as the critic.
+    cli.run.place(Role::Background)?;
     set_log_level_from_env_or(LogLevel::Warn);
     let options = Options {
         identity,
