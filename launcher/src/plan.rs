@@ -188,7 +188,7 @@ impl Plan {
         }
         let learned = n - scripted.len() - external.len() - ros2.len();
         let checkpoint = match (&args.checkpoint, args.mode) {
-            (None, Mode::Eval) if learned > 0 => Some(shipped_model()?),
+            (None, Mode::Eval) if learned > 0 => Some(shipped_model(&config.reality)?),
             (given, _) => given.clone(),
         };
         let run_dir = args.run_dir.clone().unwrap_or_else(default_run_dir);
@@ -778,9 +778,16 @@ fn free_local_port() -> Result<u16> {
     Ok(listener.local_addr()?.port())
 }
 
-/// The model shipped with the repository (one model for any N).
-fn shipped_model() -> Result<PathBuf> {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/formation.safetensors");
+/// The model shipped with the repository for the run's world (each one model for any N):
+/// `models/formation.safetensors` (trained in the ideal world) when `reality` is ideal,
+/// `models/formation-field.safetensors` (trained under randomised reality) otherwise.
+fn shipped_model(reality: &RealityConfig) -> Result<PathBuf> {
+    let name = if reality.is_ideal() {
+        "formation.safetensors"
+    } else {
+        "formation-field.safetensors"
+    };
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models").join(name);
     ensure!(
         path.is_file(),
         "eval with learned robots needs --checkpoint (no shipped model at {})",
@@ -845,6 +852,15 @@ mod tests {
     fn plan(args: &[&str]) -> Result<Plan> {
         let args = LaunchArgs::try_parse_from(std::iter::once("formation").chain(args.iter().copied()))?;
         Plan::new(args)
+    }
+
+    /// A file of the repository, as a path argument.
+    fn repo_path(relative: &str) -> String {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("..")
+            .join(relative)
+            .to_string_lossy()
+            .into_owned()
     }
 
     #[test]
@@ -1051,10 +1067,30 @@ mod tests {
 
     #[test]
     fn eval_with_learned_robots_defaults_to_the_shipped_model_and_checks_it_once() {
-        let plan = plan(&["5", "--mode", "eval", "--viewer", "off"]).expect("plan");
-        let model = plan.checkpoint.clone().expect("shipped model");
+        let ideal = plan(&["5", "--mode", "eval", "--viewer", "off"]).expect("plan");
+        let model = ideal.checkpoint.clone().expect("shipped model");
         assert!(model.ends_with("models/formation.safetensors"));
-        let checks = plan.preflight();
+        // Under a reality, the model trained under one.
+        let field = repo_path("configs/reality-field.toml");
+        let real = plan(&["5", "--mode", "eval", "--viewer", "off", "--reality", &field]).expect("plan");
+        let model = real.checkpoint.clone().expect("shipped model");
+        assert!(model.ends_with("models/formation-field.safetensors"), "{model:?}");
+        // A checkpoint given is used in any world.
+        let given = repo_path("models/formation.safetensors");
+        let chosen = plan(&[
+            "5",
+            "--mode",
+            "eval",
+            "--viewer",
+            "off",
+            "--reality",
+            &field,
+            "--checkpoint",
+            &given,
+        ])
+        .expect("plan");
+        assert_eq!(chosen.checkpoint.as_deref(), Some(Path::new(&given)));
+        let checks = ideal.preflight();
         assert_eq!(checks.len(), 1);
         let (program, args) = &checks[0];
         assert_eq!(*program, "formation-agent");

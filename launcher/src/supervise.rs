@@ -303,6 +303,9 @@ impl Supervisor<'_> {
             primary.run_dir.display(),
             primary.run_dir.display()
         );
+        if let (Mode::Eval, Some(model)) = (self.plan.mode, &self.plan.checkpoint) {
+            println!("learned robots drive with {}", model.display());
+        }
         if !primary.external.is_empty() {
             let list: Vec<String> = primary.external.iter().map(usize::to_string).collect();
             println!(
