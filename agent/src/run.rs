@@ -84,12 +84,7 @@ where
         let mut reply_to = None;
         while let Some(sample) = ports.receive_observation()? {
             let msg = sample.payload();
-            if msg.header.protocol_version != PROTOCOL_VERSION {
-                bail!(
-                    "agent {agent}: the sim speaks protocol {}, this agent {PROTOCOL_VERSION}: rebuild all binaries together",
-                    msg.header.protocol_version
-                );
-            }
+            services::check_sim_protocol(&msg.header, &format!("agent {agent}"), "agent")?;
             sim_watch.heard();
             if msg.header.has(FLAG_RUN_END) {
                 return Ok(stats);

@@ -114,12 +114,7 @@ where
         while let Some(sample) = self.state.receive().context("critic: state")? {
             let state = *sample.payload();
             drop(sample);
-            if state.header.protocol_version != PROTOCOL_VERSION {
-                anyhow::bail!(
-                    "critic: the sim speaks protocol {}, this critic {PROTOCOL_VERSION}: rebuild all binaries together",
-                    state.header.protocol_version
-                );
-            }
+            services::check_sim_protocol(&state.header, "critic", "critic")?;
             if state.header.has(FLAG_RUN_END) {
                 self.stats.run_ended = true;
                 break;

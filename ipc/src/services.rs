@@ -22,7 +22,8 @@ pub use iceoryx2_bb_posix::file_descriptor::FileDescriptorBased;
 
 use formation_protocol::MAX_AGENTS;
 use formation_protocol::wire::{
-    CommandMsg, ControlReply, ControlRequest, CriticProgressMsg, ObservationMsg, StateMsg, WeightsHeader,
+    CommandMsg, ControlReply, ControlRequest, CriticProgressMsg, Header, ObservationMsg, PROTOCOL_VERSION, StateMsg,
+    WeightsHeader,
 };
 
 pub use formation_protocol::SPARE_PORTS;
@@ -245,6 +246,18 @@ fn try_flock(file: &std::fs::File) -> Result<bool> {
         return Ok(false);
     }
     Err(err).context("flock")
+}
+
+/// Refuses a message from the sim of another protocol version: `receiver` names the process
+/// in the error (e.g. "agent 3"), `kind` what it is ("agent", "critic").
+pub fn check_sim_protocol(header: &Header, receiver: &str, kind: &str) -> Result<()> {
+    if header.protocol_version != PROTOCOL_VERSION {
+        bail!(
+            "{receiver}: the sim speaks protocol {}, this {kind} {PROTOCOL_VERSION}: rebuild all binaries together",
+            header.protocol_version
+        );
+    }
+    Ok(())
 }
 
 /// Removes the shared memory and root path of every run whose launcher is gone: its lock file

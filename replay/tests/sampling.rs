@@ -105,6 +105,18 @@ fn batch_obs_dim(env: &EnvConfig) -> usize {
     Observer::new(env).dim()
 }
 
+/// A sampler that relabels every sample, one-step, with windows of `history` ticks.
+fn relabelling_sampler(env: &EnvConfig, history: usize) -> Sampler {
+    Sampler {
+        history,
+        her_probability: 1.0,
+        n_step: 1,
+        gamma: 0.98,
+        env: env.clone(),
+        critic: CriticArchitecture::Mlp,
+    }
+}
+
 #[test]
 fn her_relabelling_equals_recomputation_from_true_states() {
     for observation in [ObservationModel::Paper, ObservationModel::SlotProximity] {
@@ -124,14 +136,7 @@ fn her_relabelling_matches(env: &EnvConfig) {
     let od = observer.dim();
     let episodes = recorded_episodes(&env, 10, n, 5);
     let buffer = buffer_of(&episodes);
-    let sampler = Sampler {
-        history: h,
-        her_probability: 1.0,
-        n_step: 1,
-        gamma: 0.98,
-        env: env.clone(),
-        critic: CriticArchitecture::Mlp,
-    };
+    let sampler = relabelling_sampler(&env, h);
     let mut rng = StdRng::seed_from_u64(6);
     let batch = sampler.sample(&buffer, 128, &mut rng).expect("batch");
     let mut saw_success = false;
@@ -225,14 +230,7 @@ fn her_relabelling_keeps_the_noise_the_robots_were_told() {
         }
     }
     let buffer = buffer_of(&episodes);
-    let sampler = Sampler {
-        history: h,
-        her_probability: 1.0,
-        n_step: 1,
-        gamma: 0.98,
-        env: env.clone(),
-        critic: CriticArchitecture::Mlp,
-    };
+    let sampler = relabelling_sampler(&env, h);
     let mut rng = StdRng::seed_from_u64(12);
     let batch = sampler.sample(&buffer, 64, &mut rng).expect("batch");
     let mut goal_noise = 0.0f64;

@@ -15,7 +15,7 @@ use formation_ipc::services::{self, RunIdentity, SimWatch, Sizing};
 use formation_ipc::termination_requested;
 use formation_protocol::wire::{
     FLAG_EPISODE_END, FLAG_EPISODE_START, FLAG_EVAL_EPISODE, FLAG_RUN_END, OUTCOME_ABORTED, OUTCOME_COLLISION,
-    OUTCOME_SUCCESS, OUTCOME_TIMEOUT, PROTOCOL_VERSION, StateMsg,
+    OUTCOME_SUCCESS, OUTCOME_TIMEOUT, StateMsg,
 };
 use iceoryx2::prelude::*;
 use serde::Serialize;
@@ -488,12 +488,7 @@ fn record(
         services::wait_for_event(wake, WAIT_SLICE)?;
         while let Some(sample) = states.receive().context("mcap: receive state")? {
             let state = sample.payload();
-            if state.header.protocol_version != PROTOCOL_VERSION {
-                bail!(
-                    "mcap: the sim speaks protocol {}, this recorder {PROTOCOL_VERSION}: rebuild all binaries together",
-                    state.header.protocol_version
-                );
-            }
+            services::check_sim_protocol(&state.header, "mcap", "recorder")?;
             sim_watch.heard();
             if state.header.has(FLAG_RUN_END) {
                 return Ok(());

@@ -15,7 +15,7 @@ use formation_core::run_dir::write_atomically;
 use formation_ipc::services::{self, RunIdentity, SimWatch, Sizing};
 use formation_ipc::termination_requested;
 use formation_protocol::wire::{
-    CommandMsg, FLAG_EPISODE_END, FLAG_HELLO, FLAG_RUN_END, Header, ObservationMsg, PROTOCOL_VERSION, StateMsg,
+    CommandMsg, FLAG_EPISODE_END, FLAG_HELLO, FLAG_RUN_END, Header, ObservationMsg, StateMsg,
 };
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::subscriber::Subscriber;
@@ -463,12 +463,7 @@ fn observations_out(options: &Options, session: &Session, graph: &mut Graph, sha
         for (slot, (robot, subscriber, _)) in inputs.iter().enumerate() {
             while let Some(sample) = subscriber.receive().context("ros2: receive observation")? {
                 let msg = sample.payload();
-                if msg.header.protocol_version != PROTOCOL_VERSION {
-                    bail!(
-                        "ros2: the sim speaks protocol {}, this side {PROTOCOL_VERSION}: rebuild all binaries together",
-                        msg.header.protocol_version
-                    );
-                }
+                services::check_sim_protocol(&msg.header, "ros2", "side")?;
                 sim_watch.heard();
                 shared.sim_heard.store(true, Ordering::Release);
                 if msg.header.has(FLAG_RUN_END) {
