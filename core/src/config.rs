@@ -566,6 +566,20 @@ impl RunConfig {
         )?;
         Ok(())
     }
+
+    /// Refuses a training run whose critic cannot learn its episodes: the `mlp` critic is sized
+    /// by N and reads robots by index, so episodes whose formation changes
+    /// (`env.shape_changes > 0`) need the `pooled` critic. The critic and the launcher call
+    /// this for train mode only (an evaluation trains no critic).
+    pub fn check_training_critic(&self) -> Result<(), ConfigError> {
+        check(
+            self.learn.critic == CriticArchitecture::Pooled || self.env.shape_changes == 0,
+            "learn.critic",
+            "\"mlp\"",
+            "must be \"pooled\" when env.shape_changes > 0: the mlp critic is sized by N and reads robots \
+             by index, and a changing formation or team needs the pooled critic ([learn] critic = \"pooled\")",
+        )
+    }
 }
 
 impl EnvConfig {
@@ -969,6 +983,21 @@ mod tests {
             let err = RunConfig::from_toml_str(text).expect_err(text);
             assert!(err.to_string().contains(field), "{err} should name {field}");
         }
+    }
+
+    #[test]
+    fn an_mlp_critic_is_refused_for_training_on_changing_formations_naming_both_fields() {
+        let changing = RunConfig::from_toml_str("[env]\nshape_changes = 1\n").expect("parses");
+        let err = changing.check_training_critic().expect_err("mlp with changes");
+        let message = err.to_string();
+        assert!(
+            message.contains("learn.critic") && message.contains("env.shape_changes") && message.contains("mlp"),
+            "{message}"
+        );
+        assert!(RunConfig::default().check_training_critic().is_ok());
+        let pooled =
+            RunConfig::from_toml_str("[env]\nshape_changes = 1\n\n[learn]\ncritic = \"pooled\"\n").expect("parses");
+        assert!(pooled.check_training_critic().is_ok());
     }
 
     #[test]

@@ -94,6 +94,7 @@ fn try_main(cli: Cli) -> Result<()> {
     }
     if cli.run.mode == Mode::Train {
         config.learn.check_training_seeds(cli.run.seed, cli.extra_swarm.len())?;
+        config.check_training_critic()?;
     }
     if cli.check {
         if let Some(path) = &resume {

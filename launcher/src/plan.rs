@@ -185,6 +185,7 @@ impl Plan {
         }
         if args.mode == Mode::Train {
             config.learn.check_training_seeds(args.seed, args.extra_swarms.len())?;
+            config.check_training_critic()?;
         }
         let learned = n - scripted.len() - external.len() - ros2.len();
         let checkpoint = match (&args.checkpoint, args.mode) {
@@ -931,6 +932,41 @@ mod tests {
         assert_eq!(after("--external").as_deref(), Some("2"));
         assert!(plan.checkpoint.is_none(), "no learned robot: no model needed");
         assert!(plan.preflight().is_empty());
+    }
+
+    #[test]
+    fn training_an_mlp_critic_on_changing_formations_is_refused_naming_both_fields() {
+        let dir = std::env::temp_dir().join(format!("formation-plan-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temp dir");
+        let changing = dir.join("changing.toml");
+        std::fs::write(&changing, "[env]\nshape_changes = 2\n").expect("config");
+        let config = changing.to_string_lossy().into_owned();
+        let err = plan(&["6", "--config", &config, "--viewer", "off"]).expect_err("mlp with changes");
+        let message = format!("{err:#}");
+        assert!(
+            message.contains("learn.critic") && message.contains("env.shape_changes"),
+            "{message}"
+        );
+        // An evaluation trains no critic; a pooled critic learns changing formations.
+        assert!(
+            plan(&[
+                "6",
+                "--mode",
+                "eval",
+                "--scripted",
+                "all",
+                "--config",
+                &config,
+                "--viewer",
+                "off"
+            ])
+            .is_ok()
+        );
+        let pooled = dir.join("pooled.toml");
+        std::fs::write(&pooled, "[env]\nshape_changes = 2\n\n[learn]\ncritic = \"pooled\"\n").expect("config");
+        let pooled = pooled.to_string_lossy().into_owned();
+        assert!(plan(&["6", "--config", &pooled, "--viewer", "off"]).is_ok());
+        std::fs::remove_dir_all(&dir).expect("clean up");
     }
 
     /// The flags `member` of `plan` starts with, as text.
