@@ -2,7 +2,7 @@
 //! centroid, with a random goal 1 to 2.5 m away, at a random size and orientation; with
 //! `env.shape_changes`, a schedule of new formations drawn from a stream of their own.
 
-use crate::config::EnvConfig;
+use crate::config::{EnvConfig, FormationShape};
 use formation_protocol::{NEIGHBOURS, neighbours};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -24,6 +24,20 @@ pub struct EpisodeInit {
     pub slots: Vec<[f64; 2]>,
     /// The episode's shape changes, by tick (none unless `env.shape_changes`).
     pub changes: Vec<ShapeChange>,
+    /// What the start formation is: its kind (`mixed` resolved), turn and size.
+    pub spec: FormationSpec,
+}
+
+/// What a formation is, beyond its slots: the mission planner draws the same formation again
+/// for fewer or more robots when the team changes ([`crate::mission`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FormationSpec {
+    /// Its shape (never `mixed`).
+    pub kind: FormationShape,
+    /// Its rotation from the shape as drawn, radians counter-clockwise.
+    pub orientation: f64,
+    /// Its size as a multiple of the shape as drawn.
+    pub scale: f64,
 }
 
 /// A new formation for the rest of an episode, from tick `tick` on.
@@ -34,6 +48,8 @@ pub struct ShapeChange {
     /// Slot s's offset from the goal, world frame (rotated, centred), in the shape's tour order:
     /// the robot in slot s observes the robots in slots s+1 and s+2 (mod N).
     pub offsets: Vec<[f64; 2]>,
+    /// What the new formation is.
+    pub spec: FormationSpec,
 }
 
 /// Seed of the shape changes' own stream, mixed into the run's seed: drawing changes leaves
@@ -73,17 +89,21 @@ pub fn shape_changes<R: Rng>(n: usize, init: &EpisodeInit, env: &EnvConfig, rng:
             let drawn = (0..FIT_ATTEMPTS).find_map(|_| {
                 let kind = env.change_shapes[rng.random_range(0..env.change_shapes.len())];
                 let shape = draw_shape(kind, n, env, rng);
-                let (s, c) = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI).sin_cos();
+                let orientation = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+                let (s, c) = orientation.sin_cos();
                 let offsets: Vec<[f64; 2]> = shape
                     .iter()
                     .map(|p| [c * p[0] - s * p[1], s * p[0] + c * p[1]])
                     .collect();
-                fits(&offsets).then_some(offsets)
+                let spec = FormationSpec {
+                    kind,
+                    orientation,
+                    scale: 1.0,
+                };
+                fits(&offsets).then_some((offsets, spec))
             });
-            ShapeChange {
-                tick,
-                offsets: drawn.unwrap_or_else(|| init.slots.clone()),
-            }
+            let (offsets, spec) = drawn.unwrap_or_else(|| (init.slots.clone(), init.spec));
+            ShapeChange { tick, offsets, spec }
         })
         .collect()
 }
@@ -92,7 +112,12 @@ pub fn shape_changes<R: Rng>(n: usize, init: &EpisodeInit, env: &EnvConfig, rng:
 /// at a random centroid, with each robot's heading jittered, and a goal in the arena.
 pub fn random_episode<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> EpisodeInit {
     let arena = env.effective_arena_m(n);
-    let shape = draw_shape(env.shape, n, env, rng);
+    // `mixed` drawn here, as `draw_shape` would, so the episode knows its kind.
+    let kind = match env.shape {
+        FormationShape::Mixed => FormationShape::KINDS[rng.random_range(0..FormationShape::KINDS.len())],
+        kind => kind,
+    };
+    let shape = draw_shape(kind, n, env, rng);
     let reach = shape.iter().map(|p| p[0].hypot(p[1])).fold(0.0, f64::max);
     // Never more than half the arena, so the ranges below are never empty.
     let margin = (reach + 0.5).min(0.5 * arena - 0.01);
@@ -141,6 +166,11 @@ pub fn random_episode<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> Episode
             goal,
             slots,
             changes: Vec::new(),
+            spec: FormationSpec {
+                kind,
+                orientation: heading,
+                scale: 1.0,
+            },
         };
     }
     unreachable!("the attempt counter is unbounded")
@@ -185,7 +215,6 @@ impl Iterator for Episodes {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::FormationShape;
     use crate::scene::index_neighbours;
     use crate::shapes::{edge_ok, observed_edges, random_shape, shape_is_valid};
     use crate::task::{centroid, conditions};

@@ -17,8 +17,26 @@
 //! [`REFORM_HOLD_TICKS`] consecutive ticks; the ticks to re-form are counted from the change to
 //! the first of them. An episode that ends in success before the run is complete (it holds the
 //! formation at the goal) counts as re-formed at the first tick of its last run.
+//!
+//! The team changes too: a robot leaves the formation ([`Mission::leave`]) when its controller
+//! fails, when the control service removes it, or after [`LEAVE_AFTER_SILENT_TICKS`] silent
+//! ticks in a row ([`Attendance`]), and comes back ([`Mission::rejoin`]) after
+//! [`RETURN_AFTER_ANSWERS`] answers in a row or when restored. At each the present robots are
+//! assigned again, by the same Kuhn-Munkres assignment, to *the same formation for the robots
+//! present* ([`Mission::formation_for`]): the formation in force at capacity (the launch N)
+//! when every robot is in; otherwise its kind (ring, line, wedge, grid, random) drawn again for
+//! M robots from the episode's own stream, with its orientation and scale. For `random` that is
+//! a new random polygon of M: a polygon minus a vertex is generally not one (the edge across
+//! the gap is the old second-neighbour edge and the new second-neighbour edge spans three old
+//! steps, often past `edge_max`), and a redraw is valid by construction, the same for whichever
+//! robot left. Where a robot out of the formation stands within `edge_min` of a slot, the
+//! formation is turned about the goal until none does ([`clear_of_robots_out`]): a stopped
+//! robot is an obstacle. A robot out holds no slot ([`NO_SLOT`]) and observes only itself;
+//! neighbours are the robots in the next two slots modulo the robots present. A team change
+//! counts as a reconfiguration, its re-forming is measured as a shape change's, and it extends
+//! the episode's time limit as a shape change does.
 
-use formation_protocol::NEIGHBOURS;
+use formation_protocol::{MIN_AGENTS, NEIGHBOURS};
 use pathfinding::kuhn_munkres::kuhn_munkres_min;
 use pathfinding::matrix::Matrix;
 
@@ -26,13 +44,26 @@ use rand::SeedableRng;
 use rand::rngs::StdRng;
 
 use crate::config::{EnvConfig, FormationShape};
-use crate::formation::ShapeChange;
+use crate::formation::{FormationSpec, ShapeChange};
 use crate::shapes::{draw_shape, shape_is_valid};
 use crate::task::{Outcome, StepResult};
 use crate::world::World;
 
 /// Consecutive ticks in formation that make a change re-formed.
 pub const REFORM_HOLD_TICKS: u32 = 5;
+/// The slot of a robot out of the formation.
+pub const NO_SLOT: usize = usize::MAX;
+/// Silent ticks in a row (no answer, losses of `[reality]` aside) after which a robot leaves
+/// the formation: a lossy or slow robot that misses a few does not.
+pub const LEAVE_AFTER_SILENT_TICKS: u32 = 10;
+/// Answers in a row after which a robot that left for silence comes back.
+pub const RETURN_AFTER_ANSWERS: u32 = 5;
+/// Mixed into the run's seed for the formations redrawn at team changes.
+const TEAM_STREAM: u64 = 0x7465_616D_5F63_6867;
+/// Turns tried, either way, to keep a formation's slots clear of the robots out of it.
+const CLEARANCE_STEP_RAD: f64 = std::f64::consts::PI / 18.0;
+/// Draws of the same formation for M robots before its scale is given up.
+const REDRAW_ATTEMPTS: usize = 16;
 /// Integer costs for Kuhn-Munkres: squared distances in mm² (1 m² = 10^6). The largest arena
 /// (64 robots) is under 40 m across, so a cost is under 2e9 and a sum of 64 under 2^63.
 const COST_PER_M2: f64 = 1e6;
@@ -55,31 +86,57 @@ pub fn assign(positions: &[[f64; 2]], targets: &[[f64; 2]]) -> Vec<usize> {
     kuhn_munkres_min(&costs).1
 }
 
-/// Each robot's observed robots under `slot_of` (robot r holds slot `slot_of[r]`): the robots
-/// in slots s+1 and s+2 mod N.
+/// Each robot's observed robots under `slot_of` (robot r holds slot `slot_of[r]`; a slot of N
+/// or more, such as [`NO_SLOT`], is a robot out of the formation): the robots in slots s+1 and
+/// s+2 mod M, M the robots present, who hold slots 0..M; a robot out observes itself.
 pub fn observed_robots(slot_of: &[usize]) -> Vec<[usize; NEIGHBOURS]> {
     let n = slot_of.len();
+    let m = slot_of.iter().filter(|&&s| s < n).count().max(1);
     let mut robot_in = vec![0; n];
     for (robot, &slot) in slot_of.iter().enumerate() {
-        robot_in[slot] = robot;
+        if slot < n {
+            robot_in[slot] = robot;
+        }
     }
     slot_of
         .iter()
-        .map(|&s| std::array::from_fn(|k| robot_in[(s + k + 1) % n]))
+        .enumerate()
+        .map(|(robot, &s)| {
+            if s < n {
+                std::array::from_fn(|k| robot_in[(s + k + 1) % m])
+            } else {
+                [robot; NEIGHBOURS]
+            }
+        })
         .collect()
 }
 
-/// Gives `world` the formation `offsets` (slot s's offset from the goal, in tour order) with
-/// robot r in slot `slot_of[r]`: its slot map, observed robots, desired edges and slot offsets.
+/// Gives `world` the formation `offsets` (slot s's offset from the goal, in tour order, one per
+/// robot present) with robot r in slot `slot_of[r]` ([`NO_SLOT`] for a robot out): its slot
+/// map, observed robots, desired edges and slot offsets (zero for a robot out).
 pub fn set_formation(world: &mut World, offsets: &[[f64; 2]], slot_of: Vec<usize>) {
-    let n = offsets.len();
+    let m = offsets.len();
     let distance = |a: [f64; 2], b: [f64; 2]| (a[0] - b[0]).hypot(a[1] - b[1]);
     for (robot, &slot) in slot_of.iter().enumerate() {
-        world.slots[robot] = offsets[slot];
-        world.desired[robot] = std::array::from_fn(|k| distance(offsets[slot], offsets[(slot + k + 1) % n]));
+        if slot < m {
+            world.slots[robot] = offsets[slot];
+            world.desired[robot] = std::array::from_fn(|k| distance(offsets[slot], offsets[(slot + k + 1) % m]));
+        } else {
+            world.slots[robot] = [0.0; 2];
+            world.desired[robot] = [0.0; NEIGHBOURS];
+        }
     }
     world.observed = observed_robots(&slot_of);
     world.slot_of = slot_of;
+}
+
+/// `shape`'s points turned and scaled as `spec` says.
+fn placed(shape: &[[f64; 2]], spec: &FormationSpec) -> Vec<[f64; 2]> {
+    let (s, c) = spec.orientation.sin_cos();
+    shape
+        .iter()
+        .map(|p| [spec.scale * (c * p[0] - s * p[1]), spec.scale * (s * p[0] + c * p[1])])
+        .collect()
 }
 
 /// A live formation's slot offsets: `kind` as [`draw_shape`] draws it for `world`'s robots from
@@ -103,12 +160,13 @@ pub fn live_formation(
         return Err(format!("orientation {orientation} is not a number"));
     }
     let env = &world.env;
-    let (s, c) = orientation.sin_cos();
     let mut rng = StdRng::seed_from_u64(seed);
-    let offsets: Vec<[f64; 2]> = draw_shape(kind, world.n_agents(), env, &mut rng)
-        .iter()
-        .map(|p| [scale * (c * p[0] - s * p[1]), scale * (s * p[0] + c * p[1])])
-        .collect();
+    let spec = FormationSpec {
+        kind,
+        orientation,
+        scale,
+    };
+    let offsets = placed(&draw_shape(kind, world.n_agents(), env, &mut rng), &spec);
     if !shape_is_valid(&offsets, env) {
         return Err(format!(
             "scale {scale}: an edge leaves [{}, {}] m or two robots come too close",
@@ -130,10 +188,159 @@ pub fn fits_arena(world: &World, goal: [f64; 2], offsets: &[[f64; 2]]) -> bool {
     })
 }
 
-/// One episode's mission: its schedule of shape changes and the re-form counts.
+/// Turns `offsets` about the goal, by the smallest multiple of [`CLEARANCE_STEP_RAD`] either
+/// way, until no slot lies within `edge_min_m` of a robot out of the formation (one that
+/// stopped is an obstacle: a robot sent to a slot beside it would be pushed off, or run into
+/// it), the slots staying in the arena; when no turn clears every slot, the turn with the most
+/// room. Unturned when nothing is in the way.
+pub fn clear_of_robots_out(world: &World, present: &[bool], offsets: Vec<[f64; 2]>) -> Vec<[f64; 2]> {
+    let out: Vec<[f64; 2]> = (0..world.n_agents())
+        .filter(|&r| !present[r])
+        .map(|r| [world.poses[r].x, world.poses[r].y])
+        .collect();
+    let room = |offsets: &[[f64; 2]]| {
+        offsets
+            .iter()
+            .flat_map(|o| {
+                out.iter()
+                    .map(move |p| (world.goal[0] + o[0] - p[0]).hypot(world.goal[1] + o[1] - p[1]))
+            })
+            .fold(f64::INFINITY, f64::min)
+    };
+    let wanted = world.env.edge_min_m;
+    if room(&offsets) >= wanted {
+        return offsets;
+    }
+    let steps = (std::f64::consts::PI / CLEARANCE_STEP_RAD).round() as i32;
+    let mut best = (room(&offsets), offsets.clone());
+    for k in (1..=steps).flat_map(|k| [k, -k]) {
+        let (s, c) = (f64::from(k) * CLEARANCE_STEP_RAD).sin_cos();
+        let turned: Vec<[f64; 2]> = offsets
+            .iter()
+            .map(|p| [c * p[0] - s * p[1], s * p[0] + c * p[1]])
+            .collect();
+        if !fits_arena(world, world.goal, &turned) {
+            continue;
+        }
+        let r = room(&turned);
+        if r >= wanted {
+            return turned;
+        }
+        if r > best.0 {
+            best = (r, turned);
+        }
+    }
+    best.1
+}
+
+/// How a robot hears from the sim's command accounting at one tick.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Heard {
+    /// It answered (on time, or late to an earlier tick).
+    Answered,
+    /// Nothing new from it.
+    Silent,
+    /// Its observation or its answer was lost on the way (`[reality]`): neither.
+    Lost,
+}
+
+/// Why a robot is out of the formation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Away {
+    /// Its controller failed (`[reality]` `controller_failure`): out for the episode.
+    Failed,
+    /// The control service removed it: out until restored, or the episode ends.
+    Removed,
+    /// Silent for [`LEAVE_AFTER_SILENT_TICKS`] ticks: out until it answers
+    /// [`RETURN_AFTER_ANSWERS`] ticks in a row, across episodes.
+    Silent,
+}
+
+/// What the attendance of one tick asks of the mission planner.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Call {
+    /// The robot has been silent long enough to leave.
+    Leave,
+    /// The robot, away for silence, has answered long enough to come back.
+    Return,
+}
+
+/// Who is in the formation and why not: runs of silent ticks and of answers per robot, kept
+/// across episodes (a dead process stays dead); failures and removals last an episode.
+#[derive(Debug, Clone)]
+pub struct Attendance {
+    silent: Vec<u32>,
+    answers: Vec<u32>,
+    away: Vec<Option<Away>>,
+}
+
+impl Attendance {
+    /// Every one of `n` robots in.
+    pub fn new(n: usize) -> Self {
+        Self {
+            silent: vec![0; n],
+            answers: vec![0; n],
+            away: vec![None; n],
+        }
+    }
+
+    /// Why robot `agent` is out of the formation, if it is.
+    pub fn away(&self, agent: usize) -> Option<Away> {
+        self.away[agent]
+    }
+
+    /// A new episode: robots failed or removed in the last one are in again.
+    pub fn new_episode(&mut self) {
+        for away in &mut self.away {
+            if *away != Some(Away::Silent) {
+                *away = None;
+            }
+        }
+    }
+
+    /// Records what was heard from robot `agent` this tick; says when it should leave (in the
+    /// formation, silent for [`LEAVE_AFTER_SILENT_TICKS`] ticks in a row, and every tick after
+    /// while the mission planner keeps it) or come back (away for silence, answering for
+    /// [`RETURN_AFTER_ANSWERS`] in a row). A loss counts neither way.
+    pub fn record(&mut self, agent: usize, heard: Heard) -> Option<Call> {
+        match heard {
+            Heard::Answered => {
+                self.silent[agent] = 0;
+                self.answers[agent] = self.answers[agent].saturating_add(1);
+            }
+            Heard::Silent => {
+                self.answers[agent] = 0;
+                self.silent[agent] = self.silent[agent].saturating_add(1);
+            }
+            Heard::Lost => {}
+        }
+        match self.away[agent] {
+            None if self.silent[agent] >= LEAVE_AFTER_SILENT_TICKS => Some(Call::Leave),
+            Some(Away::Silent) if self.answers[agent] >= RETURN_AFTER_ANSWERS => Some(Call::Return),
+            _ => None,
+        }
+    }
+
+    /// Robot `agent` left the formation (`Some`) or came back (`None`).
+    pub fn set_away(&mut self, agent: usize, away: Option<Away>) {
+        self.away[agent] = away;
+    }
+}
+
+/// One episode's mission: its schedule of shape changes, the team, and the re-form counts.
 #[derive(Debug, Clone)]
 pub struct Mission {
     changes: Vec<ShapeChange>,
+    /// The formation in force at capacity (one slot per launched robot) and what it is.
+    full: Vec<[f64; 2]>,
+    spec: FormationSpec,
+    /// The formation of the robots present (equal to `full` while every robot is in).
+    current: Vec<[f64; 2]>,
+    /// Seed of the formations redrawn for the robots present.
+    seed: u64,
+    /// Robots that left the formation, and that came back, this episode.
+    departures: u32,
+    returns: u32,
     /// Index of the next change to apply.
     next: usize,
     /// The latest change's tick while the swarm has not re-formed since.
@@ -147,10 +354,18 @@ pub struct Mission {
 }
 
 impl Mission {
-    /// The mission of an episode with these shape changes (in tick order).
-    pub fn new(changes: Vec<ShapeChange>) -> Self {
+    /// The mission of an episode that starts in formation `start` (what `spec` says, one slot
+    /// per robot, robot i in slot i) with these shape changes (in tick order); `seed` (the
+    /// run's and the episode's) seeds the formations redrawn when the team changes.
+    pub fn new(changes: Vec<ShapeChange>, start: &[[f64; 2]], spec: FormationSpec, seed: u64) -> Self {
         Self {
             changes,
+            full: start.to_vec(),
+            spec,
+            current: start.to_vec(),
+            seed: seed ^ TEAM_STREAM,
+            departures: 0,
+            returns: 0,
             next: 0,
             pending: None,
             run: None,
@@ -182,38 +397,175 @@ impl Mission {
         let Some(change) = self.changes.get(self.next).filter(|c| c.tick == tick) else {
             return false;
         };
-        let offsets = change.offsets.clone();
+        let (offsets, spec) = (change.offsets.clone(), change.spec);
         self.next += 1;
-        self.reform(world, &offsets);
+        self.reform(world, &offsets, spec);
         true
     }
 
-    /// A live change (the control service): from the current tick on, the formation is
-    /// `offsets` (slot s's offset from the goal, in tour order) around the world's goal, the
-    /// robots assigned to its slots as at a scheduled change. Counts as a reconfiguration. The
-    /// schedule's later changes still come.
-    pub fn reform(&mut self, world: &mut World, offsets: &[[f64; 2]]) {
-        let positions: Vec<[f64; 2]> = world.poses.iter().map(|p| [p.x, p.y]).collect();
-        let targets: Vec<[f64; 2]> = offsets
-            .iter()
-            .map(|o| [world.goal[0] + o[0], world.goal[1] + o[1]])
-            .collect();
-        let slot_of = assign(&positions, &targets);
-        set_formation(world, offsets, slot_of);
-        self.reconfigurations += 1;
-        self.pending = Some(world.steps);
-        self.run = None;
+    /// A live change (the control service): from the current tick on, the formation at
+    /// capacity is `offsets` (slot s's offset from the goal, in tour order, one per launched
+    /// robot; what `spec` says) around the world's goal, and the robots present are assigned
+    /// to its slots (to the same formation for them, [`Mission::formation_for`], when some are
+    /// out) as at a scheduled change. Counts as a reconfiguration. The schedule's later changes
+    /// still come.
+    pub fn reform(&mut self, world: &mut World, offsets: &[[f64; 2]], spec: FormationSpec) {
+        self.full = offsets.to_vec();
+        self.spec = spec;
+        let present: Vec<bool> = (0..world.n_agents()).map(|r| world.slot_of[r] != NO_SLOT).collect();
+        self.current = self.formation_for(world, &present);
+        self.assign_present(world, &present);
+        self.count_change(world);
     }
 
     /// A live move of the goal to `goal`: the formation in force around the new goal, the
     /// robots assigned to its slots again (a reconfiguration, as [`Mission::reform`]).
     pub fn move_goal(&mut self, world: &mut World, goal: [f64; 2]) {
-        let mut offsets = vec![[0.0; 2]; world.n_agents()];
-        for (robot, &slot) in world.slot_of.iter().enumerate() {
-            offsets[slot] = world.slots[robot];
-        }
         world.goal = goal;
-        self.reform(world, &offsets);
+        let present: Vec<bool> = (0..world.n_agents()).map(|r| world.slot_of[r] != NO_SLOT).collect();
+        self.assign_present(world, &present);
+        self.count_change(world);
+    }
+
+    /// Robot `robot` leaves the formation from the current tick on: the robots present re-form
+    /// the same formation for one robot fewer. Refused, saying why, for an unknown robot, one
+    /// already out, or when fewer than [`MIN_AGENTS`] would stay (every robot needs two
+    /// neighbours). Counts as a departure and a reconfiguration.
+    pub fn leave(&mut self, world: &mut World, robot: usize) -> Result<(), String> {
+        let mut present = self.team(world, robot)?;
+        if !present[robot] {
+            return Err(format!("robot {robot} is already out of the formation"));
+        }
+        let m = present.iter().filter(|&&p| p).count();
+        if m <= MIN_AGENTS {
+            return Err(format!(
+                "robot {robot}: fewer than {MIN_AGENTS} robots would stay in the formation"
+            ));
+        }
+        present[robot] = false;
+        self.regroup(world, &present);
+        self.extend_time_limit(world);
+        self.departures += 1;
+        Ok(())
+    }
+
+    /// Robot `robot`, out of the formation, comes back from the current tick on: the robots
+    /// present re-form the same formation for one robot more (the formation in force at
+    /// capacity once every robot is in). Refused for an unknown robot or one already in.
+    /// Counts as a return and a reconfiguration.
+    pub fn rejoin(&mut self, world: &mut World, robot: usize) -> Result<(), String> {
+        let mut present = self.team(world, robot)?;
+        if present[robot] {
+            return Err(format!("robot {robot} is already in the formation"));
+        }
+        present[robot] = true;
+        self.regroup(world, &present);
+        self.extend_time_limit(world);
+        self.returns += 1;
+        Ok(())
+    }
+
+    /// Starts the episode with only the `present` robots in the formation (the others are away
+    /// from an earlier episode): they take the same formation for them. Not a reconfiguration;
+    /// with fewer than [`MIN_AGENTS`] present, every robot stays in.
+    pub fn start_with(&mut self, world: &mut World, present: &[bool]) {
+        let m = present.iter().filter(|&&p| p).count();
+        if m == present.len() || m < MIN_AGENTS {
+            return;
+        }
+        self.current = self.formation_for(world, present);
+        self.assign_present(world, present);
+    }
+
+    /// A team change mid-episode gives the swarm the time a shape change gets
+    /// ([`EnvConfig::episode_steps`]): the ticks a robot needs to cross the formation in force
+    /// (of its kind, at the launch N) at top speed, 2 reach / (v_max dt).
+    fn extend_time_limit(&self, world: &mut World) {
+        let env = &world.env;
+        let reach = EnvConfig {
+            shape: self.spec.kind,
+            ..env.clone()
+        }
+        .formation_reach_m(world.n_agents());
+        world.env.max_steps += (2.0 * reach / (env.v_max * env.dt_s)).ceil() as u32;
+    }
+
+    /// Who is in the formation now, after checking that `robot` is one of the swarm.
+    fn team(&self, world: &World, robot: usize) -> Result<Vec<bool>, String> {
+        let n = world.n_agents();
+        if robot >= n {
+            return Err(format!("no robot {robot} (robots 0 to {})", n - 1));
+        }
+        Ok((0..n).map(|r| world.slot_of[r] != NO_SLOT).collect())
+    }
+
+    /// The `present` robots take the same formation for them.
+    fn regroup(&mut self, world: &mut World, present: &[bool]) {
+        self.current = self.formation_for(world, present);
+        self.assign_present(world, present);
+        self.count_change(world);
+    }
+
+    /// Assigns the `present` robots to the slots of the current formation (Kuhn-Munkres, as at
+    /// a shape change); the others hold [`NO_SLOT`].
+    fn assign_present(&mut self, world: &mut World, present: &[bool]) {
+        let robots: Vec<usize> = (0..world.n_agents()).filter(|&r| present[r]).collect();
+        let positions: Vec<[f64; 2]> = robots.iter().map(|&r| [world.poses[r].x, world.poses[r].y]).collect();
+        let targets: Vec<[f64; 2]> = self
+            .current
+            .iter()
+            .map(|o| [world.goal[0] + o[0], world.goal[1] + o[1]])
+            .collect();
+        let mut slot_of = vec![NO_SLOT; world.n_agents()];
+        for (&robot, slot) in robots.iter().zip(assign(&positions, &targets)) {
+            slot_of[robot] = slot;
+        }
+        let offsets = self.current.clone();
+        set_formation(world, &offsets, slot_of);
+    }
+
+    /// Counts a reconfiguration at the current tick, whose re-forming is then awaited.
+    fn count_change(&mut self, world: &World) {
+        self.reconfigurations += 1;
+        self.pending = Some(world.steps);
+        self.run = None;
+    }
+
+    /// The same formation for the `present` robots, M of them: the formation in force at
+    /// capacity when M is the launch N; otherwise its kind drawn for M robots from the
+    /// episode's team stream (seeded by the run, the episode and the departures and returns so
+    /// far), turned and scaled as the formation in force; a draw whose scaled edges leave the
+    /// allowed range or whose slots leave the arena is drawn again, and after
+    /// [`REDRAW_ATTEMPTS`] the scale is given up. Then it keeps clear of the robots out
+    /// ([`Mission::clear_of_robots_out`]).
+    pub fn formation_for(&self, world: &World, present: &[bool]) -> Vec<[f64; 2]> {
+        let m = present.iter().filter(|&&p| p).count();
+        if m == self.full.len() {
+            return self.full.clone();
+        }
+        let drawn = self.draw_for(world, m);
+        clear_of_robots_out(world, present, drawn)
+    }
+
+    /// The formation's kind drawn for `m` robots (see [`Mission::formation_for`]).
+    fn draw_for(&self, world: &World, m: usize) -> Vec<[f64; 2]> {
+        let seed = self.seed ^ (u64::from(self.departures + self.returns) << 40) ^ m as u64;
+        let mut rng = StdRng::seed_from_u64(seed);
+        let env = &world.env;
+        let unscaled = FormationSpec {
+            scale: 1.0,
+            ..self.spec
+        };
+        let mut last = Vec::new();
+        for spec in [self.spec, unscaled] {
+            for _ in 0..REDRAW_ATTEMPTS {
+                last = placed(&draw_shape(self.spec.kind, m, env, &mut rng), &spec);
+                if shape_is_valid(&last, env) && fits_arena(world, world.goal, &last) {
+                    return last;
+                }
+            }
+        }
+        last
     }
 
     /// The step's result under the mission: a success (C3) before the last change is not the
@@ -231,9 +583,19 @@ impl Mission {
         result
     }
 
-    /// Shape changes applied so far this episode.
+    /// Slot reassignments so far this episode: shape changes, goal moves and team changes.
     pub fn reconfigurations(&self) -> u32 {
         self.reconfigurations
+    }
+
+    /// Robots that left the formation this episode.
+    pub fn departures(&self) -> u32 {
+        self.departures
+    }
+
+    /// Robots that came back into the formation this episode.
+    pub fn returns(&self) -> u32 {
+        self.returns
     }
 
     /// Ticks from each change to the swarm's re-forming, for the changes that re-formed.
@@ -306,6 +668,14 @@ mod tests {
         }
     }
 
+    fn spec(kind: FormationShape) -> FormationSpec {
+        FormationSpec {
+            kind,
+            orientation: 0.0,
+            scale: 1.0,
+        }
+    }
+
     /// A world of `n` robots standing on `points` (heading +x), goal at the origin, robot i in
     /// slot i of that formation.
     fn world_on(points: &[[f64; 2]]) -> World {
@@ -335,10 +705,16 @@ mod tests {
             // Half a turn: every slot's offset negated.
             let turned: Vec<[f64; 2]> = shape.iter().map(|p| [-p[0], -p[1]]).collect();
             let mut world = world_on(&shape);
-            let mut mission = Mission::new(vec![ShapeChange {
-                tick: 0,
-                offsets: turned.clone(),
-            }]);
+            let mut mission = Mission::new(
+                vec![ShapeChange {
+                    tick: 0,
+                    offsets: turned.clone(),
+                    spec: spec(kind),
+                }],
+                &shape,
+                spec(kind),
+                1,
+            );
             assert!(mission.after_step(&mut world, true, true));
             let positions: Vec<[f64; 2]> = world.poses.iter().map(|p| [p.x - 5.0, p.y - 5.0]).collect();
             let index: Vec<usize> = (0..n).collect();
@@ -382,8 +758,8 @@ mod tests {
         for (a, b) in line.iter().zip(&turned) {
             assert!((a[0] + b[0]).abs() < 1e-9 && (a[1] + b[1]).abs() < 1e-9);
         }
-        let mut mission = Mission::new(Vec::new());
-        mission.reform(&mut world, &line);
+        let mut mission = Mission::new(Vec::new(), &ring, spec(FormationShape::Ring), 1);
+        mission.reform(&mut world, &line, spec(FormationShape::Line));
         let positions: Vec<[f64; 2]> = world.poses.iter().map(|p| [p.x - 5.0, p.y - 5.0]).collect();
         assert_eq!(
             world.slot_of,
@@ -413,10 +789,16 @@ mod tests {
         let mut rng = StdRng::seed_from_u64(8);
         let shape = draw_shape(FormationShape::Ring, 6, &env, &mut rng);
         let mut world = world_on(&shape);
-        let mut mission = Mission::new(vec![ShapeChange {
-            tick: 3,
-            offsets: draw_shape(FormationShape::Line, 6, &env, &mut rng),
-        }]);
+        let mut mission = Mission::new(
+            vec![ShapeChange {
+                tick: 3,
+                offsets: draw_shape(FormationShape::Line, 6, &env, &mut rng),
+                spec: spec(FormationShape::Line),
+            }],
+            &shape,
+            spec(FormationShape::Ring),
+            1,
+        );
         // In formation at the goal, a change still to come: the episode goes on.
         let result = world.step(&[(0.0, 0.0); 6]);
         assert_eq!(result.outcome, Outcome::Success);
@@ -444,8 +826,8 @@ mod tests {
         let mut init = Episodes::new(6, &env, 1000).next().unwrap_or_else(|| unreachable!());
         let changes = std::mem::take(&mut init.changes);
         let change_tick = changes[0].tick;
+        let mut mission = Mission::new(changes.clone(), &init.slots, init.spec, 1);
         let mut world = World::new(&env, init);
-        let mut mission = Mission::new(changes.clone());
         let before: Vec<_> = (0..6).map(|r| world.observation(r)).collect();
         for _ in 1..change_tick {
             let result = world.step(&[(0.0, 0.0); 6]);
@@ -483,5 +865,177 @@ mod tests {
             mission.after_step(&mut world, true, true);
         }
         assert_eq!(mission.reform_ticks(), &[1]);
+    }
+
+    /// A world of `n` robots of `kind` standing in their formation at the goal, its mission.
+    fn team_of(kind: FormationShape, n: usize) -> (World, Mission) {
+        let env = EnvConfig::default();
+        let mut rng = StdRng::seed_from_u64(n as u64);
+        let shape = draw_shape(kind, n, &env, &mut rng);
+        let world = world_on(&shape);
+        let mission = Mission::new(Vec::new(), &shape, spec(kind), 77);
+        (world, mission)
+    }
+
+    /// The robots present stand in their slots around the goal.
+    fn stand_in_slots(world: &mut World) {
+        for robot in 0..world.n_agents() {
+            if world.slot_of[robot] != NO_SLOT {
+                world.poses[robot].x = world.goal[0] + world.slots[robot][0];
+                world.poses[robot].y = world.goal[1] + world.slots[robot][1];
+            }
+        }
+    }
+
+    #[test]
+    fn removing_a_robot_gives_a_valid_formation_of_the_same_shape_for_n_minus_1() {
+        for kind in FormationShape::KINDS {
+            for n in [6, 16] {
+                let (mut world, mut mission) = team_of(kind, n);
+                let env = world.env.clone();
+                mission.leave(&mut world, 2).unwrap_or_else(|why| panic!("{why}"));
+                assert_eq!((mission.departures(), mission.reconfigurations()), (1, 1));
+                // Robot 2 holds no slot and observes itself; the others hold slots 0..N-1.
+                assert_eq!(world.slot_of[2], NO_SLOT);
+                assert_eq!(world.observed[2], [2, 2]);
+                assert_eq!(world.desired[2], [0.0; NEIGHBOURS]);
+                let mut held: Vec<usize> = (0..n).filter(|&r| r != 2).map(|r| world.slot_of[r]).collect();
+                held.sort_unstable();
+                assert_eq!(held, (0..n - 1).collect::<Vec<_>>(), "{kind:?} n = {n}");
+                // Slot order: a valid formation of N - 1, its observed edges in range, the
+                // neighbours the robots in the next two slots mod N - 1, never robot 2.
+                let mut offsets = vec![[0.0; 2]; n - 1];
+                for r in (0..n).filter(|&r| r != 2) {
+                    offsets[world.slot_of[r]] = world.slots[r];
+                    for (k, &other) in world.observed[r].iter().enumerate() {
+                        assert_ne!(other, 2);
+                        assert_eq!(world.slot_of[other], (world.slot_of[r] + k + 1) % (n - 1));
+                    }
+                }
+                assert!(shape_is_valid(&offsets, &env), "{kind:?} n = {n}: a valid formation");
+                assert!(fits_arena(&world, world.goal, &offsets));
+                let centre = offsets.iter().fold([0.0, 0.0], |c, o| [c[0] + o[0], c[1] + o[1]]);
+                assert!(centre[0].hypot(centre[1]) < 1e-6, "{kind:?}: centred on the goal");
+                if kind == FormationShape::Ring && n < crate::config::LARGE_SWARM {
+                    // A ring of N - 1: every slot as far from the goal.
+                    let r0 = offsets[0][0].hypot(offsets[0][1]);
+                    assert!(offsets.iter().all(|o| (o[0].hypot(o[1]) - r0).abs() < 1e-6));
+                }
+                // In those slots the swarm has succeeded, wherever robot 2 stands (off the way).
+                stand_in_slots(&mut world);
+                world.poses[2].x = 0.05;
+                world.poses[2].y = 0.05;
+                let c = world.conditions();
+                assert!(
+                    c.success && !c.collision && c.max_edge_error < 1e-9,
+                    "{kind:?} n = {n}: {c:?}"
+                );
+                // Back at full strength: the formation in force at capacity.
+                mission.rejoin(&mut world, 2).unwrap_or_else(|why| panic!("{why}"));
+                assert_eq!((mission.returns(), mission.reconfigurations()), (1, 2));
+                let mut back: Vec<usize> = world.slot_of.clone();
+                back.sort_unstable();
+                assert_eq!(back, (0..n).collect::<Vec<_>>());
+                assert!(!world.conditions().success, "robot 2 is in again, far from its slot");
+            }
+        }
+    }
+
+    #[test]
+    fn a_formation_turns_about_the_goal_to_keep_its_slots_clear_of_a_robot_out() {
+        let (mut world, _) = team_of(FormationShape::Ring, 6);
+        let env = world.env.clone();
+        let mut rng = StdRng::seed_from_u64(3);
+        let ring = draw_shape(FormationShape::Ring, 5, &env, &mut rng);
+        let mut present = vec![true; 6];
+        present[2] = false;
+        // Nothing in the way: unturned.
+        world.poses[2].x = world.goal[0] + 3.0;
+        assert_eq!(clear_of_robots_out(&world, &present, ring.clone()), ring);
+        // Robot 2 stopped beside a slot, outside the ring: the ring turns until every slot is
+        // edge_min away from it.
+        world.poses[2].x = world.goal[0] + 2.0 * ring[0][0];
+        world.poses[2].y = world.goal[1] + 2.0 * ring[0][1];
+        let radius = ring[0][0].hypot(ring[0][1]);
+        assert!(radius < env.edge_min_m, "slot 0 is in the way as drawn");
+        let turned = clear_of_robots_out(&world, &present, ring.clone());
+        let room =
+            |o: &[f64; 2]| (world.goal[0] + o[0] - world.poses[2].x).hypot(world.goal[1] + o[1] - world.poses[2].y);
+        assert!(turned.iter().all(|o| room(o) >= env.edge_min_m), "{turned:?}");
+        // The same ring: each slot as far from the goal and from its neighbours.
+        for (a, b) in ring.iter().zip(&turned) {
+            assert!((a[0].hypot(a[1]) - b[0].hypot(b[1])).abs() < 1e-9);
+        }
+        let edge = |p: &[[f64; 2]], i: usize| (p[i][0] - p[(i + 1) % 5][0]).hypot(p[i][1] - p[(i + 1) % 5][1]);
+        assert!((0..5).all(|i| (edge(&ring, i) - edge(&turned, i)).abs() < 1e-9));
+    }
+
+    #[test]
+    fn removals_are_refused_for_unknown_robots_robots_out_and_below_three_present() {
+        let (mut world, mut mission) = team_of(FormationShape::Random, 4);
+        assert!(
+            mission
+                .leave(&mut world, 4)
+                .is_err_and(|why| why.contains("no robot 4"))
+        );
+        assert!(
+            mission
+                .rejoin(&mut world, 1)
+                .is_err_and(|why| why.contains("already in"))
+        );
+        assert!(mission.leave(&mut world, 1).is_ok());
+        assert!(
+            mission
+                .leave(&mut world, 1)
+                .is_err_and(|why| why.contains("already out"))
+        );
+        assert!(
+            mission
+                .leave(&mut world, 0)
+                .is_err_and(|why| why.contains("fewer than 3"))
+        );
+        assert_eq!(mission.departures(), 1);
+        // A stopped robot that left is an obstacle: running into it is a collision.
+        stand_in_slots(&mut world);
+        assert!(!world.conditions().collision);
+        world.poses[1].x = world.poses[0].x + 0.01;
+        world.poses[1].y = world.poses[0].y;
+        assert!(world.conditions().collision);
+    }
+
+    #[test]
+    fn absence_under_ten_ticks_keeps_a_robot_ten_make_it_leave_and_five_answers_bring_it_back() {
+        let mut attendance = Attendance::new(2);
+        // Nine silent ticks, losses among them (neither way): still in.
+        for tick in 0..9 {
+            assert_eq!(attendance.record(0, Heard::Silent), None, "tick {tick}");
+            assert_eq!(attendance.record(0, Heard::Lost), None);
+        }
+        // An answer starts the count again: a lossy robot that misses a few stays.
+        assert_eq!(attendance.record(0, Heard::Answered), None);
+        for _ in 0..9 {
+            assert_eq!(attendance.record(0, Heard::Silent), None);
+        }
+        assert_eq!(attendance.record(0, Heard::Silent), Some(Call::Leave), "the 10th");
+        attendance.set_away(0, Some(Away::Silent));
+        // Four answers, a silent tick, then five in a row: back at the fifth.
+        for _ in 0..4 {
+            assert_eq!(attendance.record(0, Heard::Answered), None);
+        }
+        assert_eq!(attendance.record(0, Heard::Silent), None);
+        for _ in 0..4 {
+            assert_eq!(attendance.record(0, Heard::Answered), None);
+        }
+        assert_eq!(attendance.record(0, Heard::Answered), Some(Call::Return));
+        attendance.set_away(0, None);
+        // A removed robot answers all along and stays out; it is in again next episode, a
+        // robot away for silence is not.
+        attendance.set_away(1, Some(Away::Removed));
+        for _ in 0..20 {
+            assert_eq!(attendance.record(1, Heard::Answered), None);
+        }
+        attendance.set_away(0, Some(Away::Silent));
+        attendance.new_episode();
+        assert_eq!((attendance.away(0), attendance.away(1)), (Some(Away::Silent), None));
     }
 }

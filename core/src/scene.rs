@@ -17,7 +17,7 @@
 use formation_protocol::{NEIGHBOURS, neighbours};
 
 use crate::physics::Pose;
-use crate::task::centroid;
+use crate::task::present_centroid;
 
 /// The true state of one tick and the commands that led to it.
 #[derive(Debug, Clone, Copy)]
@@ -30,7 +30,8 @@ pub struct Scene<'a> {
     /// Desired length of each robot's two observed edges.
     pub desired: &'a [[f64; NEIGHBOURS]],
     /// The robots each robot observes: those in the next two slots of the formation
-    /// ([`index_neighbours`] while robot i holds slot i, as every episode starts).
+    /// ([`index_neighbours`] while robot i holds slot i, as every episode starts); a robot out
+    /// of the formation observes only itself ([`crate::task::is_present`]).
     pub observed: &'a [[usize; NEIGHBOURS]],
     /// Goal of the centroid, world frame.
     pub goal: [f64; 2],
@@ -44,8 +45,9 @@ pub fn index_neighbours(n: usize) -> Vec<[usize; NEIGHBOURS]> {
 }
 
 impl Scene<'_> {
-    /// Centroid of the robots' positions.
+    /// Centroid of the positions of the robots in the formation (of every robot while all
+    /// are, as without departures).
     pub fn centroid(&self) -> [f64; 2] {
-        centroid(self.poses)
+        present_centroid(self.poses, self.observed)
     }
 }

@@ -19,6 +19,27 @@ pub fn centroid(poses: &[Pose]) -> [f64; 2] {
     [sx / n, sy / n]
 }
 
+/// Whether robot `agent` is in the formation: a robot out of it (its controller failed, it was
+/// removed or is silent, [`crate::mission`]) observes only itself.
+pub fn is_present(agent: usize, observed: &[[usize; NEIGHBOURS]]) -> bool {
+    observed[agent][0] != agent
+}
+
+/// Centroid of the positions of the robots in the formation ([`is_present`]); of every robot
+/// when none is.
+pub fn present_centroid(poses: &[Pose], observed: &[[usize; NEIGHBOURS]]) -> [f64; 2] {
+    let (mut sx, mut sy, mut m) = (0.0, 0.0, 0usize);
+    for (agent, p) in poses.iter().enumerate() {
+        if is_present(agent, observed) {
+            (sx, sy, m) = (sx + p.x, sy + p.y, m + 1);
+        }
+    }
+    if m == 0 {
+        return centroid(poses);
+    }
+    [sx / m as f64, sy / m as f64]
+}
+
 /// The conditions of the paper's Table I at one state.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Conditions {
@@ -49,7 +70,10 @@ pub fn edge_error(
     (d - desired[agent][k]).abs()
 }
 
-/// Evaluates C1, C2 and C3; `observed` names each robot's two observed robots.
+/// Evaluates C1, C2 and C3 on the robots in the formation; `observed` names each robot's two
+/// observed robots (only itself for a robot out of the formation, [`is_present`]). The edges
+/// and the centroid are the present robots'; a collision counts between two robots of which at
+/// least one is present (a robot that left and stands still is an obstacle).
 pub fn conditions(
     poses: &[Pose],
     desired: &[[f64; NEIGHBOURS]],
@@ -58,30 +82,33 @@ pub fn conditions(
     env: &EnvConfig,
 ) -> Conditions {
     let n = poses.len();
-    let (mut sum, mut max) = (0.0f64, 0.0f64);
-    for agent in 0..n {
+    let (mut sum, mut max, mut edges) = (0.0f64, 0.0f64, 0usize);
+    for agent in (0..n).filter(|&a| is_present(a, observed)) {
         for k in 0..NEIGHBOURS {
             let err = edge_error(agent, k, poses, desired, observed);
             sum += err;
             max = max.max(err);
+            edges += 1;
         }
     }
     let mut collision = false;
     for i in 0..n {
         for j in i + 1..n {
-            if (poses[i].x - poses[j].x).hypot(poses[i].y - poses[j].y) < env.eps_coll_m {
+            if (is_present(i, observed) || is_present(j, observed))
+                && (poses[i].x - poses[j].x).hypot(poses[i].y - poses[j].y) < env.eps_coll_m
+            {
                 collision = true;
             }
         }
     }
-    let c = centroid(poses);
+    let c = present_centroid(poses, observed);
     let goal_distance = (c[0] - goal[0]).hypot(c[1] - goal[1]);
     let in_formation = max <= env.eps_form_m;
     Conditions {
         in_formation,
         collision,
         success: in_formation && goal_distance <= env.eps_goal_m,
-        mean_edge_error: sum / (n * NEIGHBOURS) as f64,
+        mean_edge_error: sum / edges.max(1) as f64,
         max_edge_error: max,
         goal_distance,
     }

@@ -35,10 +35,16 @@ pub struct Summary {
     pub formation_hold_rate: f64,
     /// Mean undiscounted episode return.
     pub mean_return: f64,
-    /// Shape changes applied over the episodes (`env.shape_changes`; the mission planner's
-    /// slot reassignments).
+    /// The mission planner's slot reassignments over the episodes: shape changes
+    /// (`env.shape_changes`, the control service), goal moves and team changes.
     #[serde(default)]
     pub reconfigurations: u64,
+    /// Robots that left the formation (controller failure, removed, 10 silent ticks).
+    #[serde(default)]
+    pub departures: u64,
+    /// Robots that came back into the formation (5 answers in a row, restored).
+    #[serde(default)]
+    pub returns: u64,
     /// Changes after which the swarm re-formed within its episode: every observed edge within
     /// `eps_form_m` for 5 consecutive ticks.
     #[serde(default)]
@@ -155,6 +161,10 @@ impl Summary {
                 format!("{} / {}", self.reconfigurations, self.reforms),
             ),
             ("ticks to re-form", opt(self.mean_reform_ticks, 1)),
+            (
+                "robots left / came back",
+                format!("{} / {}", self.departures, self.returns),
+            ),
             ("env steps", self.env_steps.to_string()),
             ("env steps / s", format!("{:.0}", self.env_steps_per_s)),
             (

@@ -159,6 +159,7 @@ fn write_payloads(out: &mut String) {
             field!(StateMsg, slots, "f32[64][2]"),
             field!(StateMsg, goal, "f32[2]"),
             field!(StateMsg, slot, "u32[64]"),
+            field!(StateMsg, present, "u64"),
         ],
     );
     out.push_str(",\n");
@@ -195,6 +196,7 @@ fn write_payloads(out: &mut String) {
             field!(ControlRequest, scale, "f32"),
             field!(ControlRequest, orientation, "f32"),
             field!(ControlRequest, goal, "f32[2]"),
+            field!(ControlRequest, robot, "u32"),
         ],
     );
     out.push_str(",\n");

@@ -7,7 +7,7 @@ use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 use crate::{ACTION_DIM, MAX_AGENTS, MAX_DELAY_TICKS, MAX_OBS_DIM, NEIGHBOURS};
 
 /// Bumped whenever a payload's layout or meaning changes.
-pub const PROTOCOL_VERSION: u32 = 4;
+pub const PROTOCOL_VERSION: u32 = 5;
 
 /// `Header::flags`: first tick of an episode (agents reset their history).
 pub const FLAG_EPISODE_START: u32 = 1;
@@ -150,9 +150,18 @@ pub struct StateMsg {
     pub goal: [f32; 2],
     /// The slot map: robot i holds slot `slot[i]` of the formation in force (i until the
     /// mission planner reassigns the slots at a shape change); robot i observes the robots in
-    /// slots `slot[i] + 1` and `slot[i] + 2` mod N.
+    /// slots `slot[i] + 1` and `slot[i] + 2` mod M, M the robots present; a robot out of the
+    /// formation holds [`SLOT_NONE`].
     pub slot: [u32; MAX_AGENTS],
+    /// Bit i set: robot i is in the formation at this tick (present). A robot leaves when its
+    /// controller fails, when the control service removes it, or after 10 silent ticks in a
+    /// row, and comes back after 5 answers in a row or when restored; the slots, edges,
+    /// success and formation error are the present robots'.
+    pub present: u64,
 }
+
+/// `StateMsg::slot` of a robot out of the formation.
+pub const SLOT_NONE: u32 = u32::MAX;
 
 impl Default for StateMsg {
     fn default() -> Self {
@@ -174,6 +183,7 @@ impl Default for StateMsg {
             slots: [[0.0; 2]; MAX_AGENTS],
             goal: [0.0; 2],
             slot: [0; MAX_AGENTS],
+            present: 0,
         }
     }
 }
@@ -216,6 +226,10 @@ pub struct WeightsHeader {
 pub const CONTROL_SET_FORMATION: u32 = 1;
 /// `ControlRequest::kind`: move the goal to `goal`.
 pub const CONTROL_SET_GOAL: u32 = 2;
+/// `ControlRequest::kind`: take robot `robot` out of the formation for the rest of the episode.
+pub const CONTROL_REMOVE_ROBOT: u32 = 3;
+/// `ControlRequest::kind`: bring robot `robot`, removed earlier, back into the formation.
+pub const CONTROL_RESTORE_ROBOT: u32 = 4;
 /// `ControlReply::status`: the change is in force from `ControlReply::tick`.
 pub const CONTROL_OK: u32 = 0;
 /// `ControlReply::status`: the request was refused; `ControlReply::message` says why.
@@ -242,6 +256,8 @@ pub struct ControlRequest {
     pub orientation: f32,
     /// The new goal, world frame, metres.
     pub goal: [f32; 2],
+    /// The robot to remove or restore.
+    pub robot: u32,
 }
 
 /// sim -> client: the answer to a [`ControlRequest`], sent at the tick the sim read it.

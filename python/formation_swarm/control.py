@@ -1,5 +1,5 @@
-"""The live control service (``formation/control``): change a running episode's formation or
-goal from Python.
+"""The live control service (``formation/control``): change a running episode's formation,
+goal or team from Python.
 
     import formation_swarm as fs
     control = fs.Control("runs/demo")
@@ -92,6 +92,25 @@ class Control:
         request.protocol_version = wire.PROTOCOL_VERSION
         request.kind = wire.CONTROL_SET_GOAL
         request.goal[0], request.goal[1] = x, y
+        return self._request(request, timeout)
+
+    def remove_robot(self, robot: int, timeout: float = 10.0) -> ControlAck:
+        """Takes robot ``robot`` out of the formation for the rest of the episode: the others
+        re-form the same formation for one robot fewer, and it is commanded to stand still.
+        Refused for an unknown robot, one already out, or when fewer than 3 would stay."""
+        return self._team(wire.CONTROL_REMOVE_ROBOT, robot, timeout)
+
+    def restore_robot(self, robot: int, timeout: float = 10.0) -> ControlAck:
+        """Brings robot ``robot``, removed earlier in the episode, back into the formation (the
+        others re-form around it). Refused for a robot that is in, or out for another reason
+        (its controller failed, or it is silent)."""
+        return self._team(wire.CONTROL_RESTORE_ROBOT, robot, timeout)
+
+    def _team(self, kind: int, robot: int, timeout: float) -> ControlAck:
+        request = wire.ControlRequest()
+        request.protocol_version = wire.PROTOCOL_VERSION
+        request.kind = kind
+        request.robot = robot
         return self._request(request, timeout)
 
     def _request(self, request: wire.ControlRequest, timeout: float) -> ControlAck:

@@ -36,6 +36,9 @@ class WorldState:
     slots: List[Tuple[float, float]]
     #: Goal of the formation's centroid.
     goal: Tuple[float, float]
+    #: Whether each robot is in the formation (out: its controller failed, it was removed, or
+    #: it has been silent for 10 ticks).
+    present: List[bool]
     #: The raw payload copy.
     raw: wire.State = dataclasses.field(repr=False, compare=False)
 
@@ -67,6 +70,7 @@ class WorldState:
             desired=[tuple(raw.desired[i]) for i in range(n)],
             slots=[tuple(raw.slots[i]) for i in range(n)],
             goal=(raw.goal[0], raw.goal[1]),
+            present=[bool(raw.present >> i & 1) for i in range(n)],
             raw=raw,
         )
 

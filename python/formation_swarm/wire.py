@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Dict, Optional, Tuple
 
 #: Bumped whenever a payload's layout or meaning changes (``wire::PROTOCOL_VERSION``).
-PROTOCOL_VERSION = 4
+PROTOCOL_VERSION = 5
 
 #: ``Header.flags``: first tick of an episode (robots reset their history).
 FLAG_EPISODE_START = 1
@@ -142,6 +142,7 @@ class State(ctypes.Structure):
         ("slots", (ctypes.c_float * 2) * MAX_AGENTS),
         ("goal", ctypes.c_float * 2),
         ("slot", ctypes.c_uint32 * MAX_AGENTS),
+        ("present", ctypes.c_uint64),
     ]
 
     @staticmethod
@@ -187,6 +188,12 @@ class WeightsHeader(ctypes.Structure):
 CONTROL_SET_FORMATION = 1
 #: ``ControlRequest.kind``: a new goal.
 CONTROL_SET_GOAL = 2
+#: ``ControlRequest.kind``: take robot ``robot`` out of the formation.
+CONTROL_REMOVE_ROBOT = 3
+#: ``ControlRequest.kind``: bring robot ``robot``, removed earlier, back.
+CONTROL_RESTORE_ROBOT = 4
+#: ``State.slot`` of a robot out of the formation.
+SLOT_NONE = 0xFFFFFFFF
 #: ``ControlReply.status``: in force from ``ControlReply.tick``.
 CONTROL_OK = 0
 #: ``ControlReply.status``: refused; ``ControlReply.message`` says why.
@@ -203,6 +210,7 @@ class ControlRequest(ctypes.Structure):
         ("scale", ctypes.c_float),
         ("orientation", ctypes.c_float),
         ("goal", ctypes.c_float * 2),
+        ("robot", ctypes.c_uint32),
     ]
 
     @staticmethod

@@ -2,13 +2,17 @@
 //! [`ControlRequest`] -> [`ControlReply`]) once per tick, after the step, without waiting. A
 //! change is applied through the episode's [`Mission`] (the same slot assignment as a
 //! scheduled change) and is in force from the tick told next, which the reply names; it lasts
-//! for the current episode. A request the sim cannot obey gets a refusal saying why. After a
+//! for the current episode. Removing robot k takes it out of the formation (the others re-form
+//! the same formation for one robot fewer) and it stands still until restored or the episode
+//! ends; restoring brings a removed robot back. A request the sim cannot obey gets a refusal
+//! saying why. After a
 //! tick that answered anything the sim raises `formation/control/answered`, so a client waits
 //! on an event rather than polling.
 
 use anyhow::{Context, Result};
 use formation_core::config::FormationShape;
-use formation_core::mission::{Mission, fits_arena, live_formation};
+use formation_core::formation::FormationSpec;
+use formation_core::mission::{Attendance, Away, Mission, fits_arena, live_formation};
 use formation_core::world::World;
 use formation_ipc::services::{self, Sizing};
 use formation_protocol::wire::*;
@@ -41,12 +45,19 @@ impl<S: Service> ControlServer<S> {
     }
 
     /// Answers every request waiting (never blocks), applying each accepted one to `world`
-    /// through `mission`; `seed` is the run's.
-    pub fn serve(&self, world: &mut World, mission: &mut Mission, seed: u64, episode: u32) -> Result<()> {
+    /// through `mission` (and `attendance`, for removals); `seed` is the run's.
+    pub fn serve(
+        &self,
+        world: &mut World,
+        mission: &mut Mission,
+        attendance: &mut Attendance,
+        seed: u64,
+        episode: u32,
+    ) -> Result<()> {
         let mut answered = false;
         while let Some(active) = self.server.receive().context("control receive")? {
             let live_seed = seed ^ LIVE_STREAM ^ (u64::from(episode) << 32) ^ u64::from(world.steps);
-            let reply = match apply(active.payload(), world, mission, live_seed) {
+            let reply = match apply(active.payload(), world, mission, attendance, live_seed) {
                 Ok(()) => ControlReply::new(CONTROL_OK, episode, world.steps, ""),
                 Err(why) => ControlReply::new(CONTROL_REFUSED, episode, world.steps, &why),
             };
@@ -62,7 +73,13 @@ impl<S: Service> ControlServer<S> {
 }
 
 /// Applies one request, or says why not.
-fn apply(request: &ControlRequest, world: &mut World, mission: &mut Mission, seed: u64) -> Result<(), String> {
+fn apply(
+    request: &ControlRequest,
+    world: &mut World,
+    mission: &mut Mission,
+    attendance: &mut Attendance,
+    seed: u64,
+) -> Result<(), String> {
     if request.protocol_version != PROTOCOL_VERSION {
         return Err(format!(
             "protocol {} (the sim speaks {PROTOCOL_VERSION})",
@@ -72,14 +89,13 @@ fn apply(request: &ControlRequest, world: &mut World, mission: &mut Mission, see
     match request.kind {
         CONTROL_SET_FORMATION => {
             let kind = shape_named(&request.shape)?;
-            let offsets = live_formation(
-                world,
+            let spec = FormationSpec {
                 kind,
-                f64::from(request.scale),
-                f64::from(request.orientation),
-                seed,
-            )?;
-            mission.reform(world, &offsets);
+                orientation: f64::from(request.orientation),
+                scale: f64::from(request.scale),
+            };
+            let offsets = live_formation(world, kind, spec.scale, spec.orientation, seed)?;
+            mission.reform(world, &offsets, spec);
             Ok(())
         }
         CONTROL_SET_GOAL => {
@@ -97,8 +113,33 @@ fn apply(request: &ControlRequest, world: &mut World, mission: &mut Mission, see
             mission.move_goal(world, goal);
             Ok(())
         }
+        CONTROL_REMOVE_ROBOT => {
+            let robot = request.robot as usize;
+            mission.leave(world, robot)?;
+            attendance.set_away(robot, Some(Away::Removed));
+            Ok(())
+        }
+        CONTROL_RESTORE_ROBOT => {
+            let robot = request.robot as usize;
+            match (robot < world.n_agents()).then(|| attendance.away(robot)) {
+                Some(Some(Away::Removed)) => {
+                    mission.rejoin(world, robot)?;
+                    attendance.set_away(robot, None);
+                    Ok(())
+                }
+                Some(Some(Away::Failed)) => Err(format!(
+                    "robot {robot}'s controller failed: it stays out for the episode"
+                )),
+                Some(Some(Away::Silent)) => Err(format!(
+                    "robot {robot} is silent: it comes back after answering 5 ticks in a row"
+                )),
+                Some(None) => Err(format!("robot {robot} is already in the formation")),
+                None => Err(format!("no robot {robot} (robots 0 to {})", world.n_agents() - 1)),
+            }
+        }
         kind => Err(format!(
-            "unknown request kind {kind} (set formation {CONTROL_SET_FORMATION}, set goal {CONTROL_SET_GOAL})"
+            "unknown request kind {kind} (set formation {CONTROL_SET_FORMATION}, set goal {CONTROL_SET_GOAL}, \
+             remove robot {CONTROL_REMOVE_ROBOT}, restore robot {CONTROL_RESTORE_ROBOT})"
         )),
     }
 }

@@ -14,6 +14,15 @@
 //! goes through [`Reality::actuate`] (delay line, motor lag, dead controller) and the acting
 //! velocity drives the physics. With every key off all of it is the identity.
 //!
+//! The team: the episode's [`Mission`] takes a robot out of the formation when its controller
+//! fails (at the failure's tick), when the control service removes it, or when the command
+//! accounting has heard nothing from it for 10 ticks in a row ([`Attendance`]; losses of
+//! `[reality]` are not silence), and back after 5 answers in a row or when restored; each
+//! change is in force from the next tick's observations, like a shape change. A robot out of
+//! the formation does not drive by its own commands: a silent or failed one does what
+//! `dead_robot` says, one that still answers (removed, or on its way back) is commanded to
+//! stand still.
+//!
 //! Generic over the iceoryx2 service type: `ipc::Service` across processes, `local::Service`
 //! for all roles in one process.
 
@@ -24,7 +33,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use formation_core::config::RunConfig;
 use formation_core::formation::Episodes;
-use formation_core::mission::Mission;
+use formation_core::mission::{Attendance, Away, Call, Heard, Mission, NO_SLOT};
 use formation_core::observation::Layout;
 use formation_core::reality::Reality;
 use formation_core::run_dir::write_atomically;
@@ -43,7 +52,7 @@ use hdrhistogram::Histogram;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::prelude::*;
 
-use crate::commands::{CommandCounters, CommandRound};
+use crate::commands::{CommandCounters, CommandRound, Settled};
 use crate::control::ControlServer;
 use crate::critic_link::{CriticLink, check_protocol};
 use crate::plots::{EpisodeTrace, episode_errors, learning_curve};
@@ -124,6 +133,8 @@ impl EpisodeTally {
             reforms: reform_ticks.len() as u32,
             mean_reform_ticks: (!reform_ticks.is_empty()).then(|| reform_ticks_sum as f64 / reform_ticks.len() as f64),
             reform_ticks_sum,
+            departures: mission.departures(),
+            returns: mission.returns(),
             wall_s: started.elapsed().as_secs_f64(),
         }
     }
@@ -172,6 +183,7 @@ where
         unasked: vec![false; options.n_agents],
         applied: vec![(0.0, 0.0); options.n_agents],
         acting: vec![(0.0, 0.0); options.n_agents],
+        attendance: Attendance::new(options.n_agents),
     };
     sim.wait_for_peers()?;
     sim.started = Instant::now();
@@ -191,7 +203,8 @@ where
         {
             break;
         }
-        let mission = Mission::new(std::mem::take(&mut init.changes));
+        let team_seed = options.seed ^ (u64::from(episode) << 32);
+        let mission = Mission::new(std::mem::take(&mut init.changes), &init.slots, init.spec, team_seed);
         let world = World::new(&options.config.env, init);
         if let Some(stopped) = sim.play_episode(episode, world, mission)? {
             stop = stopped;
@@ -237,6 +250,8 @@ struct Lockstep<'a, S: Service> {
     applied: Vec<(f64, f64)>,
     /// The velocities acting on the physics in the last transition.
     acting: Vec<(f64, f64)>,
+    /// Who is in the formation, and why not.
+    attendance: Attendance,
 }
 
 impl<S: Service> Lockstep<'_, S>
@@ -298,6 +313,7 @@ where
             options.n_agents,
         );
         self.applied.iter_mut().for_each(|c| *c = (0.0, 0.0));
+        self.start_team(&mut world, &mut mission);
         let mut tally = EpisodeTally {
             episode_return: 0.0,
             formation_ticks: 0,
@@ -356,6 +372,13 @@ where
             tally.missed_ticks += u64::from(missed);
             for (agent, &(v, w)) in self.round.commands().iter().enumerate() {
                 let present = !self.round.presence.is_absent(agent);
+                // A robot out of the formation is commanded to stand still (a dead or silent
+                // one does what `dead_robot` says).
+                let (v, w) = if world.slot_of[agent] == NO_SLOT {
+                    (0.0, 0.0)
+                } else {
+                    (v, w)
+                };
                 self.applied[agent] = config.env.clamp_command(v, w);
                 self.acting[agent] = reality.actuate(agent, tick, (v, w), present);
             }
@@ -368,9 +391,14 @@ where
             tally.formation_ticks += u32::from(tally.last.in_formation);
             // A shape change due at this tick reaches its observations, told next.
             mission.after_step(&mut world, tally.last.in_formation, outcome == Outcome::Running);
+            // So do the team's changes: a failed controller, a robot silent or back.
+            if outcome == Outcome::Running {
+                self.call_the_roll(&mut world, &mut mission, &reality, tick);
+            }
             // Live changes asked for meanwhile, too (never waiting for one).
             if outcome == Outcome::Running {
-                self.control.serve(&mut world, &mut mission, options.seed, episode)?;
+                self.control
+                    .serve(&mut world, &mut mission, &mut self.attendance, options.seed, episode)?;
             }
             let tick_time = tick_started.elapsed();
             self.stepping_time += tick_time;
@@ -394,6 +422,57 @@ where
             }
         }
         unreachable!("the tick counter is unbounded")
+    }
+
+    /// At an episode's start: robots away for silence from an earlier episode stay out (the
+    /// others take the same formation for them), the failed and removed ones are in again.
+    fn start_team(&mut self, world: &mut World, mission: &mut Mission) {
+        self.attendance.new_episode();
+        let present: Vec<bool> = (0..world.n_agents())
+            .map(|r| self.attendance.away(r).is_none())
+            .collect();
+        if present.iter().filter(|&&p| p).count() < formation_protocol::MIN_AGENTS {
+            (0..world.n_agents()).for_each(|r| self.attendance.set_away(r, None));
+            return;
+        }
+        mission.start_with(world, &present);
+    }
+
+    /// After the step of `tick`: a controller that failed at this tick leaves the formation;
+    /// each robot's round goes to the attendance, which sends a robot silent for 10 ticks
+    /// out and brings one away for silence back after 5 answers. A departure that would leave
+    /// fewer than 3 robots in is not made (it is asked again next tick).
+    fn call_the_roll(&mut self, world: &mut World, mission: &mut Mission, reality: &Reality, tick: u32) {
+        if let Some(failure) = reality.failure().filter(|f| f.tick == tick)
+            && self.attendance.away(failure.agent).is_none()
+            && mission.leave(world, failure.agent).is_ok()
+        {
+            self.attendance.set_away(failure.agent, Some(Away::Failed));
+        }
+        for (agent, settled) in self.round.settled().iter().enumerate() {
+            let heard = match settled {
+                Settled::OnTime | Settled::Late => Heard::Answered,
+                Settled::Missed => Heard::Silent,
+                Settled::Lost => Heard::Lost,
+            };
+            match self.attendance.record(agent, heard) {
+                Some(Call::Leave) if mission.leave(world, agent).is_ok() => {
+                    eprintln!(
+                        "sim: robot {agent} silent for 10 ticks: out of the formation from tick {}",
+                        world.steps
+                    );
+                    self.attendance.set_away(agent, Some(Away::Silent));
+                }
+                Some(Call::Return) if mission.rejoin(world, agent).is_ok() => {
+                    eprintln!(
+                        "sim: robot {agent} answered 5 ticks in a row: back in the formation from tick {}",
+                        world.steps
+                    );
+                    self.attendance.set_away(agent, None);
+                }
+                _ => {}
+            }
+        }
     }
 
     /// Closes an episode stopped by a signal: an outcome reached on its last tick stands (a

@@ -232,6 +232,8 @@ mod tests {
                 reforms: 0,
                 mean_reform_ticks: None,
                 reform_ticks_sum: 0,
+                departures: 0,
+                returns: 0,
                 wall_s: f64::from(i),
             })
             .collect();

@@ -2,6 +2,7 @@
 //! command streams and their shared wake-up, the state stream, and the critic's progress.
 
 use anyhow::{Context, Result};
+use formation_core::mission::NO_SLOT;
 use formation_core::reality::Reality;
 use formation_core::task::Outcome;
 use formation_core::world::World;
@@ -158,6 +159,7 @@ impl<S: Service> SimPorts<S> {
         msg.missed = transition.missed;
         msg.sequence = sequence;
         msg.observation_lost = 0;
+        msg.present = 0;
         for (agent, pose) in world.poses.iter().enumerate() {
             msg.poses[agent] = [pose.x as f32, pose.y as f32, pose.theta as f32];
             msg.applied[agent] = [told.applied[agent].0 as f32, told.applied[agent].1 as f32];
@@ -172,7 +174,9 @@ impl<S: Service> SimPorts<S> {
             msg.observation_lost |= u64::from(told.lost[agent]) << agent;
             msg.desired[agent] = world.desired[agent].map(|d| d as f32);
             msg.slots[agent] = world.slots[agent].map(|d| d as f32);
-            msg.slot[agent] = world.slot_of[agent] as u32;
+            let slot = world.slot_of[agent];
+            msg.slot[agent] = if slot == NO_SLOT { SLOT_NONE } else { slot as u32 };
+            msg.present |= u64::from(slot != NO_SLOT) << agent;
         }
         msg.goal = world.goal.map(|g| g as f32);
         let copy = keep_copy.then_some(*msg);

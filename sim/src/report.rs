@@ -34,7 +34,8 @@ pub struct EpisodeRecord {
     pub lost_commands: u64,
     /// Observations not delivered (`[reality]`'s `observation_loss`).
     pub lost_observations: u64,
-    /// Shape changes applied in the episode (the mission planner's slot reassignments).
+    /// The mission planner's slot reassignments in the episode: shape changes, goal moves and
+    /// team changes.
     pub reconfigurations: u32,
     /// Changes after which the swarm re-formed (every observed edge within eps_form for 5
     /// consecutive ticks, or held to a success).
@@ -44,6 +45,10 @@ pub struct EpisodeRecord {
     /// Sum of those ticks (not written: the run's mean weighs every change alike).
     #[serde(skip)]
     pub reform_ticks_sum: u64,
+    /// Robots that left the formation in the episode.
+    pub departures: u32,
+    /// Robots that came back into the formation in the episode.
+    pub returns: u32,
     /// Wall-clock seconds since the run started, at the episode's end.
     pub wall_s: f64,
 }
@@ -116,6 +121,8 @@ pub fn fill_episode_figures(summary: &mut Summary, records: &[EpisodeRecord]) {
         (!successes.is_empty()).then(|| successes.iter().sum::<f64>() / successes.len() as f64);
     summary.reconfigurations = finished.iter().map(|r| u64::from(r.reconfigurations)).sum();
     summary.reforms = finished.iter().map(|r| u64::from(r.reforms)).sum();
+    summary.departures = finished.iter().map(|r| u64::from(r.departures)).sum();
+    summary.returns = finished.iter().map(|r| u64::from(r.returns)).sum();
     let reform_ticks: u64 = finished.iter().map(|r| r.reform_ticks_sum).sum();
     summary.mean_reform_ticks = (summary.reforms > 0).then(|| reform_ticks as f64 / summary.reforms as f64);
 }

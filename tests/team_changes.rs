@@ -1,0 +1,87 @@
+//! A robot lost on the way (issue #29, item 4): a real multi-process run in which one robot's
+//! process is killed mid-run with `--restart off`; the sim takes it out of the formation after
+//! 10 silent ticks and the others re-form the same formation for N - 1 and reach the goal.
+
+use std::time::Duration;
+
+use formation_swarm::{announced, assert_clean, pid_of, run_id_of, run_swarm_with, scratch_dir};
+
+/// `episodes.csv` of `run_dir`: the header's columns and the rows.
+fn episodes(run_dir: &std::path::Path) -> (Vec<String>, Vec<Vec<String>>) {
+    let text = std::fs::read_to_string(run_dir.join("episodes.csv")).expect("episodes.csv");
+    let mut lines = text.lines();
+    let header = lines.next().expect("header").split(',').map(str::to_string).collect();
+    let rows = lines.map(|l| l.split(',').map(str::to_string).collect()).collect();
+    (header, rows)
+}
+
+#[test]
+fn a_robot_killed_mid_run_under_restart_off_leaves_and_the_rest_re_form_and_succeed() {
+    let dir = scratch_dir("team-robot-killed");
+    std::fs::create_dir_all(&dir).expect("dir");
+    // A dead robot brakes and stands: an obstacle the others must keep clear of.
+    let config = dir.join("stop.toml");
+    std::fs::write(&config, "[reality]\ndead_robot = \"stop\"\n").expect("write");
+    let run_dir = dir.join("run");
+    let log = run_dir.with_extension("log");
+    let args = [
+        "6",
+        "--scripted",
+        "all",
+        "--mode",
+        "eval",
+        "--episodes",
+        "120",
+        "--seed",
+        "1000",
+        "--restart",
+        "off",
+        "--viewer",
+        "off",
+        "--config",
+        config.to_str().expect("utf8"),
+    ];
+    let run = run_swarm_with(&args, &run_dir, Duration::from_secs(300), |_| {
+        let run_id = run_id_of(&log);
+        // Killed once the swarm is under way (episodes 0..=19 played).
+        announced(&run_dir.join("episodes.csv"), "20 episodes", |line| {
+            line.starts_with("19,").then_some(())
+        });
+        let pid = pid_of(&run_id, "--agent 4").expect("robot 4 runs");
+        // SAFETY: kill(2) on a pid of our own run.
+        unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+    })
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "{}", run.output);
+    let (header, rows) = episodes(&run_dir);
+    assert_eq!(rows.len(), 120);
+    let column = |name: &str| header.iter().position(|h| h == name).expect(name);
+    let count = |row: &Vec<String>, name: &str| row[column(name)].parse::<u64>().expect(name);
+    // Robot 4 left once, never came back; the episodes after start without it.
+    let left_in: Vec<usize> = (0..rows.len()).filter(|&e| count(&rows[e], "departures") > 0).collect();
+    assert_eq!(left_in.len(), 1, "one departure: {left_in:?}");
+    let left_in = left_in[0];
+    assert!(left_in >= 20, "no departure before the kill: {left_in}");
+    assert_eq!(count(&rows[left_in], "departures"), 1);
+    assert!(rows.iter().all(|row| count(row, "returns") == 0));
+    // Its departure reassigned the slots of the five left (one reconfiguration, re-formed).
+    assert!(count(&rows[left_in], "reconfigurations") >= 1);
+    let sim_log = std::fs::read_to_string(run_dir.join("logs/sim.log")).expect("sim log");
+    let out: Vec<&str> = sim_log.lines().filter(|l| l.contains("out of the formation")).collect();
+    assert_eq!(out.len(), 1, "{out:?}");
+    assert!(out[0].contains("robot 4 silent for 10 ticks"), "{out:?}");
+    // The five left re-form and reach the goal, from the departure on.
+    let after = &rows[left_in..];
+    let successes = after.iter().filter(|row| row[column("outcome")] == "success").count();
+    assert!(
+        successes as f64 >= 0.9 * after.len() as f64,
+        "{successes} of {} episodes from the departure on succeeded",
+        after.len()
+    );
+    assert!(after.len() >= 50, "killed too late: {left_in}");
+    let summary = run.summary().expect("summary");
+    assert_eq!(summary["departures"], serde_json::json!(1), "{summary}");
+    assert_eq!(summary["returns"], serde_json::json!(0), "{summary}");
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
