@@ -74,9 +74,15 @@ fn saved_recording_holds_the_world_and_the_series() {
             "world/trails",
             "plots/formation/goal_distance",
             "plots/formation/edge_error/e01",
+            "world/formation/target",
+            "world/formation/assignment",
         ] {
             assert!(text.contains(entity), "{entity} missing from the recording:\n{text}");
         }
+        assert!(
+            !text.contains("world/formation/old"),
+            "no formation changed, none fades:\n{text}"
+        );
         let shot = run.run_dir.join("shot.png");
         let render = Command::new("rerun")
             .args(["--headless", "--window-size", "1280x800", "--screenshot-to"])
@@ -92,6 +98,63 @@ fn saved_recording_holds_the_world_and_the_series() {
             }
             _ => skip_or_fail("the headless viewer could not render here (needs mesa-vulkan-drivers)"),
         }
+    }
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+/// A line that becomes a ring on the way (`configs/line-to-ring.toml`): the recording draws the
+/// formation in force, each robot's line to its slot, and the line it replaced, fading out and
+/// then cleared.
+#[test]
+fn a_formation_change_is_drawn_with_the_replaced_formation_fading_out() {
+    let dir = scratch_dir("view-change");
+    let config = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/line-to-ring.toml");
+    let run = run_swarm(
+        &[
+            "8",
+            "--scripted",
+            "all",
+            "--mode",
+            "eval",
+            "--episodes",
+            "1",
+            "--seed",
+            "14",
+            "--viewer",
+            "save",
+            "--config",
+            config.to_str().expect("utf-8 path"),
+        ],
+        &dir.join("run"),
+        Duration::from_secs(120),
+    )
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "{}", run.output);
+    let summary = run.summary().expect("summary.json");
+    assert_eq!(summary["reconfigurations"], serde_json::json!(1), "{summary}");
+    if !rerun_available() {
+        skip_or_fail("no `rerun` CLI on PATH, so the recording was not read (pip install rerun-sdk==0.36.3)");
+    } else {
+        let recording = run.run_dir.join("recording.rrd");
+        let print = Command::new("rerun")
+            .args(["rrd", "print"])
+            .arg(&recording)
+            .output()
+            .expect("rerun rrd print");
+        assert!(print.status.success(), "{}", String::from_utf8_lossy(&print.stderr));
+        let text = String::from_utf8_lossy(&print.stdout);
+        let chunks = |entity: &str, column: &str| {
+            text.lines()
+                .filter(|line| line.contains(&format!("- {entity} - ")) && line.contains(column))
+                .count()
+        };
+        for entity in ["/world/formation/target", "/world/formation/assignment"] {
+            assert!(chunks(entity, "LineStrips2D:strips") > 0, "{entity} missing:\n{text}");
+        }
+        // The replaced line is drawn after the change, then cleared once faded.
+        assert!(chunks("/world/formation/old", "LineStrips2D:colors") > 0, "{text}");
+        assert!(chunks("/world/formation/old", "Clear:is_recursive") > 0, "{text}");
     }
     assert_clean(&run);
     std::fs::remove_dir_all(&dir).expect("cleanup");

@@ -1,11 +1,15 @@
 //! The live view of the world in Rerun, fed from the tick loop through a bounded channel so
 //! logging never waits on the physics (a full channel drops the state instead of blocking).
 //!
-//! Entities: `world/robots` (poses, one colour each, labelled up to 24 robots),
-//! `world/headings`, `world/edges` (coloured by error), `world/goal`, `world/slots` (the goal
-//! formation), `world/centroid`, `world/trails`; series `plots/formation/edge_error/*` (one per
-//! edge up to 8 robots, else mean and max), `plots/formation/goal_distance`, `plots/reward`.
-//! Rerun's 2-D views are y-down, so y is flipped when logging.
+//! Entities: `world/robots` (poses, one colour each, labelled with the slot each holds up to 24
+//! robots: "robot i → slot s" up to 6, "i→s" up to 24), `world/headings`, `world/edges`
+//! (coloured by error), `world/goal`, `world/formation/target` (the formation in force at the
+//! goal: a ring around each slot and its tour through the slots), `world/formation/assignment`
+//! (a thin light line from each robot to its slot), `world/formation/old` (after
+//! a change of formation, the one it replaced, in grey fading out over [`FADE_S`] seconds of
+//! simulated time), `world/centroid`, `world/trails`; series `plots/formation/edge_error/*`
+//! (one per observed edge up to 8 robots, else mean and max), `plots/formation/goal_distance`,
+//! `plots/reward`. Rerun's 2-D views are y-down, so y is flipped when logging.
 
 use std::collections::VecDeque;
 use std::path::Path;
@@ -24,6 +28,18 @@ use crate::lockstep::StateTap;
 
 /// States the view may fall behind by before the sim starts dropping them.
 const TAP_CAPACITY: usize = 4096;
+/// Simulated seconds over which a replaced formation fades out.
+pub const FADE_S: f64 = 3.0;
+/// Radius of the ring drawn around each slot, metres.
+const SLOT_RING_M: f32 = 0.18;
+/// Sides of the polygon that draws a slot's ring.
+const RING_SIDES: usize = 20;
+/// The formation in force.
+const TARGET_COLOUR: [u8; 3] = [0, 140, 70];
+/// The formation replaced, before its fading.
+const OLD_COLOUR: [u8; 3] = [110, 110, 110];
+/// The lines from the robots to their slots.
+const ASSIGNMENT_COLOUR: [u8; 3] = [225, 225, 225];
 
 /// The default layout: the world beside the formation and training curves.
 pub fn blueprint() -> Blueprint {
@@ -102,6 +118,9 @@ pub fn start(
         trails: vec![VecDeque::with_capacity(trail_ticks); n_agents],
         trail_ticks,
         ticks: 0,
+        fade_ticks: fade_ticks(env.dt_s),
+        target: None,
+        old: None,
     };
     let handle = std::thread::Builder::new()
         .name("rerun-world".into())
@@ -117,6 +136,81 @@ struct WorldView {
     trails: Vec<VecDeque<[f32; 2]>>,
     trail_ticks: usize,
     ticks: i64,
+    /// Ticks a replaced formation takes to fade out.
+    fade_ticks: i64,
+    /// The formation in force at the last state logged.
+    target: Option<Target>,
+    /// The formation it replaced and the view tick of the change, while it fades.
+    old: Option<(Target, i64)>,
+}
+
+/// Ticks of `dt_s` seconds in [`FADE_S`] (at least one).
+fn fade_ticks(dt_s: f64) -> i64 {
+    ((FADE_S / dt_s).ceil() as i64).max(1)
+}
+
+/// A formation as a state carries it: the episode, the goal, and each robot's slot and offset.
+#[derive(Debug, Clone, PartialEq)]
+struct Target {
+    episode: u32,
+    goal: [f32; 2],
+    slot_of: Vec<u32>,
+    offsets: Vec<[f32; 2]>,
+}
+
+impl Target {
+    fn of(state: &StateMsg) -> Self {
+        let n = state.n_agents as usize;
+        Self {
+            episode: state.header.episode,
+            goal: state.goal,
+            slot_of: state.slot[..n].to_vec(),
+            offsets: state.slots[..n].to_vec(),
+        }
+    }
+
+    /// Whether robot `robot` holds a slot (a robot out of the formation holds none).
+    fn holds_slot(&self, robot: usize) -> bool {
+        (self.slot_of[robot] as usize) < self.slot_of.len()
+    }
+
+    /// Robot `robot`'s place at the goal, y flipped.
+    fn place(&self, robot: usize) -> [f32; 2] {
+        flip(
+            self.goal[0] + self.offsets[robot][0],
+            self.goal[1] + self.offsets[robot][1],
+        )
+    }
+
+    /// The places of the slots held, in slot order (y flipped).
+    fn places(&self) -> Vec<[f32; 2]> {
+        let mut held: Vec<(u32, [f32; 2])> = (0..self.slot_of.len())
+            .filter(|&r| self.holds_slot(r))
+            .map(|r| (self.slot_of[r], self.place(r)))
+            .collect();
+        held.sort_unstable_by_key(|&(slot, _)| slot);
+        held.into_iter().map(|(_, place)| place).collect()
+    }
+
+    /// The formation's outline: a ring around each slot, then its tour through the slots.
+    fn outline(&self) -> Vec<Vec<[f32; 2]>> {
+        let places = self.places();
+        let mut strips: Vec<Vec<[f32; 2]>> = places
+            .iter()
+            .map(|c| {
+                (0..=RING_SIDES)
+                    .map(|k| {
+                        let a = std::f32::consts::TAU * k as f32 / RING_SIDES as f32;
+                        [c[0] + SLOT_RING_M * a.cos(), c[1] + SLOT_RING_M * a.sin()]
+                    })
+                    .collect()
+            })
+            .collect();
+        let mut tour = places.clone();
+        tour.extend(places.first());
+        strips.push(tour);
+        strips
+    }
 }
 
 impl WorldView {
@@ -166,7 +260,63 @@ impl WorldView {
         let colours: Vec<[u8; 3]> = (0..n).map(robot_colour).collect();
         self.log_robots(state, &positions, &colours)?;
         self.log_edges(state, &positions)?;
+        self.log_formations(state, &positions)?;
         self.log_goal_and_trails(state, &positions, colours)
+    }
+
+    /// The formation in force (slot rings and tour), each robot's line to its slot, and the
+    /// formation a change replaced, fading out over [`FADE_S`].
+    fn log_formations(&mut self, state: &StateMsg, positions: &[[f32; 2]]) -> Result<()> {
+        let target = Target::of(state);
+        let new_episode =
+            state.header.has(FLAG_EPISODE_START) || self.target.as_ref().is_none_or(|t| t.episode != target.episode);
+        if new_episode {
+            if self.old.take().is_some() {
+                self.stream.log("world/formation/old", &rerun::Clear::flat())?;
+            }
+        } else if let Some(previous) = self.target.take_if(|t| *t != target) {
+            self.old = Some((previous, self.ticks));
+        }
+        if self.target.as_ref() != Some(&target) {
+            let outline = target.outline();
+            let tour = outline.len() - 1;
+            self.stream.log(
+                "world/formation/target",
+                &rerun::LineStrips2D::new(outline)
+                    .with_colors((0..=tour).map(|k| with_alpha(TARGET_COLOUR, if k < tour { 255 } else { 110 })))
+                    .with_radii((0..=tour).map(|k| if k < tour { 0.022 } else { 0.01 }))
+                    .with_draw_order(5.0),
+            )?;
+        }
+        self.stream.log(
+            "world/formation/assignment",
+            &rerun::LineStrips2D::new(
+                (0..positions.len())
+                    .filter(|&r| target.holds_slot(r))
+                    .map(|r| vec![positions[r], target.place(r)]),
+            )
+            .with_colors([with_alpha(ASSIGNMENT_COLOUR, 150)])
+            .with_radii([0.012])
+            .with_draw_order(4.0),
+        )?;
+        self.target = Some(target);
+        if let Some((old, changed)) = &self.old {
+            let age = self.ticks - changed;
+            if age >= self.fade_ticks {
+                self.old = None;
+                self.stream.log("world/formation/old", &rerun::Clear::flat())?;
+            } else {
+                let alpha = (220.0 * (1.0 - age as f32 / self.fade_ticks as f32)) as u8;
+                self.stream.log(
+                    "world/formation/old",
+                    &rerun::LineStrips2D::new(old.outline())
+                        .with_colors([with_alpha(OLD_COLOUR, alpha)])
+                        .with_radii([0.015])
+                        .with_draw_order(3.0),
+                )?;
+            }
+        }
+        Ok(())
     }
 
     /// The robots (labelled while the picture stays readable) and their headings.
@@ -175,10 +325,18 @@ impl WorldView {
         let robots = rerun::Points2D::new(positions.iter().copied())
             .with_radii([0.12])
             .with_colors(colours.iter().copied());
-        // Labels drown a large swarm's picture: names up to 6 robots, bare numbers up to 24.
+        // Labels drown a large swarm's picture: each robot's slot in words up to 6 robots, in
+        // numbers up to 24 (a robot out of the formation holds none).
+        let slot = |i: usize| (state.slot[i] < state.n_agents).then_some(state.slot[i]);
         let robots = match n {
-            0..=6 => robots.with_labels((0..n).map(|i| format!("robot {i}"))),
-            7..=24 => robots.with_labels((0..n).map(|i| i.to_string())),
+            0..=6 => robots.with_labels((0..n).map(|i| match slot(i) {
+                Some(s) => format!("robot {i} → slot {s}"),
+                None => format!("robot {i}"),
+            })),
+            7..=24 => robots.with_labels((0..n).map(|i| match slot(i) {
+                Some(s) => format!("{i}→{s}"),
+                None => i.to_string(),
+            })),
             _ => robots,
         };
         self.stream.log("world/robots", &robots)?;
@@ -236,25 +394,14 @@ impl WorldView {
             "world/edges",
             &rerun::LineStrips2D::new(strips)
                 .with_colors(edge_colours)
-                .with_radii([0.03]),
+                .with_radii([0.02]),
         )?;
         Ok(())
     }
 
-    /// The goal formation's slots, the goal, the centroid, the trails and the task curves.
+    /// The goal, the centroid, the trails and the task curves.
     fn log_goal_and_trails(&mut self, state: &StateMsg, positions: &[[f32; 2]], colours: Vec<[u8; 3]>) -> Result<()> {
         let n = positions.len();
-        // The goal formation: where each robot's slot is (the start shape moved to the goal).
-        self.stream.log(
-            "world/slots",
-            &rerun::Points2D::new(
-                state.slots[..n]
-                    .iter()
-                    .map(|s| flip(state.goal[0] + s[0], state.goal[1] + s[1])),
-            )
-            .with_radii([0.05])
-            .with_colors([[170, 170, 170]]),
-        )?;
         let centroid = positions.iter().fold([0.0f32; 2], |acc, p| {
             [acc[0] + p[0] / n as f32, acc[1] + p[1] / n as f32]
         });
@@ -298,4 +445,9 @@ impl WorldView {
 /// Rerun's 2-D views are y-down: the world's y goes up.
 fn flip(x: f32, y: f32) -> [f32; 2] {
     [x, -y]
+}
+
+/// `colour` with opacity `alpha`.
+fn with_alpha([r, g, b]: [u8; 3], alpha: u8) -> rerun::Color {
+    rerun::Color::from_unmultiplied_rgba(r, g, b, alpha)
 }
