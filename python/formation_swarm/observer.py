@@ -39,6 +39,10 @@ class WorldState:
     #: Whether each robot is in the formation (out: its controller failed, it was removed, or
     #: it has been silent for 10 ticks).
     present: List[bool]
+    #: The slot map: the slot each robot holds in the formation in force (robot i in slot i
+    #: until the mission planner reassigns them at a change of formation); ``None`` for a robot
+    #: out of the formation. Robot i observes the robots in the next two slots.
+    slot: List[Optional[int]]
     #: The raw payload copy.
     raw: wire.State = dataclasses.field(repr=False, compare=False)
 
@@ -71,8 +75,26 @@ class WorldState:
             slots=[tuple(raw.slots[i]) for i in range(n)],
             goal=(raw.goal[0], raw.goal[1]),
             present=[bool(raw.present >> i & 1) for i in range(n)],
+            slot=[int(raw.slot[i]) if raw.slot[i] < n else None for i in range(n)],
             raw=raw,
         )
+
+    @property
+    def robot_in_slot(self) -> List[int]:
+        """The inverse of :attr:`slot`: the robot holding each slot, slot by slot."""
+        held = sorted((s, robot) for robot, s in enumerate(self.slot) if s is not None)
+        return [robot for _, robot in held]
+
+    @property
+    def observed(self) -> List[Tuple[int, int]]:
+        """The two robots each robot observes: those in the next two slots of the formation
+        (modulo the robots in it); a robot out of the formation observes itself."""
+        holders = self.robot_in_slot
+        m = len(holders)
+        return [
+            (robot, robot) if s is None else (holders[(s + 1) % m], holders[(s + 2) % m])
+            for robot, s in enumerate(self.slot)
+        ]
 
 
 class Observer:
