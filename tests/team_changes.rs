@@ -85,3 +85,74 @@ fn a_robot_killed_mid_run_under_restart_off_leaves_and_the_rest_re_form_and_succ
     assert_clean(&run);
     std::fs::remove_dir_all(&dir).expect("cleanup");
 }
+
+#[test]
+fn a_robot_silent_for_a_while_leaves_then_comes_back_after_five_answers() {
+    let dir = scratch_dir("team-robot-paused");
+    let run_dir = dir.join("run");
+    let log = run_dir.with_extension("log");
+    let args = [
+        "6",
+        "--scripted",
+        "all",
+        "--mode",
+        "eval",
+        "--episodes",
+        "400",
+        "--seed",
+        "1000",
+        "--viewer",
+        "off",
+    ];
+    let run = run_swarm_with(&args, &run_dir, Duration::from_secs(300), |_| {
+        let run_id = run_id_of(&log);
+        announced(&run_dir.join("episodes.csv"), "20 episodes", |line| {
+            line.starts_with("19,").then_some(())
+        });
+        // Robot 4 falls silent (stopped, as a robot out of radio range), then answers again.
+        let pid = pid_of(&run_id, "--agent 4").expect("robot 4 runs");
+        // SAFETY: kill(2) on a pid of our own run.
+        unsafe { libc::kill(pid as i32, libc::SIGSTOP) };
+        let sim_log = run_dir.join("logs/sim.log");
+        announced(&sim_log, "robot 4 out", |line| {
+            line.contains("robot 4 silent for 10 ticks").then_some(())
+        });
+        // SAFETY: as above.
+        unsafe { libc::kill(pid as i32, libc::SIGCONT) };
+    })
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "{}", run.output);
+    let sim_log = std::fs::read_to_string(run_dir.join("logs/sim.log")).expect("sim log");
+    let lines = |text: &str| sim_log.lines().filter(|l| l.contains(text)).count();
+    assert_eq!(
+        lines("robot 4 silent for 10 ticks: out of the formation"),
+        1,
+        "{sim_log}"
+    );
+    assert_eq!(
+        lines("robot 4 answered 5 ticks in a row: back in the formation"),
+        1,
+        "{sim_log}"
+    );
+    let summary = run.summary().expect("summary");
+    assert_eq!(summary["departures"], serde_json::json!(1), "{summary}");
+    assert_eq!(summary["returns"], serde_json::json!(1), "{summary}");
+    // With all six in again the swarm succeeds as before.
+    let (header, rows) = episodes(&run_dir);
+    let outcome = header.iter().position(|h| h == "outcome").expect("outcome");
+    let returns = header.iter().position(|h| h == "returns").expect("returns");
+    let back_in = rows
+        .iter()
+        .position(|row| row[returns] == "1")
+        .expect("the return's episode");
+    let after = &rows[back_in + 1..];
+    assert!(after.len() >= 50, "came back too late: episode {back_in}");
+    let successes = after.iter().filter(|row| row[outcome] == "success").count();
+    assert!(
+        successes as f64 >= 0.9 * after.len() as f64,
+        "{successes} of {}",
+        after.len()
+    );
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
