@@ -3,7 +3,10 @@
 
 use std::time::Duration;
 
-use formation_swarm::{assert_clean, run_swarm, scratch_dir};
+use formation_core::config::{LearnConfig, RunConfig};
+use formation_critic::selection::Selector;
+use formation_model::checkpoint;
+use formation_swarm::{assert_clean, repo_root, run_swarm, scratch_dir};
 
 #[test]
 fn eight_scripted_robots_re_form_after_two_shape_changes_per_episode_and_reach_the_goal() {
@@ -61,6 +64,74 @@ fn eight_scripted_robots_re_form_after_two_shape_changes_per_episode_and_reach_t
             .filter(|r| r[at_outcome] == "success")
             .all(|r| r[at_changes] == "2"),
         "{csv}"
+    );
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+/// Model selection plays episodes with changes as the sim does: an eval run of the shipped
+/// model from the selection seed, two shape changes and one controller failure per episode,
+/// measures the score the critic selects checkpoints by, episode for episode (every step count
+/// must agree: the changes at their ticks, no success before the last, the longer time limit,
+/// the failed robot out of the formation and standing still).
+#[test]
+fn an_eval_run_with_changes_and_a_failure_measures_the_selection_score() {
+    let dir = scratch_dir("changes-selection");
+    std::fs::create_dir_all(&dir).expect("dir");
+    let text = "[env]\nshape_changes = 2\n\n[reality]\ncontroller_failure = 1.0\ndead_robot = \"stop\"\n";
+    let config_path = dir.join("changes.toml");
+    std::fs::write(&config_path, text).expect("write");
+    let config = RunConfig::from_toml_str(text).expect("valid");
+    let model_path = repo_root().join("models/formation.safetensors");
+    let episodes = 20;
+    let learn = LearnConfig {
+        selection_episodes: episodes,
+        ..LearnConfig::default()
+    };
+    let seed = learn.selection_seed.to_string();
+    let run = run_swarm(
+        &[
+            "6",
+            "--mode",
+            "eval",
+            "--checkpoint",
+            model_path.to_str().expect("utf-8 path"),
+            "--config",
+            config_path.to_str().expect("utf-8 path"),
+            "--episodes",
+            &episodes.to_string(),
+            "--seed",
+            &seed,
+            "--viewer",
+            "off",
+        ],
+        &dir.join("run"),
+        Duration::from_secs(300),
+    )
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "launcher failed:\n{}", run.output);
+    let summary = run.summary().expect("summary.json");
+    assert_eq!(summary["departures"], serde_json::json!(episodes), "{summary}");
+    let csv = std::fs::read_to_string(run.run_dir.join("episodes.csv")).expect("episodes.csv");
+    // episode,outcome,steps,...
+    let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|line| line.split(',').collect()).collect();
+    assert_eq!(rows.len(), episodes);
+    let successes = rows.iter().filter(|row| row[1] == "success").count();
+    let steps: u64 = rows.iter().map(|row| row[2].parse::<u64>().expect("steps")).sum();
+
+    let model = checkpoint::load(&model_path).expect("model");
+    let actors = [model.actor_weights(0).expect("weights")];
+    let scored = Selector::new(&config.env, &learn, &config.reality, &[6])
+        .score(&actors, &model.meta.actor)
+        .expect("score");
+    assert_eq!(
+        scored.sizes[0].success,
+        successes as f64 / episodes as f64,
+        "{scored:?}"
+    );
+    assert!(
+        (scored.sizes[0].mean_steps - steps as f64 / episodes as f64).abs() < 1e-9,
+        "{scored:?} against {steps} steps in the run"
     );
     assert_clean(&run);
     std::fs::remove_dir_all(&dir).expect("cleanup");

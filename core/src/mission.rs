@@ -188,6 +188,28 @@ pub fn fits_arena(world: &World, goal: [f64; 2], offsets: &[[f64; 2]]) -> bool {
     })
 }
 
+/// The result of the `steps`-th step under the rule that success means holding the last
+/// formation: while a change is still to come (`change_to_come`, the change of this very tick
+/// included), a success (C3) is not the end of the episode; it scores `r_edge` (C1 holds) and
+/// the episode goes on, or times out at the limit (`env.max_steps`, the episode's). The live
+/// episode ([`Mission::judge`]) and HER's relabelled rewards both apply it.
+pub fn success_after_last_change(
+    mut result: StepResult,
+    change_to_come: bool,
+    steps: u32,
+    env: &EnvConfig,
+) -> StepResult {
+    if result.outcome == Outcome::Success && change_to_come {
+        result.reward = env.r_edge;
+        result.outcome = if steps >= env.max_steps {
+            Outcome::Timeout
+        } else {
+            Outcome::Running
+        };
+    }
+    result
+}
+
 /// Turns `offsets` about the goal, by the smallest multiple of [`CLEARANCE_STEP_RAD`] either
 /// way, until no slot lies within `edge_min_m` of a robot out of the formation (one that
 /// stopped is an obstacle: a robot sent to a slot beside it would be pushed off, or run into
@@ -353,10 +375,17 @@ pub struct Mission {
     reform_ticks: Vec<u32>,
 }
 
+/// The `seed` of [`Mission::new`] for episode `episode` of a run seeded with `run_seed`: the
+/// sim's and the model selection's, so both redraw the same formations at a team change.
+pub fn team_seed(run_seed: u64, episode: u32) -> u64 {
+    run_seed ^ (u64::from(episode) << 32)
+}
+
 impl Mission {
     /// The mission of an episode that starts in formation `start` (what `spec` says, one slot
     /// per robot, robot i in slot i) with these shape changes (in tick order); `seed` (the
-    /// run's and the episode's) seeds the formations redrawn when the team changes.
+    /// run's and the episode's, [`team_seed`]) seeds the formations redrawn when the team
+    /// changes.
     pub fn new(changes: Vec<ShapeChange>, start: &[[f64; 2]], spec: FormationSpec, seed: u64) -> Self {
         Self {
             changes,
@@ -569,18 +598,9 @@ impl Mission {
     }
 
     /// The step's result under the mission: a success (C3) before the last change is not the
-    /// end of the episode; it scores `r_edge` (C1 holds) and the episode goes on, or times out
-    /// at the limit.
-    pub fn judge(&self, mut result: StepResult, steps: u32, env: &EnvConfig) -> StepResult {
-        if result.outcome == Outcome::Success && self.next < self.changes.len() {
-            result.reward = env.r_edge;
-            result.outcome = if steps >= env.max_steps {
-                Outcome::Timeout
-            } else {
-                Outcome::Running
-            };
-        }
-        result
+    /// end of the episode ([`success_after_last_change`]).
+    pub fn judge(&self, result: StepResult, steps: u32, env: &EnvConfig) -> StepResult {
+        success_after_last_change(result, self.next < self.changes.len(), steps, env)
     }
 
     /// Slot reassignments so far this episode: shape changes, goal moves and team changes.

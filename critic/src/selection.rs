@@ -9,8 +9,11 @@
 //! acts through the agents' own [`FrozenActor`]; actions become commands as in an agent (scaled
 //! to the limits, sent as f32) and the world steps as in the sim, through the sim's
 //! [`Reality`] as a lockstep sim applies it (what a robot is told, lost observations and
-//! commands, the motors). So the score is what a lockstep swarm run with that seed measures,
-//! episode for episode.
+//! commands, the motors), and with the sim's [`Mission`]: the episode's shape changes at their
+//! ticks, its time limit ([`EnvConfig::episode_steps`], the world's), success only once the last
+//! change has come ([`Mission::judge`]), and a robot whose controller fails leaving the
+//! formation (the others re-form without it; it is commanded to stand still). So the score is what a lockstep swarm run with
+//! that seed measures, episode for episode.
 //!
 //! Not a batched candle forward pass over every window of a tick: that measured two to three
 //! times cheaper, but its sums round differently (up to 1e-5 per action), and that alone
@@ -19,6 +22,7 @@
 use anyhow::{Context, Result, ensure};
 use formation_core::config::{EnvConfig, LearnConfig};
 use formation_core::formation::Episodes;
+use formation_core::mission::{Mission, NO_SLOT, team_seed};
 use formation_core::observation::Layout;
 use formation_core::reality::{Command, Reality, RealityConfig};
 use formation_core::task::Outcome;
@@ -120,10 +124,11 @@ impl SuddenTurn {
     }
 }
 
-/// One selection episode: its world and reality, each robot's window, the commands in use and
-/// what it has added up.
+/// One selection episode: its world, mission and reality, each robot's window, the commands in
+/// use and what it has added up.
 struct Game {
     world: World,
+    mission: Mission,
     reality: Reality,
     layout: Layout,
     windows: Vec<ObservationHistory>,
@@ -137,10 +142,11 @@ struct Game {
 }
 
 impl Game {
-    fn new(world: World, reality: Reality, history: usize, layout: Layout) -> Self {
+    fn new(world: World, mission: Mission, reality: Reality, history: usize, layout: Layout) -> Self {
         let n = world.n_agents();
         let mut game = Self {
             world,
+            mission,
             reality,
             layout,
             windows: (0..n).map(|_| ObservationHistory::new(history, layout.dim())).collect(),
@@ -177,7 +183,9 @@ impl Game {
     /// One tick: each robot that was told answers with its action from its window (its own
     /// actor, or the shared one) scaled to (v, w) as an agent does and rounded to the f32 of the
     /// wire, but for a robot in a sudden turn; a lost answer leaves the command in use. The
-    /// motors act through the reality and the world clamps and integrates as in the sim.
+    /// motors act through the reality and the world clamps and integrates as in the sim; the
+    /// mission judges the step, changes the formation on schedule and takes a robot whose
+    /// controller failed at this tick out of the formation, as in the sim.
     fn step(
         &mut self,
         actors: &mut [FrozenActor],
@@ -196,12 +204,31 @@ impl Game {
                     self.in_use[agent] = answer;
                 }
             }
-            acting.push(self.reality.actuate(agent, step, self.in_use[agent], true));
+            // A robot out of the formation is commanded to stand still, as the sim commands it.
+            let command = if self.world.slot_of[agent] == NO_SLOT {
+                (0.0, 0.0)
+            } else {
+                self.in_use[agent]
+            };
+            acting.push(self.reality.actuate(agent, step, command, true));
         }
-        let result = self.world.step(acting);
+        let result = self
+            .mission
+            .judge(self.world.step(acting), self.world.steps, &self.world.env);
         self.outcome = result.outcome;
         self.formation_ticks += u32::from(result.conditions.in_formation);
+        // A change due at this tick reaches the observations told next.
+        self.mission.after_step(
+            &mut self.world,
+            result.conditions.in_formation,
+            self.outcome == Outcome::Running,
+        );
         if self.outcome == Outcome::Running {
+            // So does the team's change: a controller that failed at this tick leaves (not when
+            // fewer than three robots would stay, as in the sim).
+            if let Some(failure) = self.reality.failure().filter(|f| f.tick == step) {
+                let _refused_below_three = self.mission.leave(&mut self.world, failure.agent);
+            }
             self.tell();
         }
         Ok(())
@@ -249,9 +276,12 @@ pub fn play(
     let mut games: Vec<Game> = Episodes::new(n, env, episodes.seed)
         .take(episodes.count)
         .enumerate()
-        .map(|(episode, init)| {
+        .map(|(episode, mut init)| {
             let reality = Reality::new(episodes.reality, env, episodes.seed, episode as u64, n);
-            Game::new(World::new(env, init), reality, env.history, layout)
+            let changes = std::mem::take(&mut init.changes);
+            let team_seed = team_seed(episodes.seed, episode as u32);
+            let mission = Mission::new(changes, &init.slots, init.spec, team_seed);
+            Game::new(World::new(env, init), mission, reality, env.history, layout)
         })
         .collect();
     let mut acting = Vec::with_capacity(n);

@@ -203,3 +203,50 @@ fn under_a_reality_the_score_is_played_in_it_and_the_ideal_world_is_reported_bes
         scored.sizes[0]
     );
 }
+
+#[test]
+fn with_shape_changes_an_episode_is_played_through_its_changes_and_succeeds_only_after_the_last() {
+    let ideal = RealityConfig::default();
+    let env = EnvConfig {
+        shape_changes: 2,
+        ..EnvConfig::default()
+    };
+    let model = shipped_model();
+    let mut actors =
+        [FrozenActor::from_flat(&model.actor_weights(0).expect("weights"), &model.meta.actor).expect("actor")];
+    // Each episode's steps, from the running totals of the first k episodes.
+    let count = 6;
+    let mut totals = vec![0.0];
+    let mut last = None;
+    for k in 1..=count {
+        let scored = play(&env, 3, &held_out(k, &ideal), &mut actors, &model.meta.actor, None).expect("play");
+        totals.push(scored.mean_steps * k as f64);
+        last = Some(scored);
+    }
+    let scored = last.expect("played");
+    assert!(scored.success >= 0.8, "{scored:?}");
+    let schedules: Vec<_> = formation_core::formation::Episodes::new(3, &env, 1000)
+        .take(count)
+        .collect();
+    for (k, init) in schedules.iter().enumerate() {
+        let steps = (totals[k + 1] - totals[k]).round() as u32;
+        let last_change = init.changes.last().expect("two changes").tick;
+        // Success only after the last change; a timeout lasts the episode's longer limit.
+        assert!(
+            steps > last_change,
+            "episode {k}: {steps} steps, last change at {last_change}"
+        );
+        assert!(steps <= env.episode_steps(3), "episode {k}: {steps} steps");
+    }
+    // Without changes the same episodes end long before the changes would have come.
+    let plain = play(
+        &EnvConfig::default(),
+        3,
+        &held_out(count, &ideal),
+        &mut actors,
+        &model.meta.actor,
+        None,
+    )
+    .expect("play");
+    assert!(plain.mean_steps < scored.mean_steps, "{plain:?} vs {scored:?}");
+}

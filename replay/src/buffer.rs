@@ -83,6 +83,28 @@ impl Episode {
         }
     }
 
+    /// Tick `t` (t > 0) as the sim scored the transition into it: its poses and commands under
+    /// the formation in force at `t - 1` (a change's tick is scored under the old formation; the
+    /// new one reaches that tick's observations), with `goal`.
+    pub fn scored_scene(&self, t: usize, goal: [f64; 2]) -> Scene<'_> {
+        let tick = &self.ticks[t];
+        let formation = self.formation(t.saturating_sub(1));
+        Scene {
+            poses: &tick.poses,
+            commands: &tick.commands,
+            desired: &formation.desired,
+            observed: &formation.observed,
+            goal,
+            slots: &formation.slots,
+        }
+    }
+
+    /// True when a formation comes in force after tick `t` (a change at tick t + 1 or later):
+    /// until then a success does not end the episode.
+    pub fn changes_after(&self, t: usize) -> bool {
+        self.formations.last().is_some_and(|f| f.from_tick > t)
+    }
+
     /// The normalised action robot `agent` executed from tick `t` (t < T): its command
     /// applied into t + 1, as the actor's output would have been.
     pub fn action(&self, t: usize, agent: usize, env: &EnvConfig) -> [f32; ACTION_DIM] {

@@ -1,7 +1,9 @@
 //! Plays an episode in-process (no IPC) and records it as the critic's collector would
 //! assemble it from the streams: for tests, benchmarks and offline experiments.
 
+use formation_core::mission::Mission;
 use formation_core::physics::Pose;
+use formation_core::task::Outcome;
 use formation_core::world::World;
 use formation_protocol::ACTION_DIM;
 
@@ -38,15 +40,37 @@ fn formation(world: &World, from_tick: usize) -> Formation {
 }
 
 /// Plays `world` for at most `max_steps` steps with the normalised actions `act` picks for
-/// every robot, and records the episode as number `number` (one formation: the recorder plays
-/// no shape changes).
+/// every robot, and records the episode as number `number` (one formation: no shape changes).
 pub fn record_episode(
     number: u32,
+    world: World,
+    max_steps: u32,
+    act: impl FnMut(&World) -> Vec<[f32; ACTION_DIM]>,
+) -> Episode {
+    record(number, world, None, max_steps, act)
+}
+
+/// [`record_episode`] with the episode's `mission`, as the sim's tick loop plays it: each step
+/// judged by the mission (no success before the last change), its changes applied on schedule
+/// and recorded as the collector does, a new formation from the tick whose state carries it.
+pub fn record_mission_episode(
+    number: u32,
+    world: World,
+    mission: Mission,
+    max_steps: u32,
+    act: impl FnMut(&World) -> Vec<[f32; ACTION_DIM]>,
+) -> Episode {
+    record(number, world, Some(mission), max_steps, act)
+}
+
+fn record(
+    number: u32,
     mut world: World,
+    mut mission: Option<Mission>,
     max_steps: u32,
     mut act: impl FnMut(&World) -> Vec<[f32; ACTION_DIM]>,
 ) -> Episode {
-    let formations = vec![formation(&world, 0)];
+    let mut formations = vec![formation(&world, 0)];
     let mut ticks = vec![snapshot(&world, 0.0)];
     let mut terminal = false;
     for _ in 0..max_steps {
@@ -54,7 +78,14 @@ pub fn record_episode(
             .into_iter()
             .map(|a| world.env.command_from_action(a))
             .collect();
-        let result = world.step(&commands);
+        let mut result = world.step(&commands);
+        if let Some(mission) = &mut mission {
+            result = mission.judge(result, world.steps, &world.env);
+            let running = result.outcome == Outcome::Running;
+            if mission.after_step(&mut world, result.conditions.in_formation, running) {
+                formations.push(formation(&world, world.steps as usize));
+            }
+        }
         ticks.push(snapshot(&world, result.reward));
         if result.outcome.is_terminal() {
             terminal = true;

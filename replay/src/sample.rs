@@ -6,12 +6,16 @@
 //! too).
 //!
 //! HER recomputes the reward with the sim's own code ([`score`]) on the replay's
-//! [`formation_core::scene::Scene`]s; a relabelled observation is the one the robot was told,
-//! its goal and slot moved to the new goal ([`Observer::move_goal`]), so the sensor noise it
-//! was told with stays.
+//! [`formation_core::scene::Scene`]s, judged as the sim judges a step: under the formation in
+//! force when the transition was scored ([`Episode::scored_scene`]), with the episode's time
+//! limit ([`EnvConfig::episode_steps`]), and with success only once the episode's last
+//! formation is in force ([`success_after_last_change`]); a relabelled observation is the one
+//! the robot was told, its goal and slot moved to the new goal ([`Observer::move_goal`]), so
+//! the sensor noise it was told with stays.
 
 use formation_core::config::{CriticArchitecture, EnvConfig};
 use formation_core::features::CriticFeatures;
+use formation_core::mission::success_after_last_change;
 use formation_core::observation::Observer;
 use formation_core::task::score;
 use formation_protocol::ACTION_DIM;
@@ -112,6 +116,11 @@ impl Sampler {
         let total = buffer.transitions();
         let first = episodes.front()?;
         let n = first.n_agents();
+        // The episodes' time limit, as the sim's world has it.
+        let env = EnvConfig {
+            max_steps: self.env.episode_steps(n),
+            ..self.env.clone()
+        };
         let h = self.history;
         let sd = self.features(n).dim();
         let od = self.observer().dim();
@@ -147,13 +156,15 @@ impl Sampler {
             let episode = &episodes[index];
             let start = if index == 0 { 0 } else { ends[index - 1] };
             let t = pick - start;
-            self.fill(&mut batch, b, episode, t, rng);
+            self.fill(&mut batch, b, episode, t, &env, rng);
         }
         Some(batch)
     }
 
-    /// Fills sample `b` of `batch` with transition `t` of `episode`.
-    pub fn fill<R: Rng>(&self, batch: &mut Batch, b: usize, episode: &Episode, t: usize, rng: &mut R) {
+    /// Fills sample `b` of `batch` with transition `t` of `episode`; relabelled rewards are
+    /// judged under `env`, the sampler's environment with the episode's time limit
+    /// ([`EnvConfig::episode_steps`]).
+    pub fn fill<R: Rng>(&self, batch: &mut Batch, b: usize, episode: &Episode, t: usize, env: &EnvConfig, rng: &mut R) {
         let n = batch.n_agents;
         let h = self.history;
         let (sd, od) = (batch.state_dim, batch.obs_dim);
@@ -174,7 +185,13 @@ impl Sampler {
         while steps < self.n_step.max(1) && t + steps < last {
             let s = t + steps;
             let (r, done) = if relabel {
-                let scored = score(&episode.scene(s + 1, goal), (s + 1) as u32, &self.env);
+                let steps = (s + 1) as u32;
+                let scored = success_after_last_change(
+                    score(&episode.scored_scene(s + 1, goal), steps, env),
+                    episode.changes_after(s),
+                    steps,
+                    env,
+                );
                 (scored.reward as f32, scored.outcome.is_terminal())
             } else {
                 (episode.ticks[s + 1].reward, episode.is_terminal_transition(s))

@@ -33,7 +33,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use formation_core::config::RunConfig;
 use formation_core::formation::Episodes;
-use formation_core::mission::{Attendance, Away, Call, Heard, Mission, NO_SLOT};
+use formation_core::mission::{self, Attendance, Away, Call, Heard, Mission, NO_SLOT};
 use formation_core::observation::Layout;
 use formation_core::reality::Reality;
 use formation_core::run_dir::write_atomically;
@@ -203,7 +203,7 @@ where
         {
             break;
         }
-        let team_seed = options.seed ^ (u64::from(episode) << 32);
+        let team_seed = mission::team_seed(options.seed, episode);
         let mission = Mission::new(std::mem::take(&mut init.changes), &init.slots, init.spec, team_seed);
         let world = World::new(&options.config.env, init);
         if let Some(stopped) = sim.play_episode(episode, world, mission)? {
