@@ -38,7 +38,7 @@ use formation_core::observation::Layout;
 use formation_core::reality::Reality;
 use formation_core::run_dir::write_atomically;
 use formation_core::shapes::observed_edges;
-use formation_core::task::{Conditions, Outcome, edge_error};
+use formation_core::task::{Conditions, Outcome};
 use formation_core::world::World;
 use formation_ipc::cli::Mode;
 use formation_ipc::services::{self, FileDescriptorBased, RunIdentity, Sizing};
@@ -191,7 +191,6 @@ where
     sim.next_deadline = sim.started;
     sim.trace = EpisodeTrace {
         dt: options.config.env.dt_s,
-        edge_names: sim.traced.iter().map(|&(i, _, j)| format!("e{i}{j}")).collect(),
         ..EpisodeTrace::default()
     };
     let episodes = Episodes::new(options.n_agents, &options.config.env, options.seed);
@@ -548,11 +547,8 @@ where
         let state = self
             .ports
             .publish_state(world, header, transition, &told, self.published, log_world)?;
-        self.trace.edge_errors.extend(
-            self.traced
-                .iter()
-                .map(|&(i, k, _)| edge_error(i, k, &world.poses, &world.desired, &world.observed)),
-        );
+        self.trace
+            .push_edges(&self.traced, &world.poses, &world.desired, &world.observed);
         self.trace.mean_edge_error.push(tally.last.mean_edge_error);
         self.trace.goal_distance.push(tally.last.goal_distance);
         if let (Some(tap), Some(state)) = (&self.tap, state) {

@@ -8,7 +8,9 @@ use std::path::Path;
 use anyhow::{Result, anyhow};
 use plotters::prelude::*;
 
-use formation_core::task::Outcome;
+use formation_core::physics::Pose;
+use formation_core::task::{Outcome, edge_error};
+use formation_protocol::NEIGHBOURS;
 
 use crate::report::EpisodeRecord;
 
@@ -32,8 +34,11 @@ pub struct EpisodeTrace {
     pub episode: u32,
     /// Seconds per tick.
     pub dt: f64,
-    /// Names of the traced edges, e.g. `e01`.
+    /// Names of the traced edges after the robots they join, e.g. `e01`; after a change of
+    /// formation gave the first robot another neighbour, `e01→e03` (`→out` when it left).
     pub edge_names: Vec<String>,
+    /// The robot each traced edge joins its first robot to at the latest tick.
+    pub edge_partners: Vec<usize>,
     /// Per tick, the error of each traced edge, metres: rows of `edge_names.len()` values, flat
     /// so the tick loop allocates nothing.
     pub edge_errors: Vec<f64>,
@@ -41,6 +46,38 @@ pub struct EpisodeTrace {
     pub mean_edge_error: Vec<f64>,
     /// Per tick, the centroid-to-goal distance, metres.
     pub goal_distance: Vec<f64>,
+}
+
+impl EpisodeTrace {
+    /// Appends one tick of the traced edges (`traced`: robot i's k-th observed edge, as `(i, k,
+    /// _)`), naming each after the robots it joins: renamed at an episode's first tick (an
+    /// empty trace) when the last episode changed it, extended when the robot's neighbour
+    /// changes (allocating only then).
+    pub fn push_edges(
+        &mut self,
+        traced: &[(usize, usize, usize)],
+        poses: &[Pose],
+        desired: &[[f64; NEIGHBOURS]],
+        observed: &[[usize; NEIGHBOURS]],
+    ) {
+        let first_tick = self.edge_errors.is_empty();
+        self.edge_names.resize(traced.len(), String::new());
+        self.edge_partners.resize(traced.len(), usize::MAX);
+        for (e, &(i, k, _)) in traced.iter().enumerate() {
+            let partner = observed[i][k];
+            let name = &mut self.edge_names[e];
+            if first_tick && (self.edge_partners[e] != partner || name.contains('→')) {
+                *name = format!("e{i}{partner}");
+            } else if self.edge_partners[e] != partner {
+                match partner == i {
+                    true => name.push_str("→out"),
+                    false => name.push_str(&format!("→e{i}{partner}")),
+                }
+            }
+            self.edge_partners[e] = partner;
+            self.edge_errors.push(edge_error(i, k, poses, desired, observed));
+        }
+    }
 }
 
 fn range(values: impl Iterator<Item = f64>) -> (f64, f64) {
@@ -242,7 +279,8 @@ mod tests {
         let trace = EpisodeTrace {
             episode: 3,
             dt: 0.1,
-            edge_names: vec!["e01".into(), "e12".into(), "e20".into()],
+            edge_names: vec!["e01".into(), "e12→e13".into(), "e20".into()],
+            edge_partners: vec![1, 3, 0],
             edge_errors: (0..50).flat_map(|t| [0.01 * f64::from(t % 7), 0.02, 0.005]).collect(),
             mean_edge_error: (0..50).map(|_| 0.015).collect(),
             goal_distance: (0..50).map(|t| 2.0 - 0.04 * f64::from(t)).collect(),
@@ -257,5 +295,32 @@ mod tests {
             assert!(non_white > 10_000, "{} is nearly blank", path.display());
         }
         std::fs::remove_dir_all(&dir).expect("cleanup");
+    }
+
+    #[test]
+    fn traced_edges_are_renamed_when_a_change_gives_a_robot_other_neighbours() {
+        let poses: Vec<Pose> = (0..4)
+            .map(|i| Pose {
+                x: f64::from(i),
+                y: 0.0,
+                theta: 0.0,
+            })
+            .collect();
+        let desired = vec![[1.0, 2.0]; 4];
+        let by_index = formation_core::scene::index_neighbours(4);
+        let traced = [(0, 0, 1), (1, 0, 2)];
+        let mut trace = EpisodeTrace::default();
+        trace.push_edges(&traced, &poses, &desired, &by_index);
+        assert_eq!(trace.edge_names, ["e01", "e12"]);
+        // Robot 0 takes another slot: its first neighbour is now robot 3; robot 1 leaves.
+        let changed = vec![[3, 1], [1, 1], [0, 3], [2, 0]];
+        trace.push_edges(&traced, &poses, &desired, &changed);
+        trace.push_edges(&traced, &poses, &desired, &changed);
+        assert_eq!(trace.edge_names, ["e01→e03", "e12→out"]);
+        assert_eq!(trace.edge_errors, [0.0, 0.0, 2.0, 1.0, 2.0, 1.0]);
+        // The next episode starts by index again: the plain names come back.
+        trace.edge_errors.clear();
+        trace.push_edges(&traced, &poses, &desired, &by_index);
+        assert_eq!(trace.edge_names, ["e01", "e12"]);
     }
 }
