@@ -9,6 +9,24 @@
 //! edges and slot offsets; the observations of that tick carry them. The robots' history
 //! windows are not reset: a change is part of the episode, as a turn of the goal would be.
 //!
+//! A scheduled change is not a step: the formation *morphs* ([`Morph`]). At the change each
+//! present robot r is assigned its slot as above, and its target offset from the goal moves in
+//! a straight line, all robots in step, from where it stands in the swarm (its position
+//! relative to the present robots' centroid) to its new slot's offset, over as many ticks as
+//! the largest of those moves takes at [`MORPH_SPEED_FRACTION`] of `v_max` (one tick, the step
+//! change, when no robot must move relative to the others). Each tick the world's slot offsets
+//! are the interpolated ones and the desired edges the distances between them, so the first
+//! tick asks for the swarm's present geometry, no edge jumps, and each robot is led along its
+//! straight line to its slot. Because the assignment minimises the sum of squared distances, no
+//! two of those lines are traversed against each other: for robots i and j with relative
+//! starts a and targets b, optimality gives (a_i - a_j)·(b_i - b_j) >= 0, so the interpolated
+//! targets never come closer than min(|a_i - a_j|, |b_i - b_j|) / √2 (the argument of Turpin et
+//! al.'s CAPT). A step change instead sent every robot at once at top speed towards slots
+//! across the swarm, pulled by new neighbours metres away, and every collision under two
+//! changes per episode happened so. While the formation morphs, a success does not end the
+//! episode and ticks in formation do not count towards re-forming. Live changes (the control
+//! service) and team changes are applied at once, as asked, and end a morph under way.
+//!
 //! Success means holding the *last* formation at the goal: while a change is still to come,
 //! C3 does not end the episode ([`Mission::judge`]: the transition scores as C1 alone would,
 //! `r_edge`), and the swarm waits at the goal for its next formation.
@@ -58,6 +76,9 @@ pub const NO_SLOT: usize = usize::MAX;
 pub const LEAVE_AFTER_SILENT_TICKS: u32 = 10;
 /// Answers in a row after which a robot that left for silence comes back.
 pub const RETURN_AFTER_ANSWERS: u32 = 5;
+/// The speed, as a fraction of `v_max`, at which a morphing formation's farthest-moving target
+/// moves relative to the swarm ([`Morph`]); the others move slower, in step with it.
+pub const MORPH_SPEED_FRACTION: f64 = 0.35;
 /// Mixed into the run's seed for the formations redrawn at team changes.
 const TEAM_STREAM: u64 = 0x7465_616D_5F63_6867;
 /// Turns tried, either way, to keep a formation's slots clear of the robots out of it.
@@ -349,6 +370,79 @@ impl Attendance {
     }
 }
 
+/// A scheduled change under way: each present robot's target offset from the goal moving in a
+/// straight line, all in step, from its place in the swarm at the change to its new slot's
+/// offset (see the module's documentation).
+#[derive(Debug, Clone)]
+struct Morph {
+    /// The new formation's slot map.
+    slot_of: Vec<usize>,
+    /// The offsets, by slot, at the change (the robots' positions relative to their centroid,
+    /// moved onto the new formation's) and at the end (the new formation's).
+    from: Vec<[f64; 2]>,
+    to: Vec<[f64; 2]>,
+    /// Ticks the morph lasts, and those applied so far.
+    ticks: u32,
+    done: u32,
+}
+
+impl Morph {
+    /// The morph of `world`, whose present robots have just been assigned (its slot map) to
+    /// the slots of `to`, from where they stand.
+    fn new(world: &World, to: &[[f64; 2]]) -> Self {
+        let m = to.len();
+        let slot_of = world.slot_of.clone();
+        let mean = |points: &mut dyn Iterator<Item = [f64; 2]>| {
+            let (sum, count) = points.fold(([0.0, 0.0], 0.0), |(s, k), p| ([s[0] + p[0], s[1] + p[1]], k + 1.0));
+            [sum[0] / f64::max(count, 1.0), sum[1] / f64::max(count, 1.0)]
+        };
+        let present = || (0..slot_of.len()).filter(|&r| slot_of[r] < m);
+        let centroid = mean(&mut present().map(|r| [world.poses[r].x, world.poses[r].y]));
+        let centre = mean(&mut to.iter().copied());
+        let mut from = to.to_vec();
+        for r in present() {
+            from[slot_of[r]] = [
+                world.poses[r].x - centroid[0] + centre[0],
+                world.poses[r].y - centroid[1] + centre[1],
+            ];
+        }
+        let longest = from
+            .iter()
+            .zip(to)
+            .map(|(a, b)| (b[0] - a[0]).hypot(b[1] - a[1]))
+            .fold(0.0, f64::max);
+        let env = &world.env;
+        let ticks = (longest / (MORPH_SPEED_FRACTION * env.v_max * env.dt_s))
+            .ceil()
+            .max(1.0) as u32;
+        Self {
+            slot_of,
+            from,
+            to: to.to_vec(),
+            ticks,
+            done: 0,
+        }
+    }
+
+    /// Gives `world` the next tick's formation; true when that was the last (the new
+    /// formation itself).
+    fn advance(&mut self, world: &mut World) -> bool {
+        self.done += 1;
+        let alpha = f64::from(self.done) / f64::from(self.ticks);
+        let offsets: Vec<[f64; 2]> = if self.done >= self.ticks {
+            self.to.clone()
+        } else {
+            self.from
+                .iter()
+                .zip(&self.to)
+                .map(|(a, b)| [a[0] + alpha * (b[0] - a[0]), a[1] + alpha * (b[1] - a[1])])
+                .collect()
+        };
+        set_formation(world, &offsets, self.slot_of.clone());
+        self.done >= self.ticks
+    }
+}
+
 /// One episode's mission: its schedule of shape changes, the team, and the re-form counts.
 #[derive(Debug, Clone)]
 pub struct Mission {
@@ -373,6 +467,8 @@ pub struct Mission {
     reconfigurations: u32,
     /// Ticks to re-form after each change that re-formed.
     reform_ticks: Vec<u32>,
+    /// The scheduled change under way, if any.
+    morph: Option<Morph>,
 }
 
 /// The `seed` of [`Mission::new`] for episode `episode` of a run seeded with `run_seed`: the
@@ -400,15 +496,18 @@ impl Mission {
             run: None,
             reconfigurations: 0,
             reform_ticks: Vec::new(),
+            morph: None,
         }
     }
 
     /// Called after the step into tick `world.steps` that C1 judged `in_formation` (under the
-    /// formation in force) and that leaves the episode `running`: counts the re-form, then
-    /// applies the change scheduled for this tick, if any, so that the tick's observations
-    /// carry it. Returns true when the formation changed.
+    /// formation in force) and that leaves the episode `running`: counts the re-form (ticks in
+    /// a formation still morphing do not count), then applies the change scheduled for this
+    /// tick, if any, or the next tick of a morph under way ([`Morph`]), so that the tick's
+    /// observations carry it. Returns true when the formation changed.
     pub fn after_step(&mut self, world: &mut World, in_formation: bool, running: bool) -> bool {
         let tick = world.steps;
+        let in_formation = in_formation && self.morph.is_none();
         self.run = match (in_formation, self.run) {
             (false, _) => None,
             (true, None) => Some((tick, 1)),
@@ -423,12 +522,18 @@ impl Mission {
         if !running {
             return false;
         }
-        let Some(change) = self.changes.get(self.next).filter(|c| c.tick == tick) else {
+        if let Some(change) = self.changes.get(self.next).filter(|c| c.tick == tick) {
+            let (offsets, spec) = (change.offsets.clone(), change.spec);
+            self.next += 1;
+            self.reform(world, &offsets, spec);
+            self.morph = Some(Morph::new(world, &self.current));
+        }
+        let Some(morph) = &mut self.morph else {
             return false;
         };
-        let (offsets, spec) = (change.offsets.clone(), change.spec);
-        self.next += 1;
-        self.reform(world, &offsets, spec);
+        if morph.advance(world) {
+            self.morph = None;
+        }
         true
     }
 
@@ -538,6 +643,7 @@ impl Mission {
     /// Assigns the `present` robots to the slots of the current formation (Kuhn-Munkres, as at
     /// a shape change); the others hold [`NO_SLOT`].
     fn assign_present(&mut self, world: &mut World, present: &[bool]) {
+        self.morph = None;
         let robots: Vec<usize> = (0..world.n_agents()).filter(|&r| present[r]).collect();
         let positions: Vec<[f64; 2]> = robots.iter().map(|&r| [world.poses[r].x, world.poses[r].y]).collect();
         let targets: Vec<[f64; 2]> = self
@@ -597,10 +703,12 @@ impl Mission {
         last
     }
 
-    /// The step's result under the mission: a success (C3) before the last change is not the
-    /// end of the episode ([`success_after_last_change`]).
+    /// The step's result under the mission: a success (C3) before the last change, or while
+    /// the formation still morphs, is not the end of the episode
+    /// ([`success_after_last_change`]).
     pub fn judge(&self, result: StepResult, steps: u32, env: &EnvConfig) -> StepResult {
-        success_after_last_change(result, self.next < self.changes.len(), steps, env)
+        let to_come = self.next < self.changes.len() || self.morph.is_some();
+        success_after_last_change(result, to_come, steps, env)
     }
 
     /// Slot reassignments so far this episode: shape changes, goal moves and team changes.
@@ -824,10 +932,16 @@ mod tests {
         assert_eq!(result.outcome, Outcome::Success);
         let judged = mission.judge(result, world.steps, &world.env);
         assert_eq!((judged.outcome, judged.reward), (Outcome::Running, env.r_edge));
-        // After the last change, holding the new formation at the goal is success.
+        // After the last change, holding the new formation at the goal is success; while the
+        // formation morphs into it, holding the morphing formation is not.
         world.step(&[(0.0, 0.0); 6]);
         world.step(&[(0.0, 0.0); 6]);
         assert!(mission.after_step(&mut world, true, true));
+        stand_in_slots(&mut world);
+        let result = world.step(&[(0.0, 0.0); 6]);
+        assert_eq!(result.outcome, Outcome::Success);
+        assert_eq!(mission.judge(result, world.steps, &world.env).outcome, Outcome::Running);
+        morph_to_the_end(&mut world, &mut mission);
         for robot in 0..6 {
             world.poses[robot].x = world.goal[0] + world.slots[robot][0];
             world.poses[robot].y = world.goal[1] + world.slots[robot][1];
@@ -867,13 +981,21 @@ mod tests {
                     "robot {robot} is told the new edge"
                 );
             }
+        }
+        assert_ne!(world.observation(0), before[0], "the change is told at its tick");
+        assert_eq!(mission.reconfigurations(), 1);
+        // The formation morphs into the line; at its end the line's own edges are told.
+        let end = morph_to_the_end(&mut world, &mut mission);
+        assert!(end > change_tick);
+        for robot in 0..6 {
             let line = &changes[0].offsets;
             let s = world.slot_of[robot];
             let d = (line[s][0] - line[(s + 1) % 6][0]).hypot(line[s][1] - line[(s + 1) % 6][1]);
-            assert_eq!(obs[layout.neighbour(0) + 4], d as f32);
+            assert_eq!(world.observation(robot)[layout.neighbour(0) + 4], d as f32);
         }
-        assert_eq!(mission.reconfigurations(), 1);
-        // Teleport the robots into their new slots: re-formed after 5 ticks in formation.
+        // Teleport the robots into their new slots: re-formed after 5 ticks in formation,
+        // counted from the change.
+        let teleported = world.steps;
         for robot in 0..6 {
             let slot = world.slots[robot];
             world.poses[robot].x = world.goal[0] + slot[0];
@@ -884,7 +1006,147 @@ mod tests {
             assert!(result.conditions.in_formation);
             mission.after_step(&mut world, true, true);
         }
-        assert_eq!(mission.reform_ticks(), &[1]);
+        assert_eq!(mission.reform_ticks(), &[teleported + 1 - change_tick]);
+    }
+
+    #[test]
+    fn a_scheduled_change_morphs_from_where_the_robots_stand_along_straight_lines_in_step() {
+        let env = EnvConfig::default();
+        let mut rng = StdRng::seed_from_u64(3);
+        let n = 12;
+        let ring = draw_shape(FormationShape::Ring, n, &env, &mut rng);
+        let line = draw_shape(FormationShape::Line, n, &env, &mut rng);
+        let mut world = world_on(&ring);
+        // On its way: the swarm a metre short of the goal (the morph is relative to the swarm).
+        for pose in &mut world.poses {
+            pose.x -= 1.0;
+        }
+        let change = ShapeChange {
+            tick: 1,
+            offsets: line.clone(),
+            spec: spec(FormationShape::Line),
+        };
+        let mut mission = Mission::new(vec![change], &ring, spec(FormationShape::Ring), 1);
+        let still = vec![(0.0, 0.0); n];
+        world.step(&still);
+        assert!(mission.after_step(&mut world, true, true));
+        let per_tick = MORPH_SPEED_FRACTION * env.v_max * env.dt_s;
+        // The first tick asks for the swarm's present geometry, one tick's move away: no edge
+        // jumps (a step change asked for edges up to metres off).
+        for robot in 0..n {
+            for k in 0..NEIGHBOURS {
+                let other = world.observed[robot][k];
+                let (p, q) = (world.poses[robot], world.poses[other]);
+                let d = (p.x - q.x).hypot(p.y - q.y);
+                assert!(
+                    (world.desired[robot][k] - d).abs() <= 2.0 * per_tick + 1e-9,
+                    "robot {robot} edge {k}"
+                );
+            }
+        }
+        let mut targets = vec![world.slots.clone()];
+        loop {
+            world.step(&still);
+            if !mission.after_step(&mut world, true, true) {
+                break;
+            }
+            targets.push(world.slots.clone());
+        }
+        // It ends in the line, each robot in the slot Kuhn-Munkres gave it, after as many ticks
+        // as the farthest move takes.
+        let last = &targets[targets.len() - 1];
+        for robot in 0..n {
+            assert_eq!(last[robot], line[world.slot_of[robot]]);
+        }
+        let start: Vec<[f64; 2]> = (0..n)
+            .map(|r| {
+                let a = targets[0][r];
+                let b = last[r];
+                let t = targets.len() as f64;
+                // Back from the first tick's offset (1/T of the way) to the morph's start.
+                [(a[0] * t - b[0]) / (t - 1.0), (a[1] * t - b[1]) / (t - 1.0)]
+            })
+            .collect();
+        let distance = |a: [f64; 2], b: [f64; 2]| (a[0] - b[0]).hypot(a[1] - b[1]);
+        let longest = (0..n).map(|r| distance(start[r], last[r])).fold(0.0, f64::max);
+        assert!(longest > 1.0, "the line is not the ring: {longest} m");
+        assert_eq!(targets.len() as u32, (longest / per_tick).ceil() as u32);
+        for ticks in targets.windows(2) {
+            for robot in 0..n {
+                let (a, b) = (ticks[0][robot], ticks[1][robot]);
+                // At most one tick's move, along the robot's straight line to its slot.
+                assert!(distance(a, b) <= per_tick + 1e-9);
+                let (u, v) = (
+                    [b[0] - a[0], b[1] - a[1]],
+                    [last[robot][0] - a[0], last[robot][1] - a[1]],
+                );
+                assert!(
+                    (u[0] * v[1] - u[1] * v[0]).abs() < 1e-9,
+                    "robot {robot} leaves its line"
+                );
+            }
+        }
+        // No two targets ever come closer than the nearer of their start and end distances
+        // over root 2: the robots led by them do not have to cross each other.
+        for tick in &targets {
+            for i in 0..n {
+                for j in i + 1..n {
+                    let bound = distance(start[i], start[j]).min(distance(last[i], last[j])) / 2f64.sqrt();
+                    assert!(distance(tick[i], tick[j]) >= bound - 1e-9, "robots {i} and {j}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_scripted_baseline_re_forms_without_the_collisions_a_step_change_caused() {
+        use crate::baseline::{BaselineGains, ScriptedBaseline};
+        let env = EnvConfig {
+            shape_changes: 2,
+            ..EnvConfig::default()
+        };
+        let baseline = ScriptedBaseline::new(&env, BaselineGains::default());
+        // Held-out episodes (seed 1000) in which the scripted swarm collided while re-forming
+        // after a step change.
+        for (n, collided) in [(16, [9, 49, 52]), (32, [13, 26, 41])] {
+            for (episode, mut init) in Episodes::new(n, &env, 1000).enumerate().take(53) {
+                if !collided.contains(&episode) {
+                    continue;
+                }
+                let changes = std::mem::take(&mut init.changes);
+                let mut mission = Mission::new(changes, &init.slots, init.spec, team_seed(1000, episode as u32));
+                let mut world = World::new(&env, init);
+                let outcome = loop {
+                    let commands: Vec<(f64, f64)> = (0..n)
+                        .map(|r| {
+                            let (v, w) = baseline.command(&world.observation(r));
+                            (f64::from(v as f32), f64::from(w as f32))
+                        })
+                        .collect();
+                    let result = mission.judge(world.step(&commands), world.steps, &world.env);
+                    if result.outcome != Outcome::Running {
+                        break result.outcome;
+                    }
+                    mission.after_step(&mut world, result.conditions.in_formation, true);
+                };
+                assert_eq!(outcome, Outcome::Success, "N = {n}, episode {episode}");
+                assert_eq!(mission.reconfigurations(), 2);
+            }
+        }
+    }
+
+    /// Steps `world` with every robot standing still until `mission`'s morph under way has
+    /// ended; the tick of its last step.
+    fn morph_to_the_end(world: &mut World, mission: &mut Mission) -> u32 {
+        let n = world.n_agents();
+        let mut last = world.steps;
+        loop {
+            world.step(&vec![(0.0, 0.0); n]);
+            if !mission.after_step(world, false, true) {
+                return last;
+            }
+            last = world.steps;
+        }
     }
 
     /// A world of `n` robots of `kind` standing in their formation at the goal, its mission.

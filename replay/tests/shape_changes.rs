@@ -16,9 +16,13 @@ use rand::rngs::StdRng;
 /// The tick of the episode's one shape change.
 const CHANGE_TICK: u32 = 10;
 
+/// Ticks recorded: the change's morph into the new formation ends well within them.
+const TICKS: u32 = 200;
+
 /// A swarm that starts in formation at its goal and never moves, its formation changed at
 /// [`CHANGE_TICK`] to the same shape turned and half as large again: in formation at the goal
-/// (C3) until the change, out of formation after it. Played and recorded as the sim plays it.
+/// (C3) until the change, out of formation once the formation has morphed into the new one.
+/// Played and recorded as the sim plays it.
 fn standing_swarm(env: &EnvConfig, seed: u64) -> Episode {
     let mut rng = StdRng::seed_from_u64(seed);
     let mut init = random_episode(4, env, &mut rng);
@@ -35,7 +39,7 @@ fn standing_swarm(env: &EnvConfig, seed: u64) -> Episode {
         spec: turned,
     };
     let mission = Mission::new(vec![change], &init.slots, init.spec, seed);
-    record_mission_episode(seed as u32, World::new(env, init), mission, 25, |w| {
+    record_mission_episode(seed as u32, World::new(env, init), mission, TICKS, |w| {
         vec![env.action_from_command(0.0, 0.0); w.n_agents()]
     })
 }
@@ -50,18 +54,34 @@ fn relabelled_rewards_hold_success_until_the_last_change_as_the_sim_did() {
     let mut buffer = ReplayBuffer::new(1_000_000);
     for episode in &episodes {
         // The sim's rewards: C3 held before the change scores r_edge and goes on (the change's
-        // own tick was scored under the old formation), the new formation is not held after.
-        assert_eq!(episode.formations.len(), 2);
+        // own tick was scored under the old formation); while the formation morphs (a new one
+        // every tick from the change's) C3 of a morphing formation is no success either, and
+        // the new formation is not held after.
         assert_eq!(episode.formations[1].from_tick, CHANGE_TICK as usize);
+        let last = episode.formations.last().map_or(0, |f| f.from_tick);
+        assert!(
+            last > CHANGE_TICK as usize + 1 && last + 1 < episode.ticks.len(),
+            "{last}"
+        );
         assert!(!episode.terminal);
+        assert_eq!(episode.ticks.len(), TICKS as usize + 1);
         for (t, tick) in episode.ticks.iter().enumerate().skip(1) {
-            let expected = if t <= CHANGE_TICK as usize {
-                env.r_edge
+            let expected: &[f64] = if t <= CHANGE_TICK as usize {
+                &[env.r_edge]
+            } else if t > last {
+                &[env.r_penalty]
             } else {
-                env.r_penalty
+                &[env.r_edge, env.r_penalty]
             };
-            assert_eq!(tick.reward, expected as f32, "episode {} tick {t}", episode.number);
+            assert!(
+                expected.iter().any(|&r| tick.reward == r as f32),
+                "episode {} tick {t}: {}",
+                episode.number,
+                tick.reward
+            );
         }
+        // The morph starts from where the robots stand: its first formations are held.
+        assert_eq!(episode.ticks[CHANGE_TICK as usize + 1].reward, env.r_edge as f32);
         buffer.push(episode.clone());
     }
     // Every sample relabelled: the goal is a later centroid, the same point for a swarm that
