@@ -61,8 +61,8 @@ pub struct LaunchArgs {
     #[arg(long, value_name = "all|i,j")]
     pub external: Option<String>,
     /// Checkpoint file or run directory: eval loads it into the agents, train resumes the critic
-    /// from it (eval default: a shipped model for any N, models/formation.safetensors in the
-    /// ideal world, models/formation-field.safetensors under a [reality]).
+    /// from it (eval default: models/formation.safetensors, the shipped model for any N and any
+    /// world, ideal or under a [reality]).
     #[arg(long, value_name = "PATH")]
     pub checkpoint: Option<PathBuf>,
     /// Seed of episodes, noise and networks.

@@ -189,7 +189,7 @@ impl Plan {
         }
         let learned = n - scripted.len() - external.len() - ros2.len();
         let checkpoint = match (&args.checkpoint, args.mode) {
-            (None, Mode::Eval) if learned > 0 => Some(shipped_model(&config.reality)?),
+            (None, Mode::Eval) if learned > 0 => Some(shipped_model()?),
             (given, _) => given.clone(),
         };
         let run_dir = args.run_dir.clone().unwrap_or_else(default_run_dir);
@@ -779,15 +779,11 @@ fn free_local_port() -> Result<u16> {
     Ok(listener.local_addr()?.port())
 }
 
-/// The model shipped with the repository for the run's world (each one model for any N):
-/// `models/formation.safetensors` (trained in the ideal world) when `reality` is ideal,
-/// `models/formation-field.safetensors` (trained under randomised reality) otherwise.
-fn shipped_model(reality: &RealityConfig) -> Result<PathBuf> {
-    let name = if reality.is_ideal() {
-        "formation.safetensors"
-    } else {
-        "formation-field.safetensors"
-    };
+/// The model shipped with the repository, one for any N and any world:
+/// `models/formation.safetensors`, trained under randomised reality (from the ideal world to past
+/// the field preset), so it serves the ideal world and every `[reality]` alike.
+fn shipped_model() -> Result<PathBuf> {
+    let name = "formation.safetensors";
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models").join(name);
     ensure!(
         path.is_file(),
@@ -1106,11 +1102,11 @@ mod tests {
         let ideal = plan(&["5", "--mode", "eval", "--viewer", "off"]).expect("plan");
         let model = ideal.checkpoint.clone().expect("shipped model");
         assert!(model.ends_with("models/formation.safetensors"));
-        // Under a reality, the model trained under one.
+        // Under a reality, the same model: it was trained under randomised reality.
         let field = repo_path("configs/reality-field.toml");
         let real = plan(&["5", "--mode", "eval", "--viewer", "off", "--reality", &field]).expect("plan");
         let model = real.checkpoint.clone().expect("shipped model");
-        assert!(model.ends_with("models/formation-field.safetensors"), "{model:?}");
+        assert!(model.ends_with("models/formation.safetensors"), "{model:?}");
         // A checkpoint given is used in any world.
         let given = repo_path("models/formation.safetensors");
         let chosen = plan(&[
