@@ -275,7 +275,11 @@ impl WorldView {
                 self.stream.log("world/formation/old", &rerun::Clear::flat())?;
             }
         } else if let Some(previous) = self.target.take_if(|t| *t != target) {
-            self.old = Some((previous, self.ticks));
+            // A change reassigns slots or moves the goal; the offsets alone move every tick of
+            // the morph after a scheduled change, which continues the same change.
+            if previous.slot_of != target.slot_of || previous.goal != target.goal {
+                self.old = Some((previous, self.ticks));
+            }
         }
         if self.target.as_ref() != Some(&target) {
             let outline = target.outline();
