@@ -19,6 +19,7 @@ mesa-vulkan-drivers) and Pillow.
 """
 
 import argparse
+import re
 import subprocess
 import sys
 import tempfile
@@ -67,7 +68,9 @@ def main() -> int:
              "--time", str(args.tick + 1), "--recording-id", RECORDING_ID, str(args.recording)],
             check=True, capture_output=True,
         )
-        before = sorted(tmp.glob("*.rrd"))[0]  # [-inf, tick + 1)
+        # [-inf, tick + 1): the part whose name starts with the lowest tick, by number
+        # (recording_1__11.rrd before recording_11__80.rrd, which a string sort inverts).
+        before = min(tmp.glob("*.rrd"), key=lambda part: [int(x) for x in re.findall(r"\d+", part.stem)])
         # Its recording alone: the sim's own layout would compete with ours for the screen.
         reader = rr.experimental.RrdReader(before)
         data = tmp / "data.rrd"
