@@ -4,7 +4,8 @@
 
 use std::time::Duration;
 
-use formation_swarm::{announced, assert_clean, pid_of, run_id_of, run_swarm_with, scratch_dir};
+use formation_model::checkpoint;
+use formation_swarm::{announced, assert_clean, pid_of, run_id_of, run_swarm, run_swarm_with, scratch_dir};
 
 /// `episodes.csv` of `run_dir`: the header's columns and the rows.
 fn episodes(run_dir: &std::path::Path) -> (Vec<String>, Vec<Vec<String>>) {
@@ -154,5 +155,73 @@ fn a_robot_silent_for_a_while_leaves_then_comes_back_after_five_answers() {
         after.len()
     );
     assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+/// Training with robots lost on the way (item 6): one controller failure per episode, the dead
+/// robot stopped, the pooled critic masking it out. A short run trains (updates on batches with
+/// robots out of the formation) and writes a checkpoint scored under the run's reality.
+#[test]
+fn a_short_training_run_with_a_controller_failure_per_episode_trains_the_pooled_critic() {
+    let dir = scratch_dir("team-train-failure");
+    std::fs::create_dir_all(&dir).expect("dir");
+    let config = dir.join("failure.toml");
+    std::fs::write(
+        &config,
+        "[reality]\ncontroller_failure = 1.0\ndead_robot = \"stop\"\n\n\
+         [learn]\ncritic = \"pooled\"\nwarmup_transitions = 300\nbatch_size = 32\nselection_episodes = 10\n",
+    )
+    .expect("write");
+    let run = run_swarm(
+        &[
+            "6",
+            "--config",
+            config.to_str().expect("utf8"),
+            "--minutes",
+            "0.5",
+            "--seed",
+            "7",
+            "--viewer",
+            "off",
+        ],
+        &dir.join("run"),
+        Duration::from_secs(240),
+    )
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "launcher failed:\n{}", run.output);
+    let summary = run.summary().expect("summary.json");
+    assert!(summary["departures"].as_u64().expect("departures") > 0, "{summary}");
+    assert!(summary["updates"].as_u64().expect("updates") > 0, "{summary}");
+    let last = checkpoint::load(&run.run_dir.join("checkpoint.safetensors")).expect("checkpoint");
+    assert!(
+        last.tensors.keys().any(|name| name.starts_with("critic0.encoder.")),
+        "a pooled critic"
+    );
+    assert_clean(&run);
+    // The same run with the mlp critic, which cannot leave a robot out, is refused before
+    // anything starts, naming the fields.
+    let mlp = dir.join("mlp.toml");
+    std::fs::write(&mlp, "[reality]\ncontroller_failure = 1.0\ndead_robot = \"stop\"\n").expect("write");
+    let refused = run_swarm(
+        &[
+            "6",
+            "--config",
+            mlp.to_str().expect("utf8"),
+            "--minutes",
+            "0.5",
+            "--viewer",
+            "off",
+        ],
+        &dir.join("run-mlp"),
+        Duration::from_secs(60),
+    )
+    .expect("launch");
+    assert_eq!(refused.status, Some(2), "{}", refused.output);
+    assert!(
+        refused.output.contains("learn.critic") && refused.output.contains("reality.controller_failure"),
+        "{}",
+        refused.output
+    );
+    assert!(refused.run_id.is_none(), "nothing may start:\n{}", refused.output);
     std::fs::remove_dir_all(&dir).expect("cleanup");
 }

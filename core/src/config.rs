@@ -322,7 +322,7 @@ pub enum CriticArchitecture {
     /// An MLP over the whole team's state and joint action, flattened: sized by N.
     Mlp,
     /// Deep sets: one encoder applied to each robot's own features and actions, averaged over
-    /// the robots, then an MLP head. The same weights serve any N.
+    /// the robots in the formation, then an MLP head. The same weights serve any N.
     Pooled,
 }
 
@@ -569,8 +569,10 @@ impl RunConfig {
 
     /// Refuses a training run whose critic cannot learn its episodes: the `mlp` critic is sized
     /// by N and reads robots by index, so episodes whose formation changes
-    /// (`env.shape_changes > 0`) need the `pooled` critic. The critic and the launcher call
-    /// this for train mode only (an evaluation trains no critic).
+    /// (`env.shape_changes > 0`) or whose robots leave the formation
+    /// (`reality.controller_failure > 0`: the `mlp` critic cannot mask a robot out) need the
+    /// `pooled` critic. The critic and the launcher call this for train mode only (an
+    /// evaluation trains no critic).
     pub fn check_training_critic(&self) -> Result<(), ConfigError> {
         check(
             self.learn.critic == CriticArchitecture::Pooled || self.env.shape_changes == 0,
@@ -578,6 +580,14 @@ impl RunConfig {
             "\"mlp\"",
             "must be \"pooled\" when env.shape_changes > 0: the mlp critic is sized by N and reads robots \
              by index, and a changing formation or team needs the pooled critic ([learn] critic = \"pooled\")",
+        )?;
+        check(
+            self.learn.critic == CriticArchitecture::Pooled || self.reality.controller_failure.is_off(),
+            "learn.critic",
+            "\"mlp\"",
+            "must be \"pooled\" when reality.controller_failure > 0: a robot whose controller fails leaves \
+             the formation, and only the pooled critic can leave it out of the team's value \
+             ([learn] critic = \"pooled\")",
         )
     }
 }
@@ -997,6 +1007,21 @@ mod tests {
         assert!(RunConfig::default().check_training_critic().is_ok());
         let pooled =
             RunConfig::from_toml_str("[env]\nshape_changes = 1\n\n[learn]\ncritic = \"pooled\"\n").expect("parses");
+        assert!(pooled.check_training_critic().is_ok());
+        // Robots leaving the formation: the mlp critic cannot mask them out.
+        let failing = RunConfig::from_toml_str("[reality]\ncontroller_failure = 0.5\n").expect("parses");
+        let message = failing
+            .check_training_critic()
+            .expect_err("mlp with failures")
+            .to_string();
+        assert!(
+            message.contains("learn.critic")
+                && message.contains("reality.controller_failure")
+                && message.contains("mlp"),
+            "{message}"
+        );
+        let pooled = RunConfig::from_toml_str("[reality]\ncontroller_failure = 1.0\n\n[learn]\ncritic = \"pooled\"\n")
+            .expect("parses");
         assert!(pooled.check_training_critic().is_ok());
     }
 

@@ -1,6 +1,7 @@
 //! What the critic sees of a tick: a [`Scene`], written as the critic network's floats.
 //!
-//! The critic state of a tick: each robot's position relative to that tick's centroid and its
+//! The critic state of a tick: each robot's position relative to that tick's centroid (of the
+//! robots in the formation: a robot out of it does not move the frame) and its
 //! heading (cos, sin), the goal relative to the centroid, the desired edge lengths, and for
 //! the observation models with slots each robot's slot offset. All of it is rotated into one
 //! frame per window, the heading of robot 0 at the window's last tick, so the critic does not
@@ -20,6 +21,7 @@ use formation_protocol::NEIGHBOURS;
 use crate::observation::Layout;
 use crate::physics::Pose;
 use crate::scene::Scene;
+use crate::task::is_present;
 
 /// Layout of one tick of critic state for a swarm of `n_agents`.
 ///
@@ -73,7 +75,7 @@ impl CriticFeatures {
     }
 
     fn write_tokens(&self, out: &mut [f32], scene: &Scene, frame: f32) {
-        let c = centroid(scene.poses);
+        let c = centroid(scene);
         let (s, co) = frame.sin_cos();
         let rotate = |dx: f32, dy: f32| [co * dx + s * dy, -s * dx + co * dy];
         let goal = narrow(scene.goal);
@@ -97,7 +99,7 @@ impl CriticFeatures {
 
     fn write_team(&self, out: &mut [f32], scene: &Scene, frame: f32) {
         let n = self.n_agents;
-        let c = centroid(scene.poses);
+        let c = centroid(scene);
         let (s, co) = frame.sin_cos();
         let rotate = |dx: f32, dy: f32| [co * dx + s * dy, -s * dx + co * dy];
         for (i, pose) in scene.poses.iter().enumerate() {
@@ -133,14 +135,21 @@ fn position(pose: &Pose) -> [f32; 2] {
     [pose.x as f32, pose.y as f32]
 }
 
-/// The centroid of a tick's positions, in `f32`.
-fn centroid(poses: &[Pose]) -> [f32; 2] {
-    let n = poses.len() as f32;
-    let (sx, sy) = poses.iter().fold((0.0f32, 0.0f32), |(sx, sy), p| {
-        let [x, y] = position(p);
-        (sx + x, sy + y)
-    });
-    [sx / n, sy / n]
+/// The centroid of the positions of a tick's robots in the formation ([`is_present`]; of
+/// every robot when none is, as [`crate::task::present_centroid`]), in `f32`: a robot out of
+/// the formation does not move the frame the members are placed in.
+fn centroid(scene: &Scene) -> [f32; 2] {
+    let members = |agent: &usize| is_present(*agent, scene.observed);
+    let everyone = !(0..scene.poses.len()).any(|agent| members(&agent));
+    let (mut sx, mut sy, mut m) = (0.0f32, 0.0f32, 0usize);
+    for (agent, p) in scene.poses.iter().enumerate() {
+        if everyone || members(&agent) {
+            let [x, y] = position(p);
+            (sx, sy, m) = (sx + x, sy + y, m + 1);
+        }
+    }
+    let m = m as f32;
+    [sx / m, sy / m]
 }
 
 #[cfg(test)]
@@ -213,6 +222,21 @@ mod tests {
         // Robot 2 observes robots 0 and 1.
         let robot2 = [0.0, 1.0, 0.0, 1.0, -1.0, -1.0, 1.0, -2.0, 1.4, 1.6, 2.0, 0.0, 0.0, 1.0];
         assert!(close(&out[28..], &robot2), "robot 2: {:?}", &out[28..]);
+        // A robot out of the formation (it observes itself) does not move the members' frame:
+        // with a fourth robot out, far away, the three members' tokens are the same floats.
+        let poses = [POSES[0], POSES[1], POSES[2], pose(9.0, -7.0, 1.0)];
+        let four = Scene {
+            poses: &poses,
+            commands: &[(0.0, 0.0); 4],
+            desired: &[DESIRED[0], DESIRED[1], DESIRED[2], [0.0; NEIGHBOURS]],
+            observed: &[[1, 2], [2, 0], [0, 1], [3, 3]],
+            slots: &[SLOTS[0], SLOTS[1], SLOTS[2], [0.0; 2]],
+            goal: tick.goal,
+        };
+        let features4 = CriticFeatures::new(4, ObservationModel::SlotProximity, CriticArchitecture::Pooled);
+        let mut out4 = vec![0.0; features4.dim()];
+        features4.write(&mut out4, &four, std::f32::consts::FRAC_PI_2);
+        assert_eq!(&out4[..3 * 14], &out[..]);
         // A token does not depend on N: the paper's observation drops only the slot.
         assert_eq!(
             CriticFeatures::new(64, ObservationModel::Paper, CriticArchitecture::Pooled).token_dim(),

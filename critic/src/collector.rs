@@ -143,6 +143,7 @@ where
             desired,
             slots,
             observed: observed_robots(&slot_of),
+            present: (0..n).map(|agent| state.present >> agent & 1 == 1).collect(),
         };
         let goal = state.goal.map(f64::from);
         let observations = state.observations[..n].to_vec();
@@ -181,9 +182,12 @@ where
             };
             builder.episode_return += f64::from(state.reward);
             builder.episode.ticks.push(tick);
-            // A shape change: the formation in force from this tick on.
+            // A shape or team change: the formation in force from this tick on.
             let last = builder.episode.formation(formation.from_tick);
-            if last.desired != formation.desired || last.observed != formation.observed || last.slots != formation.slots
+            if last.desired != formation.desired
+                || last.observed != formation.observed
+                || last.slots != formation.slots
+                || last.present != formation.present
             {
                 builder.episode.formations.push(formation);
             }
@@ -303,6 +307,8 @@ mod tests {
                 n_agents: 3,
                 outcome: if tick == 3 { OUTCOME_SUCCESS } else { OUTCOME_RUNNING },
                 sequence: sim.sequence,
+                // Robot 1 leaves the formation at the change.
+                present: if changed { 0b101 } else { 0b111 },
                 ..StateMsg::default()
             };
             for agent in 0..3 {
@@ -322,6 +328,9 @@ mod tests {
         assert_eq!(episode.scene(3, episode.goal).desired[0], [1.5; NEIGHBOURS]);
         // Robot 0 holds slot 2: it observes the robots in slots 0 and 1, robots 2 and 1.
         assert_eq!(episode.scene(2, episode.goal).observed[0], [2, 1]);
+        // The state's presence mask, recorded with the formation.
+        assert_eq!(episode.present(1), [true; 3]);
+        assert_eq!(episode.present(3), [true, false, true]);
     }
 
     #[test]

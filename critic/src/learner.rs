@@ -82,12 +82,74 @@ impl Mlp {
     }
 }
 
+/// Which robots of a batch's samples are in the formation, as the pooled critic's mean and the
+/// actor's per-robot terms read it ([`Batch::present`]).
+#[derive(Debug, Clone)]
+pub struct Members {
+    /// [B, N, 1]: 1 for a robot in the formation, 0 for one out.
+    robots: Tensor,
+    /// [B, 1]: 1 / the robots in the formation of each sample (at least one).
+    per_sample: Tensor,
+    /// [B, N * 2]: the robots' mask repeated for each of their action's components.
+    actions: Tensor,
+    /// Action components in the formation over the batch (at least one).
+    action_count: usize,
+}
+
+impl Members {
+    /// The members of a [B, N] mask, or `None` for an empty one (every robot present: the
+    /// plain means, as before presence was recorded).
+    pub fn of(mask: &[f32], batch_size: usize, n_agents: usize) -> Result<Option<Self>> {
+        if mask.is_empty() {
+            return Ok(None);
+        }
+        let device = Device::Cpu;
+        // 1 / m as an affine's f64 factor narrows to f32: the same float as a plain mean's.
+        let per_sample: Vec<f32> = mask
+            .chunks_exact(n_agents)
+            .map(|robots| (1.0 / f64::from(robots.iter().sum::<f32>().max(1.0))) as f32)
+            .collect();
+        let actions: Vec<f32> = mask.iter().flat_map(|&m| [m; ACTION_DIM]).collect();
+        let action_count = (actions.iter().sum::<f32>() as usize).max(1);
+        Ok(Some(Self {
+            robots: Tensor::from_slice(mask, (batch_size, n_agents, 1), &device)?,
+            per_sample: Tensor::from_vec(per_sample, (batch_size, 1), &device)?,
+            actions: Tensor::from_vec(actions, (batch_size, n_agents * ACTION_DIM), &device)?,
+            action_count,
+        }))
+    }
+}
+
+/// The mean of a per-robot-action term `values` [B, N * 2] over the robots in the formation
+/// (over every entry without `members`, candle's `mean_all`: with every robot in, the same
+/// floats).
+fn member_mean(values: &Tensor, members: Option<&Members>) -> Result<Tensor> {
+    Ok(match members {
+        None => values.mean_all()?,
+        Some(m) => (values * &m.actions)?
+            .sum_all()?
+            .affine(1.0 / m.action_count as f64, 0.0)?,
+    })
+}
+
 /// Q(s, u) of the whole team, shape [B, 1].
 #[derive(Debug, Clone)]
 pub enum CriticNet {
-    /// An MLP over the flat state and joint-action windows, [B, H (state_dim + 2N)].
+    /// An MLP over the flat state and joint-action windows, [B, H (state_dim + 2N)]. It reads
+    /// robots by index and cannot leave one out: refused for training runs whose robots leave
+    /// the formation (`RunConfig::check_training_critic`).
     Mlp(Mlp),
-    /// Deep sets over robot tokens [B, N, H (token_dim + 2)]: `head(mean_i encoder(token_i))`.
+    /// Deep sets over robot tokens [B, N, H (token_dim + 2)]: `head(mean_i encoder(token_i))`,
+    /// the mean over the robots in the formation only ([`Members`]).
+    ///
+    /// A robot out of the formation is left out, not entered as an obstacle token: its token's
+    /// fields (slot, desired edges, observed neighbours) are a member's and mean nothing for
+    /// it, an obstacle token would need a field of its own (another token width: no shipped
+    /// critic would carry over) and, with every robot in, the value would no longer be the
+    /// same floats. What it costs: the critic does not see a stopped robot, so a collision
+    /// with it is a surprise to the value (the actors still sense it through their proximity
+    /// observation); the team's value is that of the robots in the formation, whose success
+    /// the sim judges.
     Pooled {
         /// Applied to each robot's token alone.
         encoder: Mlp,
@@ -111,14 +173,21 @@ impl CriticNet {
         })
     }
 
-    /// Q values, shape [B, 1].
-    pub fn forward(&self, input: &Tensor) -> candle_core::Result<Tensor> {
+    /// Q values, shape [B, 1], the pooled critic's mean over the robots of `members` (over
+    /// every robot without; the `mlp` critic reads every robot).
+    pub fn forward(&self, input: &Tensor, members: Option<&Members>) -> candle_core::Result<Tensor> {
         match self {
             Self::Mlp(mlp) => mlp.forward(input),
             Self::Pooled { encoder, head } => {
                 let (batch, robots, width) = input.dims3()?;
                 let encoded = encoder.forward(&input.reshape((batch * robots, width))?)?;
-                let pooled = encoded.reshape((batch, robots, encoded.dim(1)?))?.mean(1)?;
+                let encoded = encoded.reshape((batch, robots, encoded.dim(1)?))?;
+                let pooled = match members {
+                    None => encoded.mean(1)?,
+                    // With every robot in: the same floats as `mean` (x * 1, the same sum,
+                    // times the same 1 / N).
+                    Some(m) => encoded.broadcast_mul(&m.robots)?.sum(1)?.broadcast_mul(&m.per_sample)?,
+                };
                 head.forward(&pooled)
             }
         }
@@ -412,7 +481,8 @@ impl Learner {
             &Device::Cpu,
         )?;
         let current = Self::joint_actions(&self.actors, &obs)?;
-        let error = candle_nn::loss::mse(&current, &teacher)?.to_scalar::<f32>()?;
+        let members = Members::of(&batch.present, batch.batch_size, batch.n_agents)?;
+        let error = member_mean(&(current - teacher)?.sqr()?, members.as_ref())?.to_scalar::<f32>()?;
         Ok(Some(f64::from(error)))
     }
 
@@ -455,10 +525,11 @@ impl Learner {
         let joint = n * ACTION_DIM;
         let next_window = Tensor::cat(&[played.narrow(1, joint, (h - 1) * joint)?, next_actions], 1)?;
         let next_input = self.critic_input(batch, next_states, next_window)?;
+        let members = Members::of(&batch.next_present, b, n)?;
         let q_targets = per_critic(
             self.config.parallel_critics,
             self.critic_targets.iter().collect(),
-            |target| Ok(target.forward(&next_input)?),
+            |target| Ok(target.forward(&next_input, members.as_ref())?),
         )?;
         let mut q_next = q_targets[0].clone();
         for q in &q_targets[1..] {
@@ -482,9 +553,10 @@ impl Learner {
     /// tests on a fixed batch).
     pub fn critic_loss(&self, batch: &Batch, target: &Tensor) -> Result<Tensor> {
         let input = self.played_input(batch)?;
+        let members = Members::of(&batch.present, batch.batch_size, batch.n_agents)?;
         let mut loss: Option<Tensor> = None;
         for critic in &self.critics {
-            let l = candle_nn::loss::mse(&critic.forward(&input)?, target)?;
+            let l = candle_nn::loss::mse(&critic.forward(&input, members.as_ref())?, target)?;
             loss = Some(match loss {
                 Some(acc) => (acc + l)?,
                 None => l,
@@ -496,11 +568,12 @@ impl Learner {
     /// One gradient step of every critic towards `target`; returns the summed loss.
     fn critic_steps(&mut self, batch: &Batch, target: &Tensor) -> Result<f64> {
         let input = self.played_input(batch)?;
+        let members = Members::of(&batch.present, batch.batch_size, batch.n_agents)?;
         let losses = per_critic(
             self.config.parallel_critics,
             self.critics.iter().zip(self.critic_optimizers.iter_mut()).collect(),
             |(critic, optimizer)| {
-                let loss = candle_nn::loss::mse(&critic.forward(&input)?, target)?;
+                let loss = candle_nn::loss::mse(&critic.forward(&input, members.as_ref())?, target)?;
                 optimizer.backward_step(&loss)?;
                 Ok(f64::from(loss.to_scalar::<f32>()?))
             },
@@ -509,8 +582,10 @@ impl Learner {
     }
 
     /// Q_1 of the current policy on a batch (each robot's action at t replaced by its actor's
-    /// output, the earlier actions of the window as played), and those actions.
-    fn policy_q(&self, batch: &Batch) -> Result<(Tensor, Tensor)> {
+    /// output, the earlier actions of the window as played), those actions, and the robots in
+    /// the formation at t (a robot out of it adds nothing to Q, so no gradient reaches its
+    /// action).
+    fn policy_q(&self, batch: &Batch) -> Result<(Tensor, Tensor, Option<Members>)> {
         let device = Device::Cpu;
         let b = batch.batch_size;
         let joint = batch.n_agents * ACTION_DIM;
@@ -519,36 +594,40 @@ impl Learner {
         let actions = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?;
         let current = Self::joint_actions(&self.actors, &obs)?;
         let window = Tensor::cat(&[actions.narrow(1, 0, (self.history - 1) * joint)?, current.clone()], 1)?;
-        let q = self.critics[0].forward(&self.critic_input(batch, states, window)?)?;
-        Ok((q, current))
+        let members = Members::of(&batch.present, b, batch.n_agents)?;
+        let q = self.critics[0].forward(&self.critic_input(batch, states, window)?, members.as_ref())?;
+        Ok((q, current, members))
     }
 
     /// Mean Q_1 of the current policy on a batch: what an actor step raises.
     pub fn policy_value(&self, batch: &Batch) -> Result<f64> {
-        let (q, _) = self.policy_q(batch)?;
+        let (q, _, _) = self.policy_q(batch)?;
         Ok(f64::from(q.mean_all()?.to_scalar::<f32>()?))
     }
 
     /// One gradient step of the actor(s) up the first critic (and towards the teacher, if any);
-    /// the critics are left alone. Returns the actor loss and the mean |action|.
+    /// the critics are left alone. Returns the actor loss and the mean |action|. The teacher's
+    /// pull, the action penalty and the mean |action| are over the robots in the formation at
+    /// t: a robot out of it is not trained on.
     pub fn actor_step(&mut self, batch: &Batch) -> Result<(f64, f64)> {
-        let (q, current) = self.policy_q(batch)?;
+        let (q, current, members) = self.policy_q(batch)?;
+        let members = members.as_ref();
         let mut actor_loss = q.mean_all()?.neg()?;
         if let Some(teacher) = self.teacher_actions(batch)? {
             // TD3+BC: Q normalised by its mean magnitude (no gradient through the scale), at
             // least 1 so that a fresh critic (Q near 0, e.g. after a change of N) cannot blow
             // its random gradients up over the teacher's.
             let q_scale = f64::from(q.abs()?.mean_all()?.to_scalar::<f32>()?).max(1.0);
-            let imitation = candle_nn::loss::mse(&current, &teacher)?;
+            let imitation = member_mean(&(&current - teacher)?.sqr()?, members)?;
             actor_loss = (actor_loss.affine(self.config.imitation_alpha / q_scale, 0.0)? + imitation)?;
         }
         if self.config.action_l2 > 0.0 {
-            actor_loss = (actor_loss + current.sqr()?.mean_all()?.affine(self.config.action_l2, 0.0)?)?;
+            actor_loss = (actor_loss + member_mean(&current.sqr()?, members)?.affine(self.config.action_l2, 0.0)?)?;
         }
         self.actor_optimizer.backward_step(&actor_loss)?;
         Ok((
             f64::from(actor_loss.to_scalar::<f32>()?),
-            f64::from(current.abs()?.mean_all()?.to_scalar::<f32>()?),
+            f64::from(member_mean(&current.abs()?, members)?.to_scalar::<f32>()?),
         ))
     }
 

@@ -7,6 +7,7 @@ use formation_core::config::{Algorithm, CriticArchitecture, EnvConfig, LearnConf
 use formation_core::features::CriticFeatures;
 use formation_core::observation::Layout;
 use formation_critic::learner::{Learner, soft_update};
+use formation_model::checkpoint;
 use formation_protocol::ACTION_DIM;
 use formation_replay::sample::Batch;
 use rand::rngs::StdRng;
@@ -57,6 +58,8 @@ fn random_batch_for(env: &EnvConfig, critic: CriticArchitecture, n: usize, b: us
         origins: vec![(0, 0); b],
         goals: vec![[0.0; 2]; b],
         relabelled: vec![false; b],
+        present: Vec::new(),
+        next_present: Vec::new(),
     }
 }
 
@@ -447,4 +450,159 @@ fn with_two_swarms_taken_in_turn_each_gets_its_share_of_actor_and_teacher_steps(
         assert_eq!(stepped, steps.actor, "swarm {swarm}: the actor stepped on its batches");
     }
     assert_eq!(learner.updates(), 200);
+}
+
+/// A small pooled learner config with every actor term on: the teacher's pull and the action
+/// penalty.
+fn pooled_config() -> (EnvConfig, LearnConfig) {
+    let (env, learn) = small_config(Algorithm::Td3);
+    let learn = LearnConfig {
+        critic: CriticArchitecture::Pooled,
+        critic_encoder: vec![16, 16],
+        policy_delay: 2,
+        imitation_alpha: 2.5,
+        action_l2: 0.1,
+        ..learn
+    };
+    (env, learn)
+}
+
+/// Adds `delta` to robot `robot`'s entries (`width` floats a tick, `n` robots a tick) at every
+/// tick of sample `b` of a tick-major [B, H * N * width] array.
+fn shift_robot(values: &mut [f32], b: usize, h: usize, n: usize, width: usize, robot: usize, delta: f32) {
+    for k in 0..h {
+        let at = ((b * h + k) * n + robot) * width;
+        values[at..at + width].iter_mut().for_each(|v| *v += delta);
+    }
+}
+
+/// Adds `delta` to robot `robot`'s observation window in sample `b` of a [B, N, H * od] array.
+fn shift_observations(values: &mut [f32], b: usize, n: usize, window: usize, robot: usize, delta: f32) {
+    let at = (b * n + robot) * window;
+    values[at..at + window].iter_mut().for_each(|v| *v += delta);
+}
+
+#[test]
+fn the_pooled_critic_and_the_actor_terms_leave_a_robot_out_of_the_formation_out() {
+    let (env, learn) = pooled_config();
+    let (n, b, h) = (4, 16, env.history);
+    let mut learner = Learner::new(n, &env, &learn, 21).expect("learner");
+    let mut batch = random_batch_for(&env, CriticArchitecture::Pooled, n, b, 22);
+    // Robot 2 is out of the formation in every sample, at t and at t+k.
+    let mask: Vec<f32> = (0..b * n).map(|i| if i % n == 2 { 0.0 } else { 1.0 }).collect();
+    batch.present = mask.clone();
+    batch.next_present = mask;
+    let token = batch.state_dim / n;
+    let window = batch.window_dim();
+    // Everything robot 2 is and does, moved.
+    let mut moved = batch.clone();
+    for sample in 0..b {
+        shift_robot(&mut moved.states, sample, h, n, token, 2, 3.0);
+        shift_robot(&mut moved.next_states, sample, h, n, token, 2, -2.0);
+        shift_robot(&mut moved.actions, sample, h, n, ACTION_DIM, 2, 0.5);
+        shift_robot(&mut moved.bootstrap_actions, sample, h, n, ACTION_DIM, 2, 0.5);
+        shift_observations(&mut moved.observations, sample, n, window, 2, 1.5);
+        shift_observations(&mut moved.next_observations, sample, n, window, 2, 1.5);
+    }
+    let target = Tensor::from_slice(&batch.rewards, (b, 1), &Device::Cpu).expect("target");
+    let loss = |learner: &Learner, batch: &Batch| {
+        learner
+            .critic_loss(batch, &target)
+            .expect("loss")
+            .to_scalar::<f32>()
+            .expect("scalar")
+    };
+    // The masked mean: the critics' values, the TD target, the policy's value and the
+    // teacher's pull ignore robot 2.
+    assert_eq!(loss(&learner, &moved), loss(&learner, &batch));
+    assert_eq!(td_targets(&mut learner, &moved), td_targets(&mut learner, &batch));
+    assert_eq!(
+        learner.policy_value(&moved).expect("q"),
+        learner.policy_value(&batch).expect("q")
+    );
+    assert_eq!(
+        learner.imitation_error(&moved).expect("error"),
+        learner.imitation_error(&batch).expect("error")
+    );
+    // With robot 2 in the formation, the same moves change all of them.
+    let members = |batch: &Batch| Batch {
+        present: vec![1.0; b * n],
+        next_present: vec![1.0; b * n],
+        ..batch.clone()
+    };
+    let (all, all_moved) = (members(&batch), members(&moved));
+    assert_ne!(loss(&learner, &all_moved), loss(&learner, &all));
+    assert_ne!(td_targets(&mut learner, &all_moved), td_targets(&mut learner, &all));
+    assert_ne!(
+        learner.policy_value(&all_moved).expect("q"),
+        learner.policy_value(&all).expect("q")
+    );
+    assert_ne!(
+        learner.imitation_error(&all_moved).expect("error"),
+        learner.imitation_error(&all).expect("error")
+    );
+    // Whole updates (critic and actor steps) learn exactly the same from both batches.
+    let mut twin = Learner::new(n, &env, &learn, 21).expect("learner");
+    for _ in 0..4 {
+        assert_eq!(
+            learner.update(&batch, 0).expect("update"),
+            twin.update(&moved, 0).expect("update")
+        );
+    }
+    assert_eq!(
+        learner.actor_weights(0).expect("actor"),
+        twin.actor_weights(0).expect("actor")
+    );
+}
+
+#[test]
+fn with_every_robot_present_the_masked_updates_are_bit_identical_to_the_plain_ones() {
+    let (env, learn) = pooled_config();
+    let (n, b) = (4, 16);
+    let plain = random_batch_for(&env, CriticArchitecture::Pooled, n, b, 31);
+    let masked = Batch {
+        present: vec![1.0; b * n],
+        next_present: vec![1.0; b * n],
+        ..plain.clone()
+    };
+    let mut without = Learner::new(n, &env, &learn, 32).expect("learner");
+    let mut with = Learner::new(n, &env, &learn, 32).expect("learner");
+    let mut actor_steps = 0;
+    for _ in 0..6 {
+        let (a, m) = (
+            without.update(&plain, 0).expect("update"),
+            with.update(&masked, 0).expect("update"),
+        );
+        assert_eq!(a, m, "losses");
+        actor_steps += usize::from(a.actor.is_some());
+    }
+    assert_eq!(actor_steps, 3);
+    assert_eq!(td_targets(&mut without, &plain), td_targets(&mut with, &masked));
+    assert_eq!(
+        without.imitation_error(&plain).expect("error"),
+        with.imitation_error(&masked).expect("error")
+    );
+    assert_eq!(
+        without.actor_weights(0).expect("actor"),
+        with.actor_weights(0).expect("actor")
+    );
+    let dir = std::env::temp_dir().join(format!("formation-masked-ckpt-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("dir");
+    for (name, learner) in [("without", &without), ("with", &with)] {
+        learner.save(&dir.join(name), Default::default()).expect("save");
+    }
+    let [without, with] = ["without", "with"].map(|name| checkpoint::load(&dir.join(name)).expect("load"));
+    let mut names: Vec<&String> = without.tensors.keys().collect();
+    names.sort();
+    for name in names {
+        let values = |loaded: &checkpoint::Checkpoint| {
+            loaded.tensors[name]
+                .flatten_all()
+                .expect("flat")
+                .to_vec1::<f32>()
+                .expect("values")
+        };
+        assert_eq!(values(&without), values(&with), "{name}");
+    }
+    std::fs::remove_dir_all(&dir).expect("cleanup");
 }

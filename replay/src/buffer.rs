@@ -39,6 +39,9 @@ pub struct Formation {
     pub slots: Vec<[f64; 2]>,
     /// The robots each robot observes (those in the next two slots).
     pub observed: Vec<[usize; NEIGHBOURS]>,
+    /// Whether each robot is in the formation (the state's `present` mask): a robot out of it
+    /// (its controller failed, it was removed or silent) is not trained on as a member.
+    pub present: Vec<bool>,
 }
 
 /// A finished episode.
@@ -66,6 +69,11 @@ impl Episode {
     pub fn formation(&self, t: usize) -> &Formation {
         let at = self.formations.partition_point(|f| f.from_tick <= t).saturating_sub(1);
         &self.formations[at]
+    }
+
+    /// Whether each robot is in the formation at tick `t`.
+    pub fn present(&self, t: usize) -> &[bool] {
+        &self.formation(t).present
     }
 
     /// Tick `t` as the sim's scene, with `goal` (the episode's own, or a relabelled one) and
@@ -177,6 +185,7 @@ mod tests {
             desired: vec![[d; NEIGHBOURS]; 3],
             slots: vec![[d, 0.0]; 3],
             observed: vec![observed; 3],
+            present: vec![from_tick != 3, true, true],
         };
         let tick = Tick {
             poses: vec![Pose::from([0.0, 0.0, 0.0]); 3],
@@ -200,5 +209,7 @@ mod tests {
         assert_eq!(episode.scene(4, episode.goal).observed[0], [2, 1]);
         assert_eq!(episode.scene(4, episode.goal).slots[0], [1.5, 0.0]);
         assert_eq!(episode.n_agents(), 3);
+        assert_eq!(episode.present(4), [false, true, true]);
+        assert_eq!(episode.present(5), [true; 3]);
     }
 }

@@ -1,7 +1,7 @@
 //! Plays an episode in-process (no IPC) and records it as the critic's collector would
 //! assemble it from the streams: for tests, benchmarks and offline experiments.
 
-use formation_core::mission::Mission;
+use formation_core::mission::{Mission, NO_SLOT};
 use formation_core::physics::Pose;
 use formation_core::task::Outcome;
 use formation_core::world::World;
@@ -36,6 +36,7 @@ fn formation(world: &World, from_tick: usize) -> Formation {
         desired: world.desired.iter().map(|d| d.map(wire)).collect(),
         slots: world.slots.iter().map(|s| s.map(wire)).collect(),
         observed: world.observed.clone(),
+        present: world.slot_of.iter().map(|&slot| slot != NO_SLOT).collect(),
     }
 }
 

@@ -62,6 +62,12 @@ pub struct Batch {
     pub goals: Vec<[f64; 2]>,
     /// [B]: whether HER relabelled the sample.
     pub relabelled: Vec<bool>,
+    /// [B, N]: 1 for each robot in the formation at t, 0 for a robot out of it (the replay's
+    /// recorded presence, kept by HER: a new goal does not change the team). Empty means every
+    /// robot present (a batch built by hand).
+    pub present: Vec<f32>,
+    /// [B, N]: the same at t+k, the tick the TD target bootstraps from.
+    pub next_present: Vec<f32>,
 }
 
 impl Batch {
@@ -142,6 +148,8 @@ impl Sampler {
             origins: Vec::with_capacity(batch_size),
             goals: Vec::with_capacity(batch_size),
             relabelled: Vec::with_capacity(batch_size),
+            present: vec![0.0; batch_size * n],
+            next_present: vec![0.0; batch_size * n],
         };
         // Cumulative transition counts to draw transitions uniformly.
         let mut ends = Vec::with_capacity(episodes.len());
@@ -233,6 +241,11 @@ impl Sampler {
                     let offset = ((b * h + k) * n + agent) * ACTION_DIM;
                     actions[offset..offset + ACTION_DIM].copy_from_slice(&episode.action(acted, agent, &self.env));
                 }
+            }
+        }
+        for (tick, present) in [(t, &mut batch.present), (next, &mut batch.next_present)] {
+            for (mask, &member) in present[b * n..(b + 1) * n].iter_mut().zip(episode.present(tick)) {
+                *mask = if member { 1.0 } else { 0.0 };
             }
         }
         batch.rewards[b] = reward as f32;

@@ -422,3 +422,53 @@ fn critic_features_are_the_same_floats_from_the_world_and_from_the_replay() {
         }
     }
 }
+
+#[test]
+fn batches_carry_the_recorded_presence_at_t_and_t_plus_1_relabelled_or_not() {
+    let n = 4;
+    let env = EnvConfig::default();
+    let mut episodes = recorded_episodes(&env, 6, n, 9);
+    // Robot 2 leaves the formation at tick 10 of the even episodes (it then observes itself,
+    // as the collector records a robot out).
+    for episode in episodes.iter_mut().step_by(2) {
+        let mut out = episode.formations[0].clone();
+        out.from_tick = 10;
+        out.present[2] = false;
+        out.observed[2] = [2, 2];
+        episode.formations.push(out);
+    }
+    let buffer = buffer_of(&episodes);
+    let sampler = Sampler {
+        her_probability: 0.5,
+        ..relabelling_sampler(&env, 3)
+    };
+    let mut rng = StdRng::seed_from_u64(4);
+    let batch = sampler.sample(&buffer, 512, &mut rng).expect("batch");
+    let mask = |episode: &Episode, t: usize| -> Vec<f32> {
+        episode.present(t).iter().map(|&p| if p { 1.0 } else { 0.0 }).collect()
+    };
+    let (mut out_at_t, mut relabelled_out) = (0, 0);
+    for b in 0..batch.batch_size {
+        let (number, t) = batch.origins[b];
+        let episode = &episodes[number as usize];
+        assert_eq!(
+            &batch.present[b * n..(b + 1) * n],
+            mask(episode, t).as_slice(),
+            "sample {b}"
+        );
+        assert_eq!(
+            &batch.next_present[b * n..(b + 1) * n],
+            mask(episode, t + 1).as_slice(),
+            "sample {b}"
+        );
+        if batch.present[b * n + 2] == 0.0 {
+            out_at_t += 1;
+            relabelled_out += usize::from(batch.relabelled[b]);
+        }
+    }
+    assert!(
+        out_at_t > 0 && relabelled_out > 0,
+        "{out_at_t} samples with robot 2 out, {relabelled_out} relabelled"
+    );
+    assert!(batch.present.contains(&1.0));
+}
