@@ -4,6 +4,7 @@ directory, and checks that nothing of the run is left behind."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -14,7 +15,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import List, Optional
+from typing import Any, Iterator, List, Optional
 
 import pytest
 
@@ -154,3 +155,46 @@ def assert_clean(launch: Launch) -> None:
     assert not processes_mentioning(run_id), f"processes left: {processes_mentioning(run_id)}"
     assert not processes_mentioning(str(launch.run_dir)), f"processes left: {processes_mentioning(str(launch.run_dir))}"
     assert not root_path(run_id).exists(), f"iceoryx2 root path left: {root_path(run_id)}"
+
+
+@dataclasses.dataclass
+class LiveRun:
+    """A scripted run watched from Python (see :func:`realtime_scripted_run`)."""
+
+    swarm: Launch
+    run: Any  # formation_swarm.RunInfo: the connection to the run's sim
+    observer: Any  # formation_swarm.Observer, closed once the run is over
+    world: list  # every WorldState read so far, oldest first
+
+
+@contextlib.contextmanager
+def realtime_scripted_run(
+    tmp_path: Path, n: int, seed: int, config: str, watchdog: float, until_tick: Optional[int] = None
+) -> Iterator[LiveRun]:
+    """Starts a one-episode scripted eval run of ``n`` robots paced in real time (viewer off,
+    ``config`` the TOML text of its --config) in ``tmp_path/run``, connects an Observer to it
+    and, given ``until_tick``, reads states until one of that tick, so the block talks to the
+    sim while the episode is under way. After the block: reads the states left, closes the
+    observer and asserts the launcher exited 0 within ``watchdog`` seconds. On any failure the
+    launcher's process group is killed and the run's shared memory removed."""
+    from formation_swarm import Observer, connect  # here: the kit's other helpers need no package
+
+    config_path = tmp_path / "run.toml"
+    config_path.write_text(config)
+    swarm = launch([str(n), "--mode", "eval", "--scripted", "all", "--episodes", "1", "--seed", str(seed),
+                    "--realtime", "--viewer", "off", "--config", str(config_path)], tmp_path / "run")
+    try:
+        run = connect(swarm.run_dir, timeout=60)
+        live = LiveRun(swarm, run, Observer(run), [])
+        while until_tick is not None and (not live.world or live.world[-1].tick < until_tick):
+            got = live.observer.wait(30)
+            assert got, f"no state within 30 s:\n{swarm.output}"
+            live.world.extend(got)
+        yield live
+        live.world.extend(live.observer.states(timeout=60))
+        live.observer.close()
+        status = swarm.wait(watchdog)
+    finally:
+        if swarm.proc.poll() is None:
+            swarm.wait(0)  # kills the launcher's group and removes the run's shared memory
+    assert status == 0, swarm.output

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from formation_swarm import Control, ControlRefused, Observer, connect
+from formation_swarm import Control, ControlRefused
 
-from conftest import REPO, assert_clean, launch
+from conftest import REPO, assert_clean, realtime_scripted_run
 
 WATCHDOG_S = 240
 N = 6
@@ -41,41 +41,24 @@ def consistent(state):
 
 
 def test_a_formation_change_sent_from_python_is_obeyed(tmp_path, capsys):
-    run_dir = tmp_path / "run"
-    config = tmp_path / "long.toml"
-    config.write_text("[env]\nmax_steps = 400  # room to re-form after the change\n")
-    swarm = launch([str(N), "--mode", "eval", "--scripted", "all", "--episodes", "1", "--seed", "5",
-                    "--realtime", "--viewer", "off", "--config", str(config)], run_dir)
-    try:
-        run = connect(run_dir, timeout=60)
-        observer = Observer(run)
-        world = []
-        while not world or world[-1].tick < 3:
-            got = observer.wait(30)
-            assert got, f"no state within 30 s:\n{swarm.output}"
-            world.extend(got)
+    config = "[env]\nmax_steps = 400  # room to re-form after the change\n"
+    with realtime_scripted_run(tmp_path, N, 5, config, WATCHDOG_S, until_tick=3) as live:
         namespace = {}
-        exec(compile(readme_example(run_dir), "README.md", "exec"), namespace)
+        exec(compile(readme_example(live.swarm.run_dir), "README.md", "exec"), namespace)
         ack = namespace["ack"]
         printed = capsys.readouterr().out
         assert f"a line from tick {ack.tick} of episode 0" in printed
         assert 'refused: unknown shape "hexagon"' in printed
         namespace["control"].close()
 
-        with Control(run) as control:
+        with Control(live.run) as control:
             for bad, why in [(lambda: control.set_formation("ring", scale=20.0), "an edge leaves"),
                              (lambda: control.set_formation("mixed"), "mixed is not a shape"),
                              (lambda: control.set_formation("ring", scale=-1.0), "not a positive number"),
                              (lambda: control.set_goal(-100.0, 3.0), "leaves the arena")]:
                 with pytest.raises(ControlRefused, match=why):
                     bad()
-        world.extend(observer.states(timeout=60))
-        observer.close()
-        status = swarm.wait(WATCHDOG_S)
-    finally:
-        if swarm.proc.poll() is None:
-            swarm.wait(0)  # kills the launcher's group and removes the run's shared memory
-    assert status == 0, swarm.output
+    swarm, world = live.swarm, live.world
 
     episode = [s for s in world if not s.run_end and s.episode == 0]
     by_tick = {s.tick: s for s in episode}
@@ -98,7 +81,7 @@ def test_a_formation_change_sent_from_python_is_obeyed(tmp_path, capsys):
     assert all(s.desired == after.desired for s in episode if s.tick >= ack.tick)
     # Re-formed within the episode: it ends in success, holding the line at the goal.
     assert episode[-1].outcome_name == "success", episode[-1]
-    rows = list(csv.DictReader((run_dir / "episodes.csv").open()))
+    rows = list(csv.DictReader((swarm.run_dir / "episodes.csv").open()))
     assert rows[0]["outcome"] == "success"
     assert int(rows[0]["reconfigurations"]) == 1 and int(rows[0]["reforms"]) == 1, rows[0]
     assert_clean(swarm)

@@ -5,11 +5,10 @@ the mission planner's reassignments show in it."""
 
 import math
 
-from formation_swarm import Observer, connect
 from formation_swarm import wire
 from formation_swarm.observer import WorldState
 
-from conftest import assert_clean, launch
+from conftest import assert_clean, realtime_scripted_run
 
 WATCHDOG_S = 240
 N = 8
@@ -44,20 +43,9 @@ def edges_follow_the_slot_map(state: WorldState) -> None:
 
 
 def test_a_run_with_shape_changes_shows_its_reassignments_in_the_slot_map(tmp_path):
-    run_dir = tmp_path / "run"
-    config = tmp_path / "changes.toml"
-    config.write_text("[env]\nshape_changes = 2\n")
-    swarm = launch([str(N), "--mode", "eval", "--scripted", "all", "--episodes", "1", "--seed", "1000",
-                    "--realtime", "--viewer", "off", "--config", str(config)], run_dir)
-    try:
-        observer = Observer(connect(run_dir, timeout=60))
-        world = list(observer.states(timeout=60))
-        observer.close()
-        status = swarm.wait(WATCHDOG_S)
-    finally:
-        if swarm.proc.poll() is None:
-            swarm.wait(0)  # kills the launcher's group and removes the run's shared memory
-    assert status == 0, swarm.output
+    with realtime_scripted_run(tmp_path, N, 1000, "[env]\nshape_changes = 2\n", WATCHDOG_S) as live:
+        pass  # the observer reads the whole run as the block ends
+    swarm, world = live.swarm, live.world
     episode = [s for s in world if s.episode == 0]
     assert episode, swarm.output
     maps = []

@@ -9,9 +9,9 @@ import math
 
 import pytest
 
-from formation_swarm import Control, ControlRefused, Observer, connect, wire
+from formation_swarm import Control, ControlRefused, wire
 
-from conftest import assert_clean, launch
+from conftest import assert_clean, realtime_scripted_run
 
 WATCHDOG_S = 240
 N = 6
@@ -37,20 +37,9 @@ def neighbours_by_slot(state):
 
 
 def test_robots_removed_and_restored_from_python_leave_and_rejoin_the_formation(tmp_path):
-    run_dir = tmp_path / "run"
-    config = tmp_path / "long.toml"
-    config.write_text("[env]\nmax_steps = 400  # room to re-form after the changes\n")
-    swarm = launch([str(N), "--mode", "eval", "--scripted", "all", "--episodes", "1", "--seed", "5",
-                    "--realtime", "--viewer", "off", "--config", str(config)], run_dir)
-    try:
-        run = connect(run_dir, timeout=60)
-        observer = Observer(run)
-        world = []
-        while not world or world[-1].tick < 3:
-            got = observer.wait(30)
-            assert got, f"no state within 30 s:\n{swarm.output}"
-            world.extend(got)
-        with Control(run) as control:
+    config = "[env]\nmax_steps = 400  # room to re-form after the changes\n"
+    with realtime_scripted_run(tmp_path, N, 5, config, WATCHDOG_S, until_tick=3) as live:
+        with Control(live.run) as control:
             removed = control.remove_robot(2)
             control.remove_robot(0)
             control.remove_robot(1)
@@ -63,13 +52,7 @@ def test_robots_removed_and_restored_from_python_leave_and_rejoin_the_formation(
             control.restore_robot(0)
             control.restore_robot(1)
             restored = control.restore_robot(2)
-        world.extend(observer.states(timeout=60))
-        observer.close()
-        status = swarm.wait(WATCHDOG_S)
-    finally:
-        if swarm.proc.poll() is None:
-            swarm.wait(0)  # kills the launcher's group and removes the run's shared memory
-    assert status == 0, swarm.output
+    swarm, world = live.swarm, live.world
 
     episode = [s for s in world if not s.run_end and s.episode == 0]
     by_tick = {s.tick: s for s in episode}
@@ -89,7 +72,7 @@ def test_robots_removed_and_restored_from_python_leave_and_rejoin_the_formation(
     assert not all(by_tick[restored.tick - 1].present)
     # Re-formed with every robot: the episode ends in success.
     assert episode[-1].outcome_name == "success", episode[-1]
-    rows = list(csv.DictReader((run_dir / "episodes.csv").open()))
+    rows = list(csv.DictReader((swarm.run_dir / "episodes.csv").open()))
     assert rows[0]["outcome"] == "success"
     assert int(rows[0]["departures"]) == 3 and int(rows[0]["returns"]) == 3, rows[0]
     assert_clean(swarm)
