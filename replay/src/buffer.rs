@@ -79,24 +79,20 @@ impl Episode {
     /// Tick `t` as the sim's scene, with `goal` (the episode's own, or a relabelled one) and
     /// the formation in force at `t`.
     pub fn scene(&self, t: usize, goal: [f64; 2]) -> Scene<'_> {
-        let tick = &self.ticks[t];
-        let formation = self.formation(t);
-        Scene {
-            poses: &tick.poses,
-            commands: &tick.commands,
-            desired: &formation.desired,
-            observed: &formation.observed,
-            goal,
-            slots: &formation.slots,
-        }
+        self.scene_under(t, t, goal)
     }
 
     /// Tick `t` (t > 0) as the sim scored the transition into it: its poses and commands under
     /// the formation in force at `t - 1` (a change's tick is scored under the old formation; the
     /// new one reaches that tick's observations), with `goal`.
     pub fn scored_scene(&self, t: usize, goal: [f64; 2]) -> Scene<'_> {
+        self.scene_under(t, t.saturating_sub(1), goal)
+    }
+
+    /// Tick `t`'s poses and commands under the formation in force at `formation_tick`.
+    fn scene_under(&self, t: usize, formation_tick: usize, goal: [f64; 2]) -> Scene<'_> {
         let tick = &self.ticks[t];
-        let formation = self.formation(t.saturating_sub(1));
+        let formation = self.formation(formation_tick);
         Scene {
             poses: &tick.poses,
             commands: &tick.commands,

@@ -390,12 +390,10 @@ where
             tally.formation_ticks += u32::from(tally.last.in_formation);
             // A shape change due at this tick reaches its observations, told next.
             mission.after_step(&mut world, tally.last.in_formation, outcome == Outcome::Running);
-            // So do the team's changes: a failed controller, a robot silent or back.
+            // So do the team's changes (a failed controller, a robot silent or back) and the
+            // live changes asked for meanwhile (never waiting for one).
             if outcome == Outcome::Running {
                 self.call_the_roll(&mut world, &mut mission, &reality, tick);
-            }
-            // Live changes asked for meanwhile, too (never waiting for one).
-            if outcome == Outcome::Running {
                 self.control
                     .serve(&mut world, &mut mission, &mut self.attendance, options.seed, episode)?;
             }
