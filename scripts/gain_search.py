@@ -153,6 +153,9 @@ def main() -> int:
     ap.add_argument("--refine", type=int, default=16,
                     help="sets of the local search around the best so far, after --sets (default 16; 0 = off)")
     ap.add_argument("--search-seed", type=int, default=7, help="seed of the hypercube and local-search sets (default 7)")
+    ap.add_argument("--sets-from", type=Path,
+                    help="play the gain sets of an earlier search (its OUT directory, search.json) instead of drawing "
+                         "them, e.g. a search's sets on held-out episodes (--sets and --refine are then ignored)")
     rr.add_cell_options(ap)
     ap.add_argument("--no-learned", action="store_true", help="leave out the learned policy's point")
     ap.add_argument("--out", type=Path, help="output directory (default runs/gain-search-ROW-<time>)")
@@ -167,7 +170,14 @@ def main() -> int:
     (out / "sets").mkdir(parents=True, exist_ok=True)
     reality = rr.rows(args.field or rr.preset_path("field"), args.lab or rr.preset_path("lab"))[args.row]
     base = rr.load_base(args.config)
-    sets = gain_sets(args.sets, args.search_seed)
+    if args.sets_from:
+        earlier = json.load(open(args.sets_from / "search.json"))
+        played = sorted(earlier["results"], key=lambda r: r["set"])
+        sets, local_sets = [r["gains"] for r in played], {r["set"] for r in played if r.get("local")}
+        args.refine = 0
+    else:
+        sets = gain_sets(args.sets, args.search_seed)
+        local_sets = set()
 
     progress = rr.Progress((len(sets) + args.refine) * len(ns) + (0 if args.no_learned else len(ns)))
     print(f"gain search: {args.row}, {len(sets)} gain sets and {args.refine} of local search, N = {ns}, {args.episodes} episodes from seed {args.seed}, "
@@ -184,7 +194,8 @@ def main() -> int:
                          progress, f"set {k:02d} N={n}")
             for n in ns
         ]
-        results.append({"set": k, "gains": gains, "per_n": per_n, "local": k >= len(sets), **pooled(per_n)})
+        results.append({"set": k, "gains": gains, "per_n": per_n, "local": k >= len(sets) or k in local_sets,
+                        **pooled(per_n)})
     learned = None
     if not args.no_learned:
         config = out / "sets" / "learned.toml"

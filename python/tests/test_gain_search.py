@@ -53,3 +53,21 @@ def test_a_search_with_refinement_refines_around_its_best(tmp_path):
     for run in (out / "runs").glob("*/run.json"):
         run_id = json.loads(run.read_text())["run_id"]
         assert not shm_leftovers(run_id) and not root_path(run_id).exists()
+
+
+def test_sets_from_an_earlier_search_plays_its_sets_on_other_episodes(tmp_path):
+    def search(*extra):
+        out = tmp_path / f"search-{len(list(tmp_path.iterdir()))}"
+        done = subprocess.run(
+            [sys.executable, str(SCRIPTS / "gain_search.py"), "--row", "field", "--n", "3", "--episodes", "2",
+             "--no-learned", "--out", str(out), *extra],
+            capture_output=True, text=True, timeout=600,
+        )
+        assert done.returncode == 0, done.stderr[-2000:]
+        return json.load(open(out / "search.json")), out
+
+    first, first_out = search("--seed", "2000", "--sets", "3", "--refine", "1")
+    again, _ = search("--seed", "3000", "--sets-from", str(first_out))
+    assert [r["gains"] for r in again["results"]] == [r["gains"] for r in first["results"]]
+    assert [r["local"] for r in again["results"]] == [False, False, False, True]
+    assert again["seed"] == 3000
