@@ -75,6 +75,11 @@ def perturbed(gains: dict, rng: random.Random, sigma: float = 0.25) -> dict:
     return out
 
 
+def fmt_ratio(ratio) -> str:
+    """A pace over the floor, or '-'."""
+    return "-" if ratio is None else f"{ratio:.2f}"
+
+
 def rank_key(result: dict):
     """Most successful first, then fewer steps."""
     return (-round(result["success"], 9), result["steps"])
@@ -103,8 +108,22 @@ def front_check(results: list[dict], learned: dict) -> list[dict]:
     ]
 
 
-def plot(results: list[dict], learned: dict | None, tuned: dict, ns: list[int], title: str, path: Path) -> None:
-    """Success against mean steps to the goal, one point per gain set, per N and pooled."""
+def with_pace(result: dict, run_dirs: list[Path], floors: dict[int, list] | None, ns: list[int]) -> dict:
+    """result with "x_floor": its steps over the pace floor's on its successful episodes (None
+    without a floor or a success)."""
+    total = [0, 0]
+    if floors is not None:
+        for n, run_dir in zip(ns, run_dirs):
+            if (run_dir / "episodes.csv").is_file():
+                steps, floor = rr.pace_over_floor(run_dir, floors[n])
+                total = [total[0] + steps, total[1] + floor]
+    return {**result, "x_floor": total[0] / total[1] if total[1] else None}
+
+
+def plot(results: list[dict], learned: dict | None, tuned: dict, ns: list[int], title: str, path: Path,
+         floors: dict[int, list] | None = None) -> None:
+    """Success against mean steps to the goal, one point per gain set, per N and pooled, with the
+    pace floor (no controller is faster on these episodes) as a dashed line."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -131,6 +150,10 @@ def plot(results: list[dict], learned: dict | None, tuned: dict, ns: list[int], 
             x, y = point(learned)
             if math.isfinite(x):
                 ax.scatter([x], [y], marker="*", s=220, c="tab:red", edgecolors="k", zorder=4, label="learned")
+        if floors is not None:
+            bounds = [b for n in (ns if i is None else [ns[i]]) for b in floors[n] if b is not None]
+            if bounds:
+                ax.axvline(sum(bounds) / len(bounds), ls="--", c="k", lw=1, label="pace floor (mean)")
         ax.set_title(name)
         ax.set_xlabel("mean steps to goal (successful episodes)")
         ax.set_ylim(-0.03, 1.03)
@@ -196,6 +219,8 @@ def main() -> int:
         ]
         results.append({"set": k, "gains": gains, "per_n": per_n, "local": k >= len(sets) or k in local_sets,
                         **pooled(per_n)})
+    floors = rr.pace_floors(out / "sets" / "set-00.toml", ns, args.episodes, args.seed, args.shape)
+    results = [with_pace(r, [out / "runs" / f"set-{r['set']:02d}-n{n}" for n in ns], floors, ns) for r in results]
     learned = None
     if not args.no_learned:
         config = out / "sets" / "learned.toml"
@@ -205,7 +230,8 @@ def main() -> int:
                                  checkpoint=args.checkpoint, shape=args.shape), progress, f"learned N={n}")
             for n in ns
         ]
-        learned = {"set": "learned", "per_n": per_n, **pooled(per_n)}
+        learned = with_pace({"set": "learned", "per_n": per_n, **pooled(per_n)},
+                            [out / "runs" / f"learned-n{n}" for n in ns], floors, ns)
 
     ranked = sorted(results, key=rank_key)
     tuned = ranked[0]
@@ -224,25 +250,32 @@ def main() -> int:
                 w.writerow([r["set"], *gains, n, *(["", "", ""] if s is None else
                             [s["success_rate"], s["collision_rate"], s.get("mean_steps_to_goal")])])
     json.dump({"row": args.row, "reality": reality, "ns": ns, "episodes": args.episodes, "seed": args.seed,
-               "results": results, "learned": learned, "tuned": tuned["set"]},
+               "results": results, "learned": learned, "tuned": tuned["set"], "pace_floors": floors},
               open(out / "search.json", "w"), indent=1, default=str)
     title = f"gain search, {rr.ROW_TITLES[args.row]}: {len(results)} sets, {args.episodes} episodes/N from seed {args.seed}"
-    plot(results, learned, tuned, ns, title, out / "front.png")
+    plot(results, learned, tuned, ns, title, out / "front.png", floors)
 
     print(f"### Gain search: {rr.ROW_TITLES[args.row]} (N = {args.n}, {args.episodes} episodes each from seed {args.seed})\n")
-    print("| rank | set | k_form | k_goal | k_turn | repulsion_range | k_repulsion | success | collisions | steps to goal |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| rank | set | k_form | k_goal | k_turn | repulsion_range | k_repulsion | success | collisions | steps to goal | x floor |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for i, r in enumerate(ranked):
         g = r["gains"]
         note = " (defaults)" if r["set"] == 0 else (" (issue's softer)" if r["set"] == 1 else (" (local)" if r["local"] else ""))
         print(f"| {i + 1} | {r['set']}{note} | {g['k_form']} | {g['k_goal']} | {g['k_turn']} | {g['repulsion_range']} | "
-              f"{g['k_repulsion']} | {r['success']:.2f} | {r['collisions']:.2f} | {rr.fmt_steps(None if math.isinf(r['steps']) else r['steps'])} |")
+              f"{g['k_repulsion']} | {r['success']:.2f} | {r['collisions']:.2f} | {rr.fmt_steps(None if math.isinf(r['steps']) else r['steps'])} | "
+              f"{fmt_ratio(r['x_floor'])} |")
     if learned:
         print(f"| - | learned | | | | | | {learned['success']:.2f} | {learned['collisions']:.2f} | "
-              f"{rr.fmt_steps(None if math.isinf(learned['steps']) else learned['steps'])} |")
+              f"{rr.fmt_steps(None if math.isinf(learned['steps']) else learned['steps'])} | {fmt_ratio(learned['x_floor'])} |")
         beaten_by = front_check(results, learned) if math.isfinite(learned["steps"]) else results
         print(f"\nFront check (a set with success >= learned - 0.02 in < 1.2x the learned steps beats it): "
               + ("learned not beaten" if not beaten_by else "beaten by set(s) " + ", ".join(str(r["set"]) for r in beaten_by)))
+    if floors is not None:
+        mean_floor = {n: sum(b for b in floors[n] if b is not None) / max(1, sum(b is not None for b in floors[n])) for n in ns}
+        print("\nPace floor (formation-pace-floor: no controller reaches the goal sooner on these episodes): "
+              + ", ".join(f"N = {n} {mean_floor[n]:.1f}" for n in ns) + " steps; 'x floor' is a team's steps over "
+              "the floor's on its successful episodes. A policy beats a set by the front check's 1.2x only at "
+              "the set's 'x floor' / 1.2 or less: below 1.0 no controller can be.")
     failed = sum(r["failed_runs"] for r in results)
     if failed:
         print(f"\n{failed} run(s) failed: see {out}/runs/*.log")

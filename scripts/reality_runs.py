@@ -8,6 +8,7 @@ FORMATION_BIN_DIR=DIR in the environment runs prebuilt binaries (e.g. target/deb
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 import os
@@ -200,6 +201,37 @@ def steps_or_inf(summary: dict) -> float:
     """Mean steps to goal, infinity when nothing succeeded (ranks last)."""
     steps = summary.get("mean_steps_to_goal")
     return math.inf if steps is None else float(steps)
+
+
+def bin_dir() -> Path:
+    """Where the binaries are: FORMATION_BIN_DIR, or the release build scripts/run_swarm.sh makes."""
+    if os.environ.get("FORMATION_BIN_DIR"):
+        return Path(os.environ["FORMATION_BIN_DIR"])
+    return Path(os.environ.get("CARGO_TARGET_DIR") or ROOT / "target") / "release"
+
+
+def pace_floors(config: Path, ns: list[int], episodes: int, seed: int, shape: str | None) -> dict[int, list] | None:
+    """formation-pace-floor's lower bound on the steps to the goal of each episode the cells of
+    `config` play ({n: [steps or None (out of time)]}); None, with a warning, if it cannot run."""
+    cmd = [str(bin_dir() / "formation-pace-floor"), "--n", ",".join(map(str, ns)), "--episodes", str(episodes),
+           "--seed", str(seed), "--config", str(config)] + (["--shape", shape] if shape else [])
+    try:
+        done = subprocess.run(cmd, capture_output=True, text=True, check=True)
+    except (OSError, subprocess.CalledProcessError) as err:
+        print(f"warning: no pace floor ({' '.join(cmd)}: {err})", file=sys.stderr)
+        return None
+    return {d["n_agents"]: d["floor_steps"] for d in map(json.loads, done.stdout.splitlines())}
+
+
+def pace_over_floor(run_dir: Path, floors: list) -> tuple[int, int]:
+    """(steps, floor steps) summed over the run's successful episodes (episodes.csv)."""
+    steps = floor = 0
+    with open(run_dir / "episodes.csv") as f:
+        for row in csv.DictReader(f):
+            bound = floors[int(row["episode"])]
+            if row["outcome"] == "success" and bound is not None:
+                steps, floor = steps + int(row["steps"]), floor + bound
+    return steps, floor
 
 
 def bin_dir_note() -> str:

@@ -16,7 +16,9 @@
 //! * [`world`]: one episode's true state and the step that applies the robots' commands;
 //! * [`mission`]: the mission planner: an episode's shape changes, the optimal reassignment of
 //!   robots to the new slots, and when the swarm has re-formed;
-//! * [`features`]: the critic's view of a scene (poses relative to the centroid).
+//! * [`features`]: the critic's view of a scene (poses relative to the centroid);
+//! * [`pace`]: a lower bound on the steps any controller needs for an episode (the physics'
+//!   floor under steps-to-goal figures, printed by `formation-pace-floor`).
 
 pub mod baseline;
 pub mod config;
@@ -25,6 +27,7 @@ pub mod formation;
 pub mod layout;
 pub mod mission;
 pub mod observation;
+pub mod pace;
 pub mod physics;
 pub mod reality;
 pub mod run_dir;

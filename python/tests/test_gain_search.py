@@ -50,6 +50,13 @@ def test_a_search_with_refinement_refines_around_its_best(tmp_path):
     assert {g: float(rows[3][g]) for g in gain_search.rr.GAIN_NAMES} == expected
     assert "(local)" in done.stdout
     assert (out / "tuned-field.toml").is_file() and (out / "front.png").is_file()
+    # The pace floor: one bound per episode, and no set's successful episodes beat it.
+    search = json.load(open(out / "search.json"))
+    floors = search["pace_floors"]["3"]
+    assert len(floors) == 3 and all(isinstance(b, int) and b > 10 for b in floors)
+    paced = [r["x_floor"] for r in search["results"] if r["x_floor"] is not None]
+    assert paced and all(ratio >= 1.0 for ratio in paced)
+    assert "Pace floor" in done.stdout
     for run in (out / "runs").glob("*/run.json"):
         run_id = json.loads(run.read_text())["run_id"]
         assert not shm_leftovers(run_id) and not root_path(run_id).exists()
