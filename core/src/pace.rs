@@ -23,7 +23,9 @@ use crate::task::centroid;
 /// the mean of its robots' advances, and success needs it to have covered the goal distance
 /// less `eps_goal_m`. Holding the formation, avoiding collisions, noise and lost messages only
 /// slow a controller down, so they are left out: every episode any controller succeeds in takes
-/// at least this many steps.
+/// at least this many steps. One thing is not modelled: a robot pushed along the arena's wall
+/// (the sim keeps positions inside) could advance up to v dt whatever its heading; episodes
+/// start and end well inside the arena.
 ///
 /// `reality` must be fresh for the episode (no tick actuated yet); it is spent by this call.
 pub fn steps_floor(env: &EnvConfig, init: &EpisodeInit, reality: &mut Reality) -> Option<u32> {
