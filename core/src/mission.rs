@@ -9,7 +9,8 @@
 //! edges and slot offsets; the observations of that tick carry them. The robots' history
 //! windows are not reset: a change is part of the episode, as a turn of the goal would be.
 //!
-//! A scheduled change is not a step: the formation *morphs* ([`Morph`]). At the change each
+//! A change is not a step: the formation *morphs* ([`Morph`]), whatever made it (the schedule,
+//! the control service's new shape or goal, a robot leaving or coming back). At the change each
 //! present robot r is assigned its slot as above, and its target offset from the goal moves in
 //! a straight line, all robots in step, from where it stands in the swarm (its position
 //! relative to the present robots' centroid) to its new slot's offset, over as many ticks as
@@ -24,8 +25,8 @@
 //! al.'s CAPT). A step change instead sent every robot at once at top speed towards slots
 //! across the swarm, pulled by new neighbours metres away, and every collision under two
 //! changes per episode happened so. While the formation morphs, a success does not end the
-//! episode and ticks in formation do not count towards re-forming. Live changes (the control
-//! service) and team changes are applied at once, as asked, and end a morph under way.
+//! episode and ticks in formation do not count towards re-forming. A change during a morph
+//! starts a new one from where the robots then stand.
 //!
 //! Success means holding the *last* formation at the goal: while a change is still to come,
 //! C3 does not end the episode ([`Mission::judge`]: the transition scores as C1 alone would,
@@ -526,7 +527,7 @@ impl Mission {
             let (offsets, spec) = (change.offsets.clone(), change.spec);
             self.next += 1;
             self.reform(world, &offsets, spec);
-            self.morph = Some(Morph::new(world, &self.current));
+            return true;
         }
         let Some(morph) = &mut self.morph else {
             return false;
@@ -643,7 +644,6 @@ impl Mission {
     /// Assigns the `present` robots to the slots of the current formation (Kuhn-Munkres, as at
     /// a shape change); the others hold [`NO_SLOT`].
     fn assign_present(&mut self, world: &mut World, present: &[bool]) {
-        self.morph = None;
         let robots: Vec<usize> = (0..world.n_agents()).filter(|&r| present[r]).collect();
         let positions: Vec<[f64; 2]> = robots.iter().map(|&r| [world.poses[r].x, world.poses[r].y]).collect();
         let targets: Vec<[f64; 2]> = self
@@ -657,6 +657,9 @@ impl Mission {
         }
         let offsets = self.current.clone();
         set_formation(world, &offsets, slot_of);
+        // Not a step: the formation morphs from where the robots stand, its first tick now.
+        let mut morph = Morph::new(world, &self.current);
+        self.morph = (!morph.advance(world)).then_some(morph);
     }
 
     /// Counts a reconfiguration at the current tick, whose re-forming is then awaited.
@@ -888,6 +891,11 @@ mod tests {
         }
         let mut mission = Mission::new(Vec::new(), &ring, spec(FormationShape::Ring), 1);
         mission.reform(&mut world, &line, spec(FormationShape::Line));
+        // It morphs as a scheduled change does: its first tick asks for about the ring the
+        // robots stand in (a step change asked for edges metres off), and no success meanwhile.
+        assert!(world.conditions().max_edge_error < env.eps_form_m, "no edge jumps");
+        assert!(mission.judge(world.step(&[(0.0, 0.0); 6]), 1, &env).outcome != Outcome::Success);
+        morph_to_the_end(&mut world, &mut mission);
         let positions: Vec<[f64; 2]> = world.poses.iter().map(|p| [p.x - 5.0, p.y - 5.0]).collect();
         assert_eq!(
             world.slot_of,
@@ -901,6 +909,7 @@ mod tests {
         // A new goal keeps the formation, its slots reassigned around the goal.
         let offsets_before: Vec<[f64; 2]> = world.slots.clone();
         mission.move_goal(&mut world, [6.0, 5.0]);
+        morph_to_the_end(&mut world, &mut mission);
         assert_eq!(world.goal, [6.0, 5.0]);
         let mut before = offsets_before.clone();
         let mut after = world.slots.clone();
@@ -1176,6 +1185,7 @@ mod tests {
                 let (mut world, mut mission) = team_of(kind, n);
                 let env = world.env.clone();
                 mission.leave(&mut world, 2).unwrap_or_else(|why| panic!("{why}"));
+                morph_to_the_end(&mut world, &mut mission);
                 assert_eq!((mission.departures(), mission.reconfigurations()), (1, 1));
                 // Robot 2 holds no slot and observes itself; the others hold slots 0..N-1.
                 assert_eq!(world.slot_of[2], NO_SLOT);

@@ -73,12 +73,20 @@ def test_a_formation_change_sent_from_python_is_obeyed(tmp_path, capsys):
     consistent(before)
     slot_map = consistent(after)
     assert sorted(slot_map) == list(range(N))
+    # It morphs (core's mission planner): the first tick asks for about the geometry the robots
+    # stand in, no edge jumps, then the edges move tick by tick to the line's and stay there.
+    final = episode[-1]
+    jump = lambda a, b: max(abs(x - y) for ra, rb in zip(a.desired, b.desired) for x, y in zip(ra, rb))  # noqa: E731
+    assert jump(after, before) < 0.1 < jump(final, before), (jump(after, before), jump(final, before))
+    morph_end = min(s.tick for s in episode if s.tick >= ack.tick and s.desired == final.desired)
+    assert morph_end > ack.tick + 1, "more than one tick of morph"
+    consistent(final)
     # The line: its slots' spread along its main axis is well over its width (two files).
-    xs = [p[0] for p in after.slots]
-    ys = [p[1] for p in after.slots]
-    assert max(xs) - min(xs) > 2.0 * (max(ys) - min(ys)), after.slots
+    xs = [p[0] for p in final.slots]
+    ys = [p[1] for p in final.slots]
+    assert max(xs) - min(xs) > 2.0 * (max(ys) - min(ys)), final.slots
     # The refused requests changed nothing after it.
-    assert all(s.desired == after.desired for s in episode if s.tick >= ack.tick)
+    assert all(s.desired == final.desired for s in episode if s.tick >= morph_end)
     # Re-formed within the episode: it ends in success, holding the line at the goal.
     assert episode[-1].outcome_name == "success", episode[-1]
     rows = list(csv.DictReader((swarm.run_dir / "episodes.csv").open()))
