@@ -23,7 +23,6 @@ from __future__ import annotations
 import atexit
 import collections
 import dataclasses
-import fcntl
 import gc
 import json
 import math
@@ -971,20 +970,8 @@ class FormationEnv(ParallelEnv):
                 queue.clear()
 
     def _hold_clients_lock(self) -> None:
-        """A shared ``flock`` on the run's ``/dev/shm/<prefix>clients.lock`` while the ports are
-        open: at the run's end the launcher waits for it (a few seconds at most) before it
-        removes the run's files, so ports that outlive the sim remove their services
-        themselves (iceoryx2 would otherwise warn of "a corrupted system" for each)."""
-        try:
-            fd = os.open(f"/dev/shm/{self.run.shm_prefix}clients.lock", os.O_RDONLY)
-        except FileNotFoundError:
-            return
-        try:
-            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)  # the launcher is already removing the run
-            return
-        self._clients_lock = fd
+        """The run's clients lock while the ports are open (``RunInfo.hold_clients_lock``)."""
+        self._clients_lock = self.run.hold_clients_lock()
 
     def _release_ports(self) -> None:
         for guard in self._guards:

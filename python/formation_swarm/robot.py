@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import secrets
 import time
 from pathlib import Path
@@ -121,6 +122,8 @@ class Robot:
         self._warned = False
         self._last_heard = time.monotonic()
         self._episode: Optional[int] = None
+        #: The run's clients lock while the ports are open (see ``RunInfo.hold_clients_lock``).
+        self._clients_lock = self.run.hold_clients_lock()
         self._node = self.run.create_node(f"agent{index}")
         run = self.run
         self._observations = (
@@ -169,6 +172,9 @@ class Robot:
                 obj.delete()
                 setattr(self, port, None)
         self._node = None
+        if getattr(self, "_clients_lock", None) is not None:
+            os.close(self._clients_lock)
+            self._clients_lock = None
 
     def __enter__(self) -> "Robot":
         return self

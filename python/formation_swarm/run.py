@@ -103,6 +103,24 @@ class RunInfo:
             os.close(fd)
         return False
 
+    def hold_clients_lock(self) -> Optional[int]:
+        """Takes a shared ``flock`` on the run's ``/dev/shm/<shm prefix>clients.lock`` for as
+        long as a client's ports are open; returns its file descriptor (close it once the ports
+        are gone), or None when the run is gone or being removed. At the run's end the launcher
+        waits for the lock (a few seconds at most) before it removes the run's files, so ports
+        that outlive the sim remove their services themselves (iceoryx2 would otherwise warn of
+        "a corrupted system" for each)."""
+        try:
+            fd = os.open(f"/dev/shm/{self.shm_prefix}clients.lock", os.O_RDONLY)
+        except FileNotFoundError:
+            return None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)  # the launcher is already removing the run
+            return None
+        return fd
+
     # --- service sizing, as protocol/src/services.rs derives it -----------------------------
 
     @property

@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 
+import pytest
 
 from formation_swarm import Observer, connect, wire
 from formation_swarm.run import OBSERVATION_DIMS
@@ -118,7 +119,38 @@ def test_python_baseline_plays_robot_2_of_an_eval_run(tmp_path):
     assert summary["scripted_agents"] == [0, 1]
     assert summary["external_agents"] == [2], "the summary says which robots were outside"
     assert "run ended after" in robot_log
+    assert "corrupt" not in robot_log.lower(), robot_log
     check_run_json(swarm.run_dir, [2])
+
+
+def test_a_python_robot_holds_the_clients_lock_while_its_ports_are_open(tmp_path):
+    """The launcher removes a run's files only once no client holds the run's clients lock, so a
+    Python robot whose ports outlive the sim removes its services itself (iceoryx2 would warn
+    of a corrupted system otherwise): the lock is held from the Robot's start to its close."""
+    import fcntl
+
+    from formation_swarm import Baseline, Robot
+
+    run_dir = tmp_path / "run"
+    swarm = launch(["3", "--mode", "eval", "--scripted", "0,1", "--external", "2", "--episodes", "2",
+                    "--seed", "1", "--viewer", "off"], run_dir)
+    try:
+        robot = Robot(run_dir, 2, Baseline(), connect_timeout=30)
+        lock = os.open(f"/dev/shm/{robot.run.shm_prefix}clients.lock", os.O_RDONLY)
+        try:
+            with pytest.raises(BlockingIOError):
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            assert robot.run_forever().episodes == 2
+            robot.close()
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)  # free once the ports are gone
+            fcntl.flock(lock, fcntl.LOCK_UN)
+        finally:
+            os.close(lock)
+        assert swarm.wait(WATCHDOG_S) == 0, swarm.output
+    finally:
+        if swarm.proc.poll() is None:
+            swarm.wait(0)
+    assert_clean(swarm)
 
 
 def test_python_baseline_on_the_papers_observation(tmp_path):
