@@ -53,16 +53,17 @@ def fmt_count(summary: dict, key: str) -> str:
     return "-" if value is None else str(value)
 
 
-def table(results: dict, rows: list[str], ns: list[int], columns: list[str], episodes: int, seed: int) -> str:
-    """The Markdown table of every cell."""
+def table(results: dict, paces: dict, rows: list[str], ns: list[int], columns: list[str], episodes: int, seed: int) -> str:
+    """The Markdown table of every cell (`paces`: each cell's steps over the pace floor's)."""
     lines = [
         f"{episodes} episodes a cell from seed {seed}. Edge error: final mean |d_ij - dbar_ij| averaged over all "
         "episodes; steps: mean over successful episodes; late / lost: summed over the cell's episodes "
-        "(`-`: not in summary.json).",
+        "(`-`: not in summary.json); x floor: the steps over the pace floor's on the same successful episodes "
+        "(formation-pace-floor: no controller reaches the goal sooner).",
         "",
-        "| condition | N | team | success | collisions | final edge error | steps to goal | formation held "
+        "| condition | N | team | success | collisions | final edge error | steps to goal | x floor | formation held "
         "| late cmds | lost cmds | lost obs | missed ticks |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
         for n in ns:
@@ -70,12 +71,13 @@ def table(results: dict, rows: list[str], ns: list[int], columns: list[str], epi
                 s = results.get((row, n, col))
                 head = f"| {rr.ROW_TITLES[row]} | {n} | {COLUMN_TITLES[col]} |"
                 if s is None:
-                    lines.append(head + " not run (no tuned gains) | | | | | | | | |" if col == "tuned" and (row, n, col) not in results
-                                 else head + " run failed | | | | | | | | |")
+                    lines.append(head + " not run (no tuned gains) | | | | | | | | | |" if col == "tuned" and (row, n, col) not in results
+                                 else head + " run failed | | | | | | | | | |")
                     continue
                 lines.append(
                     f"{head} {s['success_rate']:.2f} | {s['collision_rate']:.2f} | "
                     f"{1000 * s['mean_final_edge_error_m']:.1f} mm | {rr.fmt_steps(s.get('mean_steps_to_goal'))} | "
+                    f"{'-' if paces.get((row, n, col)) is None else f'{paces[(row, n, col)]:.2f}'} | "
                     f"{s['formation_hold_rate']:.2f} | {fmt_count(s, 'late_commands')} | {fmt_count(s, 'lost_commands')} | "
                     f"{fmt_count(s, 'lost_observations')} | {fmt_count(s, 'missed_ticks')} |"
                 )
@@ -175,13 +177,23 @@ def main() -> int:
     for key, cell in cells:
         results[key] = rr.timed_run(cell, progress, f"{key[0]} N={key[1]} {COLUMN_TITLES[key[2]]}")
 
-    text = table(results, rows, ns, columns, args.episodes, args.seed)
+    paces = {}
+    for row in rows:
+        written = [c for c in columns if (out / "configs" / f"{row}-{c}.toml").is_file()]
+        floors = rr.pace_floors(out / "configs" / f"{row}-{written[0]}.toml", ns, args.episodes, args.seed,
+                                args.shape) if written else None
+        for (r, n, col), cell in cells:
+            if r == row and floors is not None and (cell.run_dir / "episodes.csv").is_file():
+                steps, floor = rr.pace_over_floor(cell.run_dir, floors[n])
+                paces[(r, n, col)] = steps / floor if floor else None
+    text = table(results, paces, rows, ns, columns, args.episodes, args.seed)
     if sources:
         text += "\n\nScripted tuned gains: " + "; ".join(f"{rr.ROW_TITLES[r]}: {p}" for r, p in sources.items())
     (out / "table.md").write_text(text + "\n")
     json.dump({"episodes": args.episodes, "seed": args.seed, "ns": ns, "rows": rows, "columns": columns,
                "realities": {r: realities[r] for r in rows}, "tuned_sources": sources,
-               "cells": [{"row": r, "n": n, "team": c, "summary": s} for (r, n, c), s in results.items()]},
+               "cells": [{"row": r, "n": n, "team": c, "summary": s, "x_floor": paces.get((r, n, c))}
+                         for (r, n, c), s in results.items()]},
               open(out / "grid.json", "w"), indent=1)
     plot(results, rows, ns, columns, f"reality grid: {args.episodes} held-out episodes a cell from seed {args.seed}",
          out / "grid.png")
