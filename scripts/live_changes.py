@@ -16,7 +16,6 @@ binaries (e.g. target/debug).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import random
@@ -28,6 +27,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "python"))
 sys.dont_write_bytecode = True
 import formation_swarm as fs  # noqa: E402
+import reality_runs as rr  # noqa: E402
 
 
 def main() -> int:
@@ -48,10 +48,9 @@ def main() -> int:
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
     config = args.out.with_suffix(".toml")
-    config.write_text(f"[env]\nmax_steps = {args.max_steps}  # room to re-form after the change\n")
-    cmd = [str(ROOT / "scripts" / "run_swarm.sh"), str(args.n), "--mode", "eval", "--realtime", "--viewer", "off",
-           "--episodes", str(args.episodes), "--seed", str(args.seed), "--config", str(config),
-           "--run-dir", str(args.out)] + (["--scripted", "all"] if args.scripted else [])
+    config.write_text(rr.to_toml({"env": {"max_steps": args.max_steps}}))
+    cmd = rr.Cell(args.n, "scripted" if args.scripted else "learned", config, args.out, args.episodes, args.seed,
+                  extra=["--realtime"]).command()
     log = args.out.with_suffix(".log")
     rng = random.Random(args.seed)
     shapes = [s for s in args.shapes.split(",") if s]
@@ -82,16 +81,12 @@ def main() -> int:
     if status != 0:
         print(f"live_changes.py: error: the run failed (status {status}); see {log}", file=sys.stderr)
         return 2
-    rows = list(csv.DictReader(open(args.out / "episodes.csv")))
-    outcomes = [r["outcome"] for r in rows]
-    reform = [float(r["mean_reform_ticks"]) for r in rows if r["mean_reform_ticks"]]
+    summary = json.loads((args.out / "summary.json").read_text())
     result = {
-        "n": args.n, "kind": args.kind, "team": "scripted" if args.scripted else "learned", "episodes": len(rows),
-        "changes_acknowledged": acks, "changes_refused": refused,
-        "success": outcomes.count("success") / len(rows), "collisions": outcomes.count("collision") / len(rows),
-        "timeouts": outcomes.count("timeout") / len(rows),
-        "reconfigurations": sum(int(r["reconfigurations"]) for r in rows),
-        "mean_reform_ticks": sum(reform) / len(reform) if reform else None,
+        "n": args.n, "kind": args.kind, "team": "scripted" if args.scripted else "learned",
+        "episodes": summary["episodes"], "changes_acknowledged": acks, "changes_refused": refused,
+        "success": summary["success_rate"], "collisions": summary["collision_rate"], "timeouts": summary["timeout_rate"],
+        "reconfigurations": summary["reconfigurations"], "mean_reform_ticks": summary["mean_reform_ticks"],
     }
     (args.out / "live_changes.json").write_text(json.dumps(result, indent=1))
     print(json.dumps(result))

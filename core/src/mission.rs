@@ -65,7 +65,7 @@ use rand::rngs::StdRng;
 use crate::config::{EnvConfig, FormationShape};
 use crate::formation::{FormationSpec, ShapeChange};
 use crate::shapes::{draw_shape, shape_is_valid};
-use crate::task::{Outcome, StepResult};
+use crate::task::{Outcome, StepResult, present_centroid};
 use crate::world::World;
 
 /// Consecutive ticks in formation that make a change re-formed.
@@ -371,9 +371,9 @@ impl Attendance {
     }
 }
 
-/// A scheduled change under way: each present robot's target offset from the goal moving in a
-/// straight line, all in step, from its place in the swarm at the change to its new slot's
-/// offset (see the module's documentation).
+/// A change under way: each present robot's target offset from the goal moving in a straight
+/// line, all in step, from its place in the swarm at the change to its new slot's offset (see
+/// the module's documentation).
 #[derive(Debug, Clone)]
 struct Morph {
     /// The new formation's slot map.
@@ -391,17 +391,12 @@ impl Morph {
     /// The morph of `world`, whose present robots have just been assigned (its slot map) to
     /// the slots of `to`, from where they stand.
     fn new(world: &World, to: &[[f64; 2]]) -> Self {
-        let m = to.len();
         let slot_of = world.slot_of.clone();
-        let mean = |points: &mut dyn Iterator<Item = [f64; 2]>| {
-            let (sum, count) = points.fold(([0.0, 0.0], 0.0), |(s, k), p| ([s[0] + p[0], s[1] + p[1]], k + 1.0));
-            [sum[0] / f64::max(count, 1.0), sum[1] / f64::max(count, 1.0)]
-        };
-        let present = || (0..slot_of.len()).filter(|&r| slot_of[r] < m);
-        let centroid = mean(&mut present().map(|r| [world.poses[r].x, world.poses[r].y]));
-        let centre = mean(&mut to.iter().copied());
+        let centroid = present_centroid(&world.poses, &world.observed);
+        let (sx, sy) = to.iter().fold((0.0, 0.0), |(sx, sy), o| (sx + o[0], sy + o[1]));
+        let centre = [sx / to.len() as f64, sy / to.len() as f64];
         let mut from = to.to_vec();
-        for r in present() {
+        for r in (0..slot_of.len()).filter(|&r| slot_of[r] < to.len()) {
             from[slot_of[r]] = [
                 world.poses[r].x - centroid[0] + centre[0],
                 world.poses[r].y - centroid[1] + centre[1],
@@ -468,7 +463,7 @@ pub struct Mission {
     reconfigurations: u32,
     /// Ticks to re-form after each change that re-formed.
     reform_ticks: Vec<u32>,
-    /// The scheduled change under way, if any.
+    /// The change under way, if any.
     morph: Option<Morph>,
 }
 

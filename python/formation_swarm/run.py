@@ -92,15 +92,11 @@ class RunInfo:
         if self.launcher_pid <= 0:
             return True
         try:
-            fd = os.open(f"/dev/shm/{self.shm_prefix}launcher.lock", os.O_RDONLY)
+            os.close(self._shared_lock("launcher.lock"))
         except FileNotFoundError:
             return False
-        try:
-            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
         except BlockingIOError:
             return True
-        finally:
-            os.close(fd)
         return False
 
     def hold_clients_lock(self) -> Optional[int]:
@@ -111,14 +107,20 @@ class RunInfo:
         that outlive the sim remove their services themselves (iceoryx2 would otherwise warn of
         "a corrupted system" for each)."""
         try:
-            fd = os.open(f"/dev/shm/{self.shm_prefix}clients.lock", os.O_RDONLY)
-        except FileNotFoundError:
+            return self._shared_lock("clients.lock")
+        except OSError:  # gone, or the launcher is already removing the run
             return None
+
+    def _shared_lock(self, name: str) -> int:
+        """A shared, non-blocking ``flock`` on the run's ``/dev/shm/<shm prefix><name>``: its file
+        descriptor. Raises ``FileNotFoundError`` without the file, ``BlockingIOError`` while
+        someone holds it exclusively."""
+        fd = os.open(f"/dev/shm/{self.shm_prefix}{name}", os.O_RDONLY)
         try:
             fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
         except OSError:
-            os.close(fd)  # the launcher is already removing the run
-            return None
+            os.close(fd)
+            raise
         return fd
 
     # --- service sizing, as protocol/src/services.rs derives it -----------------------------
