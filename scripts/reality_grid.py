@@ -177,15 +177,14 @@ def main() -> int:
     for key, cell in cells:
         results[key] = rr.timed_run(cell, progress, f"{key[0]} N={key[1]} {COLUMN_TITLES[key[2]]}")
 
+    # A row's episodes and motors are the same for every team: one floor per row.
+    floors = {row: rr.pace_floors(cell.config, ns, args.episodes, args.seed, args.shape)
+              for row, cell in {key[0]: cell for key, cell in cells}.items()}
     paces = {}
-    for row in rows:
-        written = [c for c in columns if (out / "configs" / f"{row}-{c}.toml").is_file()]
-        floors = rr.pace_floors(out / "configs" / f"{row}-{written[0]}.toml", ns, args.episodes, args.seed,
-                                args.shape) if written else None
-        for (r, n, col), cell in cells:
-            if r == row and floors is not None and (cell.run_dir / "episodes.csv").is_file():
-                steps, floor = rr.pace_over_floor(cell.run_dir, floors[n])
-                paces[(r, n, col)] = steps / floor if floor else None
+    for (row, n, col), cell in cells:
+        if floors[row] is not None and (cell.run_dir / "episodes.csv").is_file():
+            steps, floor = rr.pace_over_floor(cell.run_dir, floors[row][n])
+            paces[(row, n, col)] = steps / floor if floor else None
     text = table(results, paces, rows, ns, columns, args.episodes, args.seed)
     if sources:
         text += "\n\nScripted tuned gains: " + "; ".join(f"{rr.ROW_TITLES[r]}: {p}" for r, p in sources.items())
