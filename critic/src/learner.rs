@@ -223,7 +223,7 @@ pub struct Learner {
 
 /// Re-draws every variable from `rng`, U(-1/sqrt(fan_in), 1/sqrt(fan_in)) (PyTorch's default
 /// for linear layers), because candle's CPU generator cannot be seeded.
-fn reinitialise(vars: &VarMap, rng: &mut StdRng) -> Result<()> {
+pub(crate) fn reinitialise(vars: &VarMap, rng: &mut StdRng) -> Result<()> {
     let data = vars
         .data()
         .lock()

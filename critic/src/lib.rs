@@ -7,10 +7,13 @@
 //! * [`trainer`]: replay, updates at the update-to-data ratio, weights, checkpoints;
 //! * [`selection`]: each checkpoint's score, on fixed noise-free episodes played in-process;
 //! * [`learner`]: the networks and one gradient update (TD3 or DDPG);
+//! * [`distill`]: the offline `formation-distill` tool, the shared actor taught its teacher by
+//!   DAgger on the games of [`selection`];
 //! * [`weights`]: the weights services towards the agents;
 //! * [`progress`], [`view`]: the progress display, `training.csv` and the training curves.
 
 pub mod collector;
+pub mod distill;
 pub mod learner;
 pub mod progress;
 pub mod run;

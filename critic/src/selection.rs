@@ -124,9 +124,23 @@ impl SuddenTurn {
     }
 }
 
-/// One selection episode: its world, mission and reality, each robot's window, the commands in
-/// use and what it has added up.
-struct Game {
+/// What a robot that was told this tick is asked to answer: the controller sees its window.
+pub(crate) struct Asked<'a> {
+    /// The robot.
+    pub agent: usize,
+    /// The episode's step (0 = its first).
+    pub step: u32,
+    /// Whether the robot is in the formation (a robot out of it is commanded to stand still
+    /// whatever it answers).
+    pub present: bool,
+    /// Its observation window.
+    pub window: &'a ObservationHistory,
+}
+
+/// One episode played in-process as a lockstep sim plays it: its world, mission and reality,
+/// each robot's window, the commands in use and what it has added up. Model selection and
+/// distillation (`crate::distill`) play these.
+pub(crate) struct Game {
     world: World,
     mission: Mission,
     reality: Reality,
@@ -137,7 +151,7 @@ struct Game {
     /// Whether each robot was told this tick (a robot whose observation was lost is not asked).
     asked: Vec<bool>,
     in_use: Vec<Command>,
-    outcome: Outcome,
+    pub(crate) outcome: Outcome,
     formation_ticks: u32,
 }
 
@@ -180,36 +194,33 @@ impl Game {
         }
     }
 
-    /// One tick: each robot that was told answers with its action from its window (its own
-    /// actor, or the shared one) scaled to (v, w) as an agent does and rounded to the f32 of the
-    /// wire, but for a robot in a sudden turn; a lost answer leaves the command in use. The
-    /// motors act through the reality and the world clamps and integrates as in the sim; the
-    /// mission judges the step, changes the formation on schedule and takes a robot whose
-    /// controller failed at this tick out of the formation, as in the sim.
-    fn step(
+    /// One tick: each robot that was told answers through `answer` with its (v, w) command (a
+    /// lost answer leaves the command in use); the motors act through the reality and the
+    /// world clamps and integrates as in the sim; the mission judges the step, changes the
+    /// formation on schedule and takes a robot whose controller failed at this tick out of the
+    /// formation, as in the sim.
+    pub(crate) fn step(
         &mut self,
-        actors: &mut [FrozenActor],
-        turn: Option<SuddenTurn>,
+        mut answer: impl FnMut(Asked) -> Result<Command>,
         acting: &mut Vec<(f64, f64)>,
     ) -> Result<()> {
         acting.clear();
         let step = self.world.steps;
         for (agent, window) in self.windows.iter().enumerate() {
+            let present = self.world.slot_of[agent] != NO_SLOT;
             if self.asked[agent] {
-                let actor = &mut actors[agent % actors.len()];
-                let (v, w) = self.world.env.command_from_action(actor.act(window.as_flat())?);
-                let imposed = turn.and_then(|turn| turn.command(&self.world.env, agent, step));
-                let answer = imposed.unwrap_or((f64::from(v as f32), f64::from(w as f32)));
+                let command = answer(Asked {
+                    agent,
+                    step,
+                    present,
+                    window,
+                })?;
                 if !self.reality.command_lost(agent) {
-                    self.in_use[agent] = answer;
+                    self.in_use[agent] = command;
                 }
             }
             // A robot out of the formation is commanded to stand still, as the sim commands it.
-            let command = if self.world.slot_of[agent] == NO_SLOT {
-                (0.0, 0.0)
-            } else {
-                self.in_use[agent]
-            };
+            let command = if present { self.in_use[agent] } else { (0.0, 0.0) };
             acting.push(self.reality.actuate(agent, step, command, true));
         }
         let result = self
@@ -246,6 +257,25 @@ pub struct Played<'a> {
     pub reality: &'a RealityConfig,
 }
 
+impl Played<'_> {
+    /// A game for each of these episodes of `n` robots: the episodes, shape changes, team
+    /// changes and reality a lockstep sim started with this seed plays.
+    pub(crate) fn games(&self, env: &EnvConfig, n: usize) -> Vec<Game> {
+        let layout = Layout::of(env.observation);
+        Episodes::new(n, env, self.seed)
+            .take(self.count)
+            .enumerate()
+            .map(|(episode, mut init)| {
+                let reality = Reality::new(self.reality, env, self.seed, episode as u64, n);
+                let changes = std::mem::take(&mut init.changes);
+                let team_seed = team_seed(self.seed, episode as u32);
+                let mission = Mission::new(changes, &init.slots, init.spec, team_seed);
+                Game::new(World::new(env, init), mission, reality, env.history, layout)
+            })
+            .collect()
+    }
+}
+
 /// Plays `episodes` of `n` robots with `actors` (one shared, or one per robot) and, if given, a
 /// robot's sudden turn in each; scores them.
 pub fn play(
@@ -273,21 +303,20 @@ pub fn play(
         "a sudden turn of robot {} in a swarm of {n}",
         turn.map_or(0, |turn| turn.robot)
     );
-    let mut games: Vec<Game> = Episodes::new(n, env, episodes.seed)
-        .take(episodes.count)
-        .enumerate()
-        .map(|(episode, mut init)| {
-            let reality = Reality::new(episodes.reality, env, episodes.seed, episode as u64, n);
-            let changes = std::mem::take(&mut init.changes);
-            let team_seed = team_seed(episodes.seed, episode as u32);
-            let mission = Mission::new(changes, &init.slots, init.spec, team_seed);
-            Game::new(World::new(env, init), mission, reality, env.history, layout)
-        })
-        .collect();
+    let mut games = episodes.games(env, n);
     let mut acting = Vec::with_capacity(n);
     for game in &mut games {
         while game.outcome == Outcome::Running {
-            game.step(actors, turn, &mut acting)?;
+            game.step(
+                |asked| {
+                    let actor = &mut actors[asked.agent % actors.len()];
+                    let (v, w) = env.command_from_action(actor.act(asked.window.as_flat())?);
+                    let imposed = turn.and_then(|turn| turn.command(env, asked.agent, asked.step));
+                    // Rounded to the f32 of the wire, as an agent sends it.
+                    Ok(imposed.unwrap_or((f64::from(v as f32), f64::from(w as f32))))
+                },
+                &mut acting,
+            )?;
         }
     }
     let count = games.len().max(1) as f64;

@@ -1,0 +1,198 @@
+//! `formation-distill`: teaches the shared actor its teacher, the scripted baseline with the
+//! config's `[baseline]` gains, by DAgger under the config's `[reality]`, in-process (no
+//! swarm, no IPC), and saves it as a checkpoint the launcher and agents load like any other.
+
+use std::collections::HashMap;
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::Parser;
+use formation_core::config::{RunConfig, validate_agent_count};
+use formation_core::reality::RealityConfig;
+use formation_critic::distill::{DistillOptions, Distiller, RoundReport};
+use formation_critic::selection::Selector;
+use indicatif::{ProgressBar, ProgressStyle};
+
+/// Distils the scripted baseline (the config's `[baseline]` gains) into the shared actor:
+/// each round plays episodes of every swarm size in-process, exactly as a lockstep sim plays
+/// them under the config's `[reality]`, labels every robot's window with the teacher's command,
+/// and takes gradient steps on the squared error. The teacher drives the first round; after it,
+/// the student drives most episodes (DAgger), so it learns the way back from its own mistakes.
+/// At the end the student is scored by model selection (learn.selection_*, under the reality
+/// and in the ideal world) and saved with that score.
+///
+/// Example (the shipped model's distillation stage, about 10 minutes on one core):
+///   formation-distill --config configs/field-distill.toml --checkpoint models/formation.safetensors \
+///     --out runs/distill/s1.safetensors --seed 1
+#[derive(Debug, Parser)]
+#[command(version, about, long_about)]
+struct Cli {
+    /// Run config: [env] (observation model, shapes, history), [learn] (actor_hidden,
+    /// selection_*), [reality] (the episodes' randomised reality) and [baseline] (the teacher).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Start from this checkpoint's shared actor (a file or run directory) instead of fresh
+    /// weights; its shape must be the config's.
+    #[arg(long)]
+    checkpoint: Option<PathBuf>,
+    /// Where to write the student (a .safetensors file; refused if it exists, unless --force).
+    #[arg(long)]
+    out: PathBuf,
+    /// Overwrite --out.
+    #[arg(long)]
+    force: bool,
+    /// Swarm sizes played every round.
+    #[arg(long, value_delimiter = ',', default_value = "3,12,32")]
+    sizes: Vec<usize>,
+    /// Rounds (each: episodes, then --updates gradient steps).
+    #[arg(long, default_value_t = 400)]
+    rounds: usize,
+    /// Robots per size and round (each size plays ceil(this / N) episodes a round).
+    #[arg(long, default_value_t = 96)]
+    robots_per_round: usize,
+    /// Gradient steps per round.
+    #[arg(long, default_value_t = 400)]
+    updates: usize,
+    /// Samples per gradient step.
+    #[arg(long, default_value_t = 1024)]
+    batch: usize,
+    /// Share of episodes after the first round the teacher drives.
+    #[arg(long, default_value_t = 0.2)]
+    teacher_share: f64,
+    /// Learning rate of the first round (Adam), decaying exponentially to --lr-end.
+    #[arg(long, default_value_t = 1e-3)]
+    lr: f64,
+    /// Learning rate of the last round.
+    #[arg(long, default_value_t = 3e-5)]
+    lr_end: f64,
+    /// Seeds the episodes (far from the held-out seeds), the sampling and fresh weights.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+}
+
+fn main() -> ExitCode {
+    match try_main(Cli::parse()) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(err) => {
+            eprintln!("formation-distill: error: {err:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn try_main(cli: Cli) -> Result<()> {
+    // SAFETY: no other thread runs yet; candle reads this for its matmul thread count.
+    unsafe { std::env::set_var("RAYON_NUM_THREADS", "1") };
+    let config = match &cli.config {
+        Some(path) => RunConfig::from_toml_file(path)?,
+        None => RunConfig::default(),
+    };
+    for &n in &cli.sizes {
+        validate_agent_count(n).context("--sizes")?;
+    }
+    if cli.out.exists() && !cli.force {
+        anyhow::bail!("{} exists; pass --force to overwrite it", cli.out.display());
+    }
+    if let Some(parent) = cli.out.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).with_context(|| format!("cannot create {}", parent.display()))?;
+    }
+    let options = DistillOptions {
+        sizes: cli.sizes.clone(),
+        robots_per_round: cli.robots_per_round,
+        updates_per_round: cli.updates,
+        batch: cli.batch,
+        teacher_share: cli.teacher_share,
+        lr_start: cli.lr,
+        lr_end: cli.lr_end,
+        rounds: cli.rounds,
+        seed: cli.seed,
+        ..DistillOptions::default()
+    };
+    let mut distiller = Distiller::new(&config, options, cli.checkpoint.as_deref())?;
+    let began = Instant::now();
+    let bar = progress_bar(cli.rounds as u64);
+    for _ in 0..cli.rounds {
+        let report = distiller.round()?;
+        let line = describe(&report);
+        match &bar {
+            Some(bar) => {
+                bar.set_message(line);
+                bar.inc(1);
+            }
+            None if report.round % 20 == 0 || report.round == cli.rounds => {
+                eprintln!("formation-distill: round {}/{}: {line}", report.round, cli.rounds);
+            }
+            None => {}
+        }
+    }
+    if let Some(bar) = bar {
+        bar.finish_and_clear();
+    }
+    let took = began.elapsed();
+    let selector = Selector::new(&config.env, &config.learn, &config.reality, &cli.sizes);
+    let score = selector.score(&[distiller.actor_weights()?], distiller.shape())?;
+    let mut extra = HashMap::new();
+    score.to_metadata(&mut extra);
+    extra.insert("distill_seconds".into(), format!("{:.0}", took.as_secs_f64()));
+    if let Some(start) = &cli.checkpoint {
+        extra.insert("distill_start".into(), start.display().to_string());
+    }
+    if config.reality != RealityConfig::default() {
+        extra.insert("reality".into(), config.reality.one_line());
+    }
+    distiller.save(&cli.out, extra)?;
+    let by_size = |sizes: &[formation_model::checkpoint::SizeScore]| {
+        sizes
+            .iter()
+            .map(|s| format!("N={} {:.2} in {:.1} steps", s.n_agents, s.success, s.mean_steps))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    println!(
+        "formation-distill: {} rounds in {:.0} s; selection {}{}; saved {}",
+        cli.rounds,
+        took.as_secs_f64(),
+        by_size(&score.sizes),
+        score
+            .ideal
+            .as_ref()
+            .map_or(String::new(), |ideal| format!(" (ideal world {})", by_size(ideal))),
+        cli.out.display()
+    );
+    Ok(())
+}
+
+/// A bar over the rounds on a terminal; `None` elsewhere (a line every 20 rounds instead).
+fn progress_bar(rounds: u64) -> Option<ProgressBar> {
+    std::io::stderr().is_terminal().then(|| {
+        let bar = ProgressBar::new(rounds);
+        bar.set_style(
+            ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} rounds, ~{eta} left  {msg}")
+                .expect("a valid template")
+                .progress_chars("=> "),
+        );
+        bar
+    })
+}
+
+/// One round in a line: the buffer, the loss and how the student drove.
+fn describe(report: &RoundReport) -> String {
+    let student: Vec<String> = report
+        .student
+        .iter()
+        .map(|s| match s.success {
+            Some(success) => format!("N={} {success:.2}", s.n_agents),
+            None => format!("N={} -", s.n_agents),
+        })
+        .collect();
+    format!(
+        "{} samples, loss {:.2e}, lr {:.1e}, student success {}",
+        report.samples,
+        report.loss,
+        report.lr,
+        student.join(" ")
+    )
+}

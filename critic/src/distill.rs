@@ -1,0 +1,482 @@
+//! Distillation: the shared actor taught its teacher's command for every observation the robots
+//! are told, by DAgger (Ross, Gordon and Bagnell 2011, "A Reduction of Imitation Learning and
+//! Structured Prediction to No-Regret Online Learning"), in-process and offline.
+//!
+//! The teacher is the scripted baseline with the run's `[baseline]` gains, answering from what
+//! the robot was told (the noisy observation under a `[reality]`), as a scripted agent does.
+//! Each round plays episodes of every swarm size as a lockstep sim plays them (the games of
+//! model selection, [`crate::selection`]), labels every answer a robot gives with the teacher's
+//! command for the same window, and adds the pairs to a buffer; then the actor takes gradient
+//! steps on the mean squared error to those labels. The first round the teacher drives; later
+//! rounds the student drives most episodes, so the buffer holds the states the student reaches
+//! (DAgger's point: a copy that drifts is taught the way back).
+//!
+//! Why beside TD3+BC: the imitation term of an RL update is a few hundred samples of one batch
+//! among the critic's updates, a dozen a second with a swarm of 44 robots on two CPUs; here
+//! the actor takes hundreds of pure regression steps a second, and a student copies its
+//! teacher to within a millimetre of formation precision where TD3+BC left ten (docs/RESULTS.md,
+//! "Distillation").
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use anyhow::{Context, Result, ensure};
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+use formation_core::baseline::ScriptedBaseline;
+use formation_core::config::RunConfig;
+use formation_core::observation::Layout;
+use formation_core::task::Outcome;
+use formation_model::actor::{Actor, ActorShape, flatten_parameters};
+use formation_model::checkpoint::{self, CheckpointMeta, actor_prefix};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+use crate::learner::reinitialise;
+use crate::selection::Played;
+
+/// How a distillation runs.
+#[derive(Debug, Clone)]
+pub struct DistillOptions {
+    /// Swarm sizes played every round.
+    pub sizes: Vec<usize>,
+    /// Robots per size and round: each size plays ceil(this / N) episodes a round.
+    pub robots_per_round: usize,
+    /// Gradient steps after each round's episodes.
+    pub updates_per_round: usize,
+    /// Samples per gradient step.
+    pub batch: usize,
+    /// Share of the episodes after the first round that the teacher drives (the first round it
+    /// drives them all; the student drives the rest).
+    pub teacher_share: f64,
+    /// Learning rate of the first round; it decays exponentially to `lr_end` at `rounds`.
+    pub lr_start: f64,
+    /// Learning rate of the last round.
+    pub lr_end: f64,
+    /// Rounds the learning rate decays over.
+    pub rounds: usize,
+    /// Labelled samples kept (the oldest are overwritten).
+    pub capacity: usize,
+    /// Seeds the episodes, the sampling and a fresh actor's weights.
+    pub seed: u64,
+}
+
+impl Default for DistillOptions {
+    fn default() -> Self {
+        Self {
+            sizes: vec![3, 12, 32],
+            robots_per_round: 96,
+            updates_per_round: 400,
+            batch: 1024,
+            teacher_share: 0.2,
+            lr_start: 1e-3,
+            lr_end: 3e-5,
+            rounds: 400,
+            capacity: 2_000_000,
+            seed: 1,
+        }
+    }
+}
+
+/// Labelled windows: each robot window the actor reads and the teacher's action for it.
+#[derive(Debug, Clone)]
+pub struct Samples {
+    windows: Vec<f32>,
+    labels: Vec<f32>,
+    width: usize,
+    capacity: usize,
+    next: usize,
+    len: usize,
+}
+
+impl Samples {
+    /// An empty buffer of `capacity` windows of `width` floats.
+    pub fn new(width: usize, capacity: usize) -> Self {
+        Self {
+            windows: vec![0.0; width * capacity],
+            labels: vec![0.0; 2 * capacity],
+            width,
+            capacity,
+            next: 0,
+            len: 0,
+        }
+    }
+
+    /// Samples held.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// Whether none are held.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Adds one, overwriting the oldest when full.
+    pub fn push(&mut self, window: &[f32], label: [f32; 2]) {
+        let i = self.next;
+        self.windows[i * self.width..(i + 1) * self.width].copy_from_slice(window);
+        self.labels[2 * i..2 * i + 2].copy_from_slice(&label);
+        self.next = (self.next + 1) % self.capacity;
+        self.len = (self.len + 1).min(self.capacity);
+    }
+
+    /// Sample `i` (0 = the oldest still held).
+    pub fn get(&self, i: usize) -> (&[f32], [f32; 2]) {
+        let slot = (self.next + self.capacity - self.len + i) % self.capacity;
+        let window = &self.windows[slot * self.width..(slot + 1) * self.width];
+        (window, [self.labels[2 * slot], self.labels[2 * slot + 1]])
+    }
+
+    /// Windows and labels of `rows` as two tensors.
+    fn batch(&self, rows: impl Iterator<Item = usize>, device: &Device) -> Result<(Tensor, Tensor)> {
+        let mut windows = Vec::new();
+        let mut labels = Vec::new();
+        for i in rows {
+            let (window, label) = self.get(i);
+            windows.extend_from_slice(window);
+            labels.extend_from_slice(&label);
+        }
+        let rows = labels.len() / 2;
+        Ok((
+            Tensor::from_vec(windows, (rows, self.width), device)?,
+            Tensor::from_vec(labels, (rows, 2), device)?,
+        ))
+    }
+}
+
+/// What one swarm size did in a round, driven by the student.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StudentScore {
+    /// Robots.
+    pub n_agents: usize,
+    /// Successful share of the episodes the student drove (`None`: the teacher drove them all).
+    pub success: Option<f64>,
+}
+
+/// One round's figures.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RoundReport {
+    /// Rounds done, this one included.
+    pub round: usize,
+    /// Samples in the buffer.
+    pub samples: usize,
+    /// Mean squared error of the round's gradient steps (actions in [-1, 1]).
+    pub loss: f64,
+    /// The learning rate of the round.
+    pub lr: f64,
+    /// Each size's episodes the student drove.
+    pub student: Vec<StudentScore>,
+}
+
+/// A distillation in progress: the teacher, the student actor and its optimiser, the buffer.
+pub struct Distiller {
+    config: RunConfig,
+    options: DistillOptions,
+    shape: ActorShape,
+    teacher: ScriptedBaseline,
+    vars: VarMap,
+    actor: Actor,
+    optimiser: AdamW,
+    samples: Samples,
+    rng: StdRng,
+    round: usize,
+    device: Device,
+}
+
+impl Distiller {
+    /// A student of the shape `config` asks for (`env.history`, `learn.actor_hidden`), fresh or
+    /// carried over from the shared actor of `start`.
+    pub fn new(config: &RunConfig, options: DistillOptions, start: Option<&Path>) -> Result<Self> {
+        config.validate()?;
+        ensure!(!options.sizes.is_empty(), "distillation needs at least one swarm size");
+        for &n in &options.sizes {
+            formation_core::config::validate_agent_count(n)?;
+        }
+        ensure!(
+            options.batch > 0
+                && options.capacity >= options.batch
+                && options.rounds > 0
+                && options.robots_per_round > 0,
+            "batch, rounds and robots per round must be > 0 and the buffer at least a batch"
+        );
+        ensure!(
+            (0.0..=1.0).contains(&options.teacher_share),
+            "the teacher's share of episodes must lie in [0, 1], not {}",
+            options.teacher_share
+        );
+        let layout = Layout::of(config.env.observation);
+        let shape = ActorShape {
+            obs_dim: layout.dim(),
+            history: config.env.history,
+            hidden: config.learn.actor_hidden.clone(),
+        };
+        let device = Device::Cpu;
+        let vars = VarMap::new();
+        let actor = Actor::new(
+            VarBuilder::from_varmap(&vars, DType::F32, &device).pp(actor_prefix(0).trim_end_matches('.')),
+            &shape,
+        )?;
+        let mut rng = StdRng::seed_from_u64(options.seed);
+        match start {
+            Some(path) => load_shared_actor(&vars, path, &shape, config)?,
+            None => reinitialise(&vars, &mut rng)?,
+        }
+        let optimiser = AdamW::new(
+            vars.all_vars(),
+            ParamsAdamW {
+                lr: options.lr_start,
+                weight_decay: 0.0,
+                ..Default::default()
+            },
+        )?;
+        Ok(Self {
+            teacher: ScriptedBaseline::new(&config.env, config.baseline),
+            samples: Samples::new(shape.input_dim(), options.capacity),
+            config: config.clone(),
+            options,
+            shape,
+            vars,
+            actor,
+            optimiser,
+            rng,
+            round: 0,
+            device,
+        })
+    }
+
+    /// The student's shape.
+    pub fn shape(&self) -> &ActorShape {
+        &self.shape
+    }
+
+    /// The student's weights, flat as agents load them.
+    pub fn actor_weights(&self) -> Result<Vec<f32>> {
+        let data = self
+            .vars
+            .data()
+            .lock()
+            .map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+        flatten_parameters(
+            |name| data.get(name).map(|v| v.as_tensor().clone()),
+            &actor_prefix(0),
+            &self.shape,
+        )
+    }
+
+    /// One round: every size's episodes (the teacher driving in the first round, then a
+    /// `teacher_share` of them), every answer labelled; then the gradient steps.
+    pub fn round(&mut self) -> Result<RoundReport> {
+        let first = self.round == 0;
+        let mut student = formation_model::actor::FrozenActor::from_flat(&self.actor_weights()?, &self.shape)?;
+        let mut scores = Vec::with_capacity(self.options.sizes.len());
+        for &n in &self.options.sizes.clone() {
+            let played = Played {
+                seed: episode_seed(self.options.seed, self.round, n),
+                count: self.options.robots_per_round.div_ceil(n),
+                reality: &self.config.reality,
+            };
+            let (mut student_episodes, mut student_successes) = (0usize, 0usize);
+            for mut game in played.games(&self.config.env, n) {
+                let teacher_drives = first || self.rng.random::<f64>() < self.options.teacher_share;
+                let mut acting = Vec::with_capacity(n);
+                while game.outcome == Outcome::Running {
+                    let (env, teacher, samples) = (&self.config.env, &self.teacher, &mut self.samples);
+                    game.step(
+                        |asked| {
+                            let (v, w) = teacher.command(asked.window.latest());
+                            let label = env.action_from_command(v, w);
+                            if asked.present {
+                                samples.push(asked.window.as_flat(), label);
+                            }
+                            let action = if teacher_drives {
+                                label
+                            } else {
+                                student.act(asked.window.as_flat())?
+                            };
+                            let (v, w) = env.command_from_action(action);
+                            Ok((f64::from(v as f32), f64::from(w as f32)))
+                        },
+                        &mut acting,
+                    )?;
+                }
+                if !teacher_drives {
+                    student_episodes += 1;
+                    student_successes += usize::from(game.outcome == Outcome::Success);
+                }
+            }
+            scores.push(StudentScore {
+                n_agents: n,
+                success: (student_episodes > 0).then(|| student_successes as f64 / student_episodes as f64),
+            });
+        }
+        let lr = self.learning_rate();
+        self.optimiser.set_learning_rate(lr);
+        let mut loss_sum = 0.0;
+        for _ in 0..self.options.updates_per_round {
+            let len = self.samples.len();
+            let rows: Vec<usize> = (0..self.options.batch).map(|_| self.rng.random_range(0..len)).collect();
+            let (windows, labels) = self.samples.batch(rows.into_iter(), &self.device)?;
+            let loss = (self.actor.forward(&windows)? - labels)?.sqr()?.mean_all()?;
+            self.optimiser.backward_step(&loss)?;
+            loss_sum += f64::from(loss.to_scalar::<f32>()?);
+        }
+        self.round += 1;
+        Ok(RoundReport {
+            round: self.round,
+            samples: self.samples.len(),
+            loss: loss_sum / self.options.updates_per_round.max(1) as f64,
+            lr,
+            student: scores,
+        })
+    }
+
+    /// This round's learning rate: `lr_start` decaying exponentially to `lr_end` over `rounds`.
+    fn learning_rate(&self) -> f64 {
+        let o = &self.options;
+        let progress = self.round as f64 / (o.rounds.max(2) - 1) as f64;
+        o.lr_start * (o.lr_end / o.lr_start).powf(progress.min(1.0))
+    }
+
+    /// The student's mean squared error to the labels of `samples` (actions in [-1, 1]).
+    pub fn mean_squared_error(&self, samples: &Samples) -> Result<f64> {
+        ensure!(!samples.is_empty(), "no samples to measure the student on");
+        let (windows, labels) = samples.batch(0..samples.len(), &self.device)?;
+        let error = (self.actor.forward(&windows)? - labels)?.sqr()?.mean_all()?;
+        Ok(f64::from(error.to_scalar::<f32>()?))
+    }
+
+    /// Writes the student as a checkpoint of one shared actor (its target copy too, so training
+    /// can carry it on with a fresh critic), with `extra` and the teacher's gains as metadata.
+    pub fn save(&self, path: &Path, mut extra: HashMap<String, String>) -> Result<()> {
+        let gains = self.config.baseline;
+        extra.insert(
+            "distilled_from".into(),
+            format!(
+                "baseline k_form {} k_goal {} k_turn {} repulsion_range {} k_repulsion {}",
+                gains.k_form, gains.k_goal, gains.k_turn, gains.repulsion_range, gains.k_repulsion
+            ),
+        );
+        extra.insert("distill_rounds".into(), self.round.to_string());
+        extra.insert("distill_seed".into(), self.options.seed.to_string());
+        let data = self
+            .vars
+            .data()
+            .lock()
+            .map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+        let mut names: Vec<&String> = data.keys().collect();
+        names.sort();
+        let mut tensors = Vec::with_capacity(2 * names.len());
+        for prefix in ["", "target."] {
+            for name in &names {
+                tensors.push((format!("{prefix}{name}"), data[*name].as_tensor().clone()));
+            }
+        }
+        let meta = CheckpointMeta {
+            n_agents: *self.options.sizes.iter().max().expect("sizes checked non-empty"),
+            observation: self.config.env.observation,
+            n_actors: 1,
+            actor: self.shape.clone(),
+            extra,
+        };
+        checkpoint::save(path, &tensors, &meta)
+    }
+}
+
+/// The teacher's labelled windows of `count` episodes of `n` robots from `seed`, the teacher
+/// driving: a fixed yardstick for the student's error.
+pub fn teacher_samples(config: &RunConfig, n: usize, seed: u64, count: usize) -> Result<Samples> {
+    let teacher = ScriptedBaseline::new(&config.env, config.baseline);
+    let width = Layout::of(config.env.observation).dim() * config.env.history;
+    let mut samples = Samples::new(width, count * n * config.env.episode_steps(n) as usize);
+    let played = Played {
+        seed,
+        count,
+        reality: &config.reality,
+    };
+    let env = &config.env;
+    for mut game in played.games(env, n) {
+        let mut acting = Vec::with_capacity(n);
+        while game.outcome == Outcome::Running {
+            game.step(
+                |asked| {
+                    let (v, w) = teacher.command(asked.window.latest());
+                    if asked.present {
+                        samples.push(asked.window.as_flat(), env.action_from_command(v, w));
+                    }
+                    Ok((f64::from(v as f32), f64::from(w as f32)))
+                },
+                &mut acting,
+            )?;
+        }
+    }
+    Ok(samples)
+}
+
+/// The episode seed of size `n` in round `round`: far above the held-out seeds (1000 and up),
+/// the gain searches' (2000) and model selection's, and distinct for every round and size.
+fn episode_seed(seed: u64, round: usize, n: usize) -> u64 {
+    (1 << 40) + seed.wrapping_mul(0x9E37_79B9) + ((round as u64) << 8) + n as u64
+}
+
+/// Loads the shared actor of `path` into `vars`.
+fn load_shared_actor(vars: &VarMap, path: &Path, shape: &ActorShape, config: &RunConfig) -> Result<()> {
+    let loaded = checkpoint::load(&checkpoint::resolve(path)?)?;
+    loaded
+        .meta
+        .check_observation(&loaded.path, config.env.observation, shape.obs_dim)?;
+    ensure!(
+        loaded.meta.n_actors == 1 && &loaded.meta.actor == shape,
+        "checkpoint {} holds {} actor(s) of shape {:?}; distillation trains one shared actor of shape {:?} (env.history, learn.actor_hidden)",
+        loaded.path.display(),
+        loaded.meta.n_actors,
+        loaded.meta.actor,
+        shape
+    );
+    let data = vars
+        .data()
+        .lock()
+        .map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+    for (name, var) in data.iter() {
+        let tensor = loaded
+            .tensors
+            .get(name)
+            .with_context(|| format!("checkpoint {} has no tensor {name}", loaded.path.display()))?;
+        var.set(tensor)?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_buffer_overwrites_the_oldest_and_reads_them_in_order() {
+        let mut samples = Samples::new(1, 3);
+        for i in 0..5 {
+            samples.push(&[i as f32], [i as f32, 0.0]);
+        }
+        assert_eq!(samples.len(), 3);
+        let held: Vec<f32> = (0..3).map(|i| samples.get(i).0[0]).collect();
+        assert_eq!(held, vec![2.0, 3.0, 4.0]);
+        assert_eq!(samples.get(2).1, [4.0, 0.0]);
+    }
+
+    #[test]
+    fn the_learning_rate_decays_from_start_to_end_over_the_rounds() {
+        let config = RunConfig::default();
+        let options = DistillOptions {
+            sizes: vec![3],
+            rounds: 5,
+            capacity: 2048,
+            ..DistillOptions::default()
+        };
+        let mut distiller = Distiller::new(&config, options, None).expect("a distiller");
+        assert!((distiller.learning_rate() - 1e-3).abs() < 1e-12);
+        distiller.round = 4;
+        assert!((distiller.learning_rate() - 3e-5).abs() < 1e-12);
+        distiller.round = 9;
+        assert!((distiller.learning_rate() - 3e-5).abs() < 1e-12);
+    }
+}

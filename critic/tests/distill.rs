@@ -1,0 +1,123 @@
+//! Distillation: the student comes closer to its teacher round by round, is saved as a
+//! checkpoint the agents load, and the tool refuses bad input naming it.
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::process::Command;
+
+use formation_core::config::{ObservationModel, RunConfig};
+use formation_critic::distill::{DistillOptions, Distiller, teacher_samples};
+use formation_model::actor::FrozenActor;
+use formation_model::checkpoint;
+
+fn small_options() -> DistillOptions {
+    DistillOptions {
+        sizes: vec![3],
+        robots_per_round: 12,
+        updates_per_round: 400,
+        batch: 256,
+        rounds: 10,
+        capacity: 100_000,
+        seed: 5,
+        ..DistillOptions::default()
+    }
+}
+
+fn field_config() -> RunConfig {
+    let preset = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/reality-field.toml");
+    let mut config = RunConfig::from_toml_file(&preset).expect("the field preset");
+    config.env.observation = ObservationModel::SlotProximity;
+    config
+}
+
+#[test]
+fn a_few_rounds_bring_a_fresh_student_close_to_its_teacher_under_the_field_preset() {
+    let config = field_config();
+    // The yardstick: the teacher's own episodes, on a seed distillation does not play.
+    let yardstick = teacher_samples(&config, 3, 77, 4).expect("teacher samples");
+    assert!(yardstick.len() > 100, "{} samples", yardstick.len());
+    let mut distiller = Distiller::new(&config, small_options(), None).expect("a distiller");
+    let before = distiller.mean_squared_error(&yardstick).expect("error");
+    let mut reports = Vec::new();
+    for _ in 0..10 {
+        reports.push(distiller.round().expect("a round"));
+    }
+    let after = distiller.mean_squared_error(&yardstick).expect("error");
+    assert!(after < 0.25 * before, "squared error {before:.4} -> {after:.4}");
+    // The teacher drives the first round alone; the student drives most of the later ones.
+    assert_eq!(reports[0].student[0].success, None);
+    assert!(reports[1..].iter().any(|r| r.student[0].success.is_some()));
+    assert!(reports.windows(2).all(|w| w[1].samples > w[0].samples));
+    assert!(reports[9].lr < reports[0].lr);
+}
+
+#[test]
+fn the_saved_student_is_a_checkpoint_the_agents_load_with_its_teacher_recorded() {
+    let config = field_config();
+    let options = DistillOptions {
+        rounds: 1,
+        ..small_options()
+    };
+    let mut distiller = Distiller::new(&config, options, None).expect("a distiller");
+    distiller.round().expect("a round");
+    let dir = tempdir();
+    let path = dir.join("student.safetensors");
+    distiller.save(&path, HashMap::new()).expect("saved");
+    let loaded = checkpoint::load(&path).expect("loads");
+    assert_eq!(&loaded.meta.actor, distiller.shape());
+    assert_eq!(loaded.meta.n_actors, 1);
+    assert_eq!(loaded.meta.observation, ObservationModel::SlotProximity);
+    assert!(loaded.meta.extra["distilled_from"].contains("k_form 1.5"));
+    let weights = distiller.actor_weights().expect("weights");
+    assert_eq!(loaded.actor_weights(0).expect("weights"), weights);
+    // An agent's actor built from the file answers as the student does.
+    let mut agent =
+        FrozenActor::from_flat(&loaded.actor_weights(0).expect("weights"), &loaded.meta.actor).expect("actor");
+    let window = vec![0.25_f32; distiller.shape().input_dim()];
+    let mut student = FrozenActor::from_flat(&weights, distiller.shape()).expect("actor");
+    assert_eq!(agent.act(&window).expect("acts"), student.act(&window).expect("acts"));
+    // Training can carry it on: its start is refused only for another shape.
+    let mut other = config.clone();
+    other.learn.actor_hidden = vec![32];
+    let refused = Distiller::new(&other, small_options(), Some(&path))
+        .err()
+        .expect("refused");
+    assert!(format!("{refused:#}").contains("shape"), "{refused:#}");
+    Distiller::new(&config, small_options(), Some(&path)).expect("same shape carries over");
+    std::fs::remove_dir_all(dir).ok();
+}
+
+#[test]
+fn the_tool_refuses_bad_sizes_and_an_existing_output_naming_them() {
+    let dir = tempdir();
+    let out = dir.join("student.safetensors");
+    let run = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_formation-distill"))
+            .args(args)
+            .output()
+            .expect("runs")
+    };
+    let out_arg = out.to_str().expect("utf-8");
+    let bad_size = run(&["--out", out_arg, "--sizes", "3,2"]);
+    assert!(!bad_size.status.success());
+    assert!(String::from_utf8_lossy(&bad_size.stderr).contains("--sizes"));
+    std::fs::write(&out, b"keep me").expect("written");
+    let exists = run(&["--out", out_arg, "--rounds", "1"]);
+    assert!(!exists.status.success());
+    assert!(String::from_utf8_lossy(&exists.stderr).contains("--force"));
+    assert_eq!(std::fs::read(&out).expect("still there"), b"keep me");
+    std::fs::remove_dir_all(dir).ok();
+}
+
+fn tempdir() -> PathBuf {
+    let dir = std::env::temp_dir().join(format!(
+        "formation-distill-test-{}-{}",
+        std::process::id(),
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .expect("clock")
+            .as_nanos()
+    ));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    dir
+}
