@@ -91,6 +91,11 @@ pub struct EnvConfig {
     pub shape_changes: u32,
     /// Shapes a change draws from, uniformly (not `mixed`).
     pub change_shapes: Vec<FormationShape>,
+    /// How fast a formation morphs into a new one (`formation_core::mission::Morph`): the speed
+    /// of its farthest-moving target relative to the swarm, as a fraction of `v_max` (> 0;
+    /// default 0.35). Larger re-forms sooner with robots moving more at once; a very large value
+    /// (1000) gives the step change of old: every target jumps in one tick.
+    pub morph_speed: f64,
 }
 
 impl Default for EnvConfig {
@@ -119,6 +124,7 @@ impl Default for EnvConfig {
             history: 1,
             shape_changes: 0,
             change_shapes: FormationShape::KINDS.to_vec(),
+            morph_speed: 0.35,
         }
     }
 }
@@ -683,6 +689,12 @@ impl EnvConfig {
             format!("{:?}", e.change_shapes.iter().map(|s| s.as_str()).collect::<Vec<_>>()),
             "must name at least one shape, and not mixed",
         )?;
+        check(
+            e.morph_speed.is_finite() && e.morph_speed > 0.0,
+            "env.morph_speed",
+            e.morph_speed,
+            "must be > 0 (a fraction of v_max)",
+        )?;
         Ok(())
     }
 }
@@ -989,6 +1001,7 @@ mod tests {
             ("[env]\nshape_changes = 2\nmax_steps = 70\n", "env.max_steps"),
             ("[env]\nchange_shapes = []\n", "env.change_shapes"),
             ("[env]\nchange_shapes = [\"ring\", \"mixed\"]\n", "env.change_shapes"),
+            ("[env]\nmorph_speed = 0.0\n", "env.morph_speed"),
         ] {
             let err = RunConfig::from_toml_str(text).expect_err(text);
             assert!(err.to_string().contains(field), "{err} should name {field}");

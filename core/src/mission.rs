@@ -14,7 +14,7 @@
 //! present robot r is assigned its slot as above, and its target offset from the goal moves in
 //! a straight line, all robots in step, from where it stands in the swarm (its position
 //! relative to the present robots' centroid) to its new slot's offset, over as many ticks as
-//! the largest of those moves takes at [`MORPH_SPEED_FRACTION`] of `v_max` (one tick, the step
+//! the largest of those moves takes at `env.morph_speed` (0.35) of `v_max` (one tick, the step
 //! change, when no robot must move relative to the others). Each tick the world's slot offsets
 //! are the interpolated ones and the desired edges the distances between them, so the first
 //! tick asks for the swarm's present geometry, no edge jumps, and each robot is led along its
@@ -77,9 +77,6 @@ pub const NO_SLOT: usize = usize::MAX;
 pub const LEAVE_AFTER_SILENT_TICKS: u32 = 10;
 /// Answers in a row after which a robot that left for silence comes back.
 pub const RETURN_AFTER_ANSWERS: u32 = 5;
-/// The speed, as a fraction of `v_max`, at which a morphing formation's farthest-moving target
-/// moves relative to the swarm ([`Morph`]); the others move slower, in step with it.
-pub const MORPH_SPEED_FRACTION: f64 = 0.35;
 /// Mixed into the run's seed for the formations redrawn at team changes.
 const TEAM_STREAM: u64 = 0x7465_616D_5F63_6867;
 /// Turns tried, either way, to keep a formation's slots clear of the robots out of it.
@@ -408,9 +405,7 @@ impl Morph {
             .map(|(a, b)| (b[0] - a[0]).hypot(b[1] - a[1]))
             .fold(0.0, f64::max);
         let env = &world.env;
-        let ticks = (longest / (MORPH_SPEED_FRACTION * env.v_max * env.dt_s))
-            .ceil()
-            .max(1.0) as u32;
+        let ticks = (longest / (env.morph_speed * env.v_max * env.dt_s)).ceil().max(1.0) as u32;
         Self {
             slot_of,
             from,
@@ -1034,7 +1029,7 @@ mod tests {
         let still = vec![(0.0, 0.0); n];
         world.step(&still);
         assert!(mission.after_step(&mut world, true, true));
-        let per_tick = MORPH_SPEED_FRACTION * env.v_max * env.dt_s;
+        let per_tick = env.morph_speed * env.v_max * env.dt_s;
         // The first tick asks for the swarm's present geometry, one tick's move away: no edge
         // jumps (a step change asked for edges up to metres off).
         for robot in 0..n {
@@ -1137,6 +1132,46 @@ mod tests {
                 assert_eq!(mission.reconfigurations(), 2);
             }
         }
+    }
+
+    #[test]
+    fn the_morph_lasts_as_long_as_env_morph_speed_says_and_a_very_fast_one_is_the_old_step() {
+        let env = EnvConfig::default();
+        let mut rng = StdRng::seed_from_u64(3);
+        let n = 12;
+        let ring = draw_shape(FormationShape::Ring, n, &env, &mut rng);
+        let line = draw_shape(FormationShape::Line, n, &env, &mut rng);
+        let ticks_at = |speed: f64| {
+            let mut world = world_on(&ring);
+            world.env.morph_speed = speed;
+            let change = ShapeChange {
+                tick: 1,
+                offsets: line.clone(),
+                spec: spec(FormationShape::Line),
+            };
+            let mut mission = Mission::new(vec![change], &ring, spec(FormationShape::Ring), 1);
+            // The ticks whose formation the morph set (after_step says so), the change's first.
+            let mut ticks: u32 = 0;
+            loop {
+                world.step(&vec![(0.0, 0.0); n]);
+                if !mission.after_step(&mut world, true, true) {
+                    break;
+                }
+                ticks += 1;
+            }
+            (ticks, world.slots.clone())
+        };
+        let (default, end) = ticks_at(env.morph_speed);
+        let (twice, twice_end) = ticks_at(2.0 * env.morph_speed);
+        let (step, step_end) = ticks_at(1000.0);
+        assert!(default > 10, "{default} ticks");
+        assert!(
+            twice.abs_diff(default.div_ceil(2)) <= 1,
+            "{twice} ticks at twice the speed, {default} at the default"
+        );
+        assert_eq!(step, 1, "a very fast morph is the step change");
+        assert_eq!(end, twice_end);
+        assert_eq!(end, step_end);
     }
 
     /// Steps `world` with every robot standing still until `mission`'s morph under way has
