@@ -24,9 +24,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 /// At the end the student is scored by model selection (learn.selection_*, under the reality
 /// and in the ideal world) and saved with that score.
 ///
-/// Example (the shipped model's distillation stage, about 10 minutes on one core):
-///   formation-distill --config configs/field-distill.toml --checkpoint models/formation.safetensors \
-///     --out runs/distill/s1.safetensors --seed 1
+/// The shipped model's last stage (12-19 minutes of one CPU here):
+/// `formation-distill --config configs/field-distill.toml --checkpoint models/formation-field-stage3.safetensors --out runs/distill/s1.safetensors --seed 1`
 #[derive(Debug, Parser)]
 #[command(version, about, long_about)]
 struct Cli {
