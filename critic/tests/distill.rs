@@ -101,6 +101,36 @@ fn the_tool_refuses_bad_sizes_and_an_existing_output_naming_them() {
     let bad_size = run(&["--out", out_arg, "--sizes", "3,2"]);
     assert!(!bad_size.status.success());
     assert!(String::from_utf8_lossy(&bad_size.stderr).contains("--sizes"));
+    // An interrupted run keeps its last student: --save-every writes it as it goes.
+    let partial = dir.join("partial.safetensors");
+    let two_rounds = run(&[
+        "--out",
+        partial.to_str().expect("utf-8"),
+        "--sizes",
+        "3",
+        "--rounds",
+        "2",
+        "--robots-per-round",
+        "6",
+        "--updates",
+        "5",
+        "--batch",
+        "64",
+        "--save-every",
+        "1",
+    ]);
+    assert!(
+        two_rounds.status.success(),
+        "{}",
+        String::from_utf8_lossy(&two_rounds.stderr)
+    );
+    let saved = checkpoint::load(&partial).expect("the finished student");
+    assert!(
+        saved.meta.extra.contains_key("selection_success"),
+        "{:?}",
+        saved.meta.extra
+    );
+    assert!(!saved.meta.extra.contains_key("distill_unfinished"));
     std::fs::write(&out, b"keep me").expect("written");
     let exists = run(&["--out", out_arg, "--rounds", "1"]);
     assert!(!exists.status.success());

@@ -70,6 +70,10 @@ struct Cli {
     /// Seeds the episodes (far from the held-out seeds), the sampling and fresh weights.
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Also write the student to --out every this many rounds (unscored; its metadata says the
+    /// rounds done), so an interrupted run keeps its work; 0: only at the end.
+    #[arg(long, default_value_t = 50)]
+    save_every: usize,
 }
 
 fn main() -> ExitCode {
@@ -115,6 +119,14 @@ fn try_main(cli: Cli) -> Result<()> {
     let bar = progress_bar(cli.rounds as u64);
     for _ in 0..cli.rounds {
         let report = distiller.round()?;
+        if cli.save_every > 0 && report.round % cli.save_every == 0 && report.round < cli.rounds {
+            let mut extra = HashMap::new();
+            extra.insert(
+                "distill_unfinished".into(),
+                format!("{} of {} rounds", report.round, cli.rounds),
+            );
+            distiller.save(&cli.out, extra)?;
+        }
         let line = describe(&report);
         match &bar {
             Some(bar) => {
