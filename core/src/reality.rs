@@ -566,6 +566,12 @@ impl Reality {
         self.robots[agent].delay
     }
 
+    /// Robot `agent`'s drawn position noise (standard deviation, metres; 0 when off): what a
+    /// privileged teacher may know of the episode (`formation_critic::distill`).
+    pub fn position_noise_m(&self, agent: usize) -> f64 {
+        self.robots[agent].position_noise.map_or(0.0, |normal| normal.std_dev())
+    }
+
     /// The commands queued at robot `agent`'s motors, the next to act first (`delay` of them):
     /// with the acting velocity, what the critic needs to stay Markov under delay and lag.
     pub fn queued(&self, agent: usize) -> impl ExactSizeIterator<Item = Command> + '_ {

@@ -23,7 +23,7 @@ use std::path::Path;
 use anyhow::{Context, Result, ensure};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
-use formation_core::baseline::ScriptedBaseline;
+use formation_core::baseline::{BaselineGains, ScriptedBaseline};
 use formation_core::config::RunConfig;
 use formation_core::observation::Layout;
 use formation_core::task::Outcome;
@@ -59,6 +59,13 @@ pub struct DistillOptions {
     pub capacity: usize,
     /// Seeds the episodes, the sampling and a fresh actor's weights.
     pub seed: u64,
+    /// A privileged teacher: the gains for a robot whose drawn position noise is 0 (the run's
+    /// `[baseline]` gains apply from `noise_scale_m` up, blended linearly between). `None`: the
+    /// `[baseline]` gains for every robot.
+    pub quiet_teacher: Option<BaselineGains>,
+    /// The position noise (standard deviation, metres) from which the `[baseline]` gains apply
+    /// in full.
+    pub noise_scale_m: f64,
 }
 
 impl Default for DistillOptions {
@@ -74,6 +81,8 @@ impl Default for DistillOptions {
             rounds: 400,
             capacity: 2_000_000,
             seed: 1,
+            quiet_teacher: None,
+            noise_scale_m: 0.05,
         }
     }
 }
@@ -174,7 +183,6 @@ pub struct Distiller {
     config: RunConfig,
     options: DistillOptions,
     shape: ActorShape,
-    teacher: ScriptedBaseline,
     vars: VarMap,
     actor: Actor,
     optimiser: AdamW,
@@ -200,6 +208,14 @@ impl Distiller {
                 && options.robots_per_round > 0,
             "batch, rounds and robots per round must be > 0 and the buffer at least a batch"
         );
+        ensure!(
+            options.noise_scale_m.is_finite() && options.noise_scale_m > 0.0,
+            "the noise scale must be > 0 metres, not {}",
+            options.noise_scale_m
+        );
+        if let Some(quiet) = &options.quiet_teacher {
+            quiet.validate()?;
+        }
         ensure!(
             (0.0..=1.0).contains(&options.teacher_share),
             "the teacher's share of episodes must lie in [0, 1], not {}",
@@ -231,7 +247,6 @@ impl Distiller {
             },
         )?;
         Ok(Self {
-            teacher: ScriptedBaseline::new(&config.env, config.baseline),
             samples: Samples::new(shape.input_dim(), options.capacity),
             config: config.clone(),
             options,
@@ -243,6 +258,27 @@ impl Distiller {
             round: 0,
             device,
         })
+    }
+
+    /// The teacher of a robot whose drawn position noise is `sigma` metres: the `[baseline]`
+    /// gains, or with a quiet teacher the blend of the two by `sigma / noise_scale_m`.
+    pub fn teacher_for(&self, sigma: f64) -> ScriptedBaseline {
+        let noisy = self.config.baseline;
+        let gains = match self.options.quiet_teacher {
+            None => noisy,
+            Some(quiet) => {
+                let t = (sigma / self.options.noise_scale_m).clamp(0.0, 1.0);
+                let blend = |a: f64, b: f64| a + t * (b - a);
+                BaselineGains {
+                    k_form: blend(quiet.k_form, noisy.k_form),
+                    k_goal: blend(quiet.k_goal, noisy.k_goal),
+                    k_turn: blend(quiet.k_turn, noisy.k_turn),
+                    repulsion_range: blend(quiet.repulsion_range, noisy.repulsion_range),
+                    k_repulsion: blend(quiet.k_repulsion, noisy.k_repulsion),
+                }
+            }
+        };
+        ScriptedBaseline::new(&self.config.env, gains)
     }
 
     /// The student's shape.
@@ -279,12 +315,15 @@ impl Distiller {
             let (mut student_episodes, mut student_successes) = (0usize, 0usize);
             for mut game in played.games(&self.config.env, n) {
                 let teacher_drives = first || self.rng.random::<f64>() < self.options.teacher_share;
+                let teachers: Vec<ScriptedBaseline> = (0..n)
+                    .map(|agent| self.teacher_for(game.reality().position_noise_m(agent)))
+                    .collect();
                 let mut acting = Vec::with_capacity(n);
                 while game.outcome == Outcome::Running {
-                    let (env, teacher, samples) = (&self.config.env, &self.teacher, &mut self.samples);
+                    let (env, samples) = (&self.config.env, &mut self.samples);
                     game.step(
                         |asked| {
-                            let (v, w) = teacher.command(asked.window.latest());
+                            let (v, w) = teachers[asked.agent].command(asked.window.latest());
                             let label = env.action_from_command(v, w);
                             if asked.present {
                                 samples.push(asked.window.as_flat(), label);
@@ -357,6 +396,20 @@ impl Distiller {
                 gains.k_form, gains.k_goal, gains.k_turn, gains.repulsion_range, gains.k_repulsion
             ),
         );
+        if let Some(quiet) = self.options.quiet_teacher {
+            extra.insert(
+                "distilled_from_quiet".into(),
+                format!(
+                    "baseline k_form {} k_goal {} k_turn {} repulsion_range {} k_repulsion {} at no position noise, blended up to {} m",
+                    quiet.k_form,
+                    quiet.k_goal,
+                    quiet.k_turn,
+                    quiet.repulsion_range,
+                    quiet.k_repulsion,
+                    self.options.noise_scale_m
+                ),
+            );
+        }
         extra.insert("distill_rounds".into(), self.round.to_string());
         extra.insert("distill_seed".into(), self.options.seed.to_string());
         let data = self
@@ -461,6 +514,42 @@ mod tests {
         let held: Vec<f32> = (0..3).map(|i| samples.get(i).0[0]).collect();
         assert_eq!(held, vec![2.0, 3.0, 4.0]);
         assert_eq!(samples.get(2).1, [4.0, 0.0]);
+    }
+
+    #[test]
+    fn a_quiet_teacher_teaches_the_robots_without_noise_and_blends_into_the_config_s_gains() {
+        let config = RunConfig::default();
+        let quiet = BaselineGains {
+            k_form: 2.0,
+            k_goal: 0.2,
+            ..BaselineGains::default()
+        };
+        let options = DistillOptions {
+            sizes: vec![3],
+            capacity: 2048,
+            quiet_teacher: Some(quiet),
+            noise_scale_m: 0.04,
+            ..DistillOptions::default()
+        };
+        let distiller = Distiller::new(&config, options, None).expect("a distiller");
+        // An observation of two neighbours and a goal, in the robot's frame.
+        let mut obs = [0.0_f32; formation_protocol::MAX_OBS_DIM];
+        obs[..12].copy_from_slice(&[1.2, 0.3, 1.0, 0.0, 1.0, -0.2, 1.1, 1.0, 0.0, 1.0, 2.0, 1.0]);
+        let command = |teacher: ScriptedBaseline| teacher.command(&obs);
+        let gains_noisy = config.baseline;
+        let half = BaselineGains {
+            k_form: (quiet.k_form + gains_noisy.k_form) / 2.0,
+            k_goal: (quiet.k_goal + gains_noisy.k_goal) / 2.0,
+            ..gains_noisy
+        };
+        let of = |gains| ScriptedBaseline::new(&config.env, gains).command(&obs);
+        assert_eq!(command(distiller.teacher_for(0.0)), of(quiet));
+        assert_eq!(command(distiller.teacher_for(0.04)), of(gains_noisy));
+        assert_eq!(command(distiller.teacher_for(0.5)), of(gains_noisy));
+        let (v, w) = command(distiller.teacher_for(0.02));
+        let (hv, hw) = of(half);
+        assert!((v - hv).abs() < 1e-12 && (w - hw).abs() < 1e-12);
+        assert_ne!(of(quiet), of(gains_noisy), "the two teachers answer alike");
     }
 
     #[test]

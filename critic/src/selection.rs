@@ -156,6 +156,11 @@ pub(crate) struct Game {
 }
 
 impl Game {
+    /// The episode's reality (what a privileged teacher may read).
+    pub(crate) fn reality(&self) -> &Reality {
+        &self.reality
+    }
+
     fn new(world: World, mission: Mission, reality: Reality, history: usize, layout: Layout) -> Self {
         let n = world.n_agents();
         let mut game = Self {

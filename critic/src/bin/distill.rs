@@ -70,6 +70,15 @@ struct Cli {
     /// Seeds the episodes (far from the held-out seeds), the sampling and fresh weights.
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// A privileged teacher: a TOML file whose [baseline] gains teach the robots the episode
+    /// drew no position noise for; the config's [baseline] teaches those with
+    /// --noise-scale-m or more, the gains blended linearly between. The student cannot read
+    /// the noise: with an observation history (env.history > 1) it can see it.
+    #[arg(long, value_name = "FILE")]
+    quiet_teacher: Option<PathBuf>,
+    /// With --quiet-teacher: the position noise (metres) from which the config's gains apply.
+    #[arg(long, default_value_t = 0.05)]
+    noise_scale_m: f64,
     /// Also write the student to --out every this many rounds (unscored; its metadata says the
     /// rounds done), so an interrupted run keeps its work; 0: only at the end.
     #[arg(long, default_value_t = 50)]
@@ -112,6 +121,11 @@ fn try_main(cli: Cli) -> Result<()> {
         lr_end: cli.lr_end,
         rounds: cli.rounds,
         seed: cli.seed,
+        quiet_teacher: match &cli.quiet_teacher {
+            Some(path) => Some(RunConfig::from_toml_file(path).context("--quiet-teacher")?.baseline),
+            None => None,
+        },
+        noise_scale_m: cli.noise_scale_m,
         ..DistillOptions::default()
     };
     let mut distiller = Distiller::new(&config, options, cli.checkpoint.as_deref())?;
