@@ -147,6 +147,55 @@ fn the_shipped_model_drives_six_robots_to_the_goal() {
     std::fs::remove_dir_all(&dir).expect("cleanup");
 }
 
+/// A checkpoint knows its shape: an evaluation drives it with the window (H) and widths it was
+/// trained with, without a config saying so (here a student reading 2 observations, from a
+/// one-round distillation, evaluated under the default config's H = 1).
+#[test]
+fn an_eval_reads_the_window_its_checkpoint_was_trained_with() {
+    use formation_critic::distill::{DistillOptions, Distiller};
+    let dir = scratch_dir("eval-window");
+    std::fs::create_dir_all(&dir).expect("dir");
+    let mut config = RunConfig::default();
+    config.env.history = 2;
+    let options = DistillOptions {
+        sizes: vec![3],
+        rounds: 1,
+        robots_per_round: 6,
+        updates_per_round: 20,
+        batch: 64,
+        capacity: 10_000,
+        ..DistillOptions::default()
+    };
+    let mut student = Distiller::new(&config, options, None).expect("a student");
+    student.round().expect("a round");
+    let path = dir.join("window-2.safetensors");
+    student.save(&path, Default::default()).expect("saved");
+    assert_eq!(checkpoint::load(&path).expect("loads").meta.actor.history, 2);
+    let run = run_swarm(
+        &[
+            "3",
+            "--mode",
+            "eval",
+            "--checkpoint",
+            path.to_str().expect("utf-8 path"),
+            "--episodes",
+            "2",
+            "--seed",
+            "4",
+            "--viewer",
+            "off",
+        ],
+        &dir.join("run"),
+        Duration::from_secs(120),
+    )
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "launcher failed:\n{}", run.output);
+    let summary = run.summary().expect("summary.json");
+    assert_eq!(summary["episodes"], serde_json::json!(2), "{summary}");
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
 #[test]
 fn one_critic_trains_one_actor_on_two_swarm_sizes_at_once() {
     let dir = scratch_dir("two-sizes");

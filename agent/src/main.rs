@@ -64,7 +64,7 @@ fn main() -> ExitCode {
 }
 
 fn try_main(cli: Cli) -> Result<()> {
-    let (identity, config) = cli.run.load()?;
+    let (identity, mut config) = cli.run.load()?;
     let n_agents = cli.run.agents;
     if cli.agent >= n_agents {
         bail!(
@@ -81,6 +81,21 @@ fn try_main(cli: Cli) -> Result<()> {
         ),
         PolicyKind::Learned => {
             let obs_dim = Layout::of(config.env.observation).dim();
+            let loaded = match &cli.checkpoint {
+                Some(path) => Some(checkpoint::load(&checkpoint::resolve(path)?)?),
+                None => None,
+            };
+            if let Some(loaded) = &loaded {
+                loaded
+                    .meta
+                    .check_observation(&loaded.path, config.env.observation, obs_dim)?;
+                // An evaluation reads the window (H) and widths the checkpoint was trained with,
+                // whatever the config says; training must match the critic's config instead.
+                if cli.run.mode == Mode::Eval {
+                    config.env.history = loaded.meta.actor.history;
+                    config.learn.actor_hidden = loaded.meta.actor.hidden.clone();
+                }
+            }
             let shape = ActorShape {
                 obs_dim,
                 history: config.env.history,
@@ -93,12 +108,8 @@ fn try_main(cli: Cli) -> Result<()> {
             });
             let mut learned = LearnedPolicy::new(&config.env, shape.clone(), exploration, rng);
             let actor_index = if config.learn.shared_actor { 0 } else { cli.agent };
-            match (&cli.checkpoint, cli.run.mode) {
-                (Some(path), _) => {
-                    let loaded = checkpoint::load(&checkpoint::resolve(path)?)?;
-                    loaded
-                        .meta
-                        .check_observation(&loaded.path, config.env.observation, obs_dim)?;
+            match (&loaded, cli.run.mode) {
+                (Some(loaded), _) => {
                     if loaded.meta.actor != shape {
                         bail!(
                             "checkpoint {} holds actors of shape {:?}, the config asks for {:?} (env.history, learn.actor_hidden)",
