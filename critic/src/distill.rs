@@ -27,7 +27,7 @@ use formation_core::baseline::{BaselineGains, ScriptedBaseline};
 use formation_core::config::RunConfig;
 use formation_core::observation::Layout;
 use formation_core::task::Outcome;
-use formation_model::actor::{Actor, ActorShape, flatten_parameters};
+use formation_model::actor::{Actor, ActorShape, FrozenActor, var_map_actor_weights};
 use formation_model::checkpoint::{self, CheckpointMeta, actor_prefix};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -288,23 +288,14 @@ impl Distiller {
 
     /// The student's weights, flat as agents load them.
     pub fn actor_weights(&self) -> Result<Vec<f32>> {
-        let data = self
-            .vars
-            .data()
-            .lock()
-            .map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
-        flatten_parameters(
-            |name| data.get(name).map(|v| v.as_tensor().clone()),
-            &actor_prefix(0),
-            &self.shape,
-        )
+        var_map_actor_weights(&self.vars, &actor_prefix(0), &self.shape)
     }
 
     /// One round: every size's episodes (the teacher driving in the first round, then a
     /// `teacher_share` of them), every answer labelled; then the gradient steps.
     pub fn round(&mut self) -> Result<RoundReport> {
         let first = self.round == 0;
-        let mut student = formation_model::actor::FrozenActor::from_flat(&self.actor_weights()?, &self.shape)?;
+        let mut student = FrozenActor::from_flat(&self.actor_weights()?, &self.shape)?;
         let mut scores = Vec::with_capacity(self.options.sizes.len());
         for &n in &self.options.sizes.clone() {
             let played = Played {
@@ -333,8 +324,7 @@ impl Distiller {
                             } else {
                                 student.act(asked.window.as_flat())?
                             };
-                            let (v, w) = env.command_from_action(action);
-                            Ok((f64::from(v as f32), f64::from(w as f32)))
+                            Ok(env.command_from_action(action))
                         },
                         &mut acting,
                     )?;
@@ -457,7 +447,7 @@ pub fn teacher_samples(config: &RunConfig, n: usize, seed: u64, count: usize) ->
                     if asked.present {
                         samples.push(asked.window.as_flat(), env.action_from_command(v, w));
                     }
-                    Ok((f64::from(v as f32), f64::from(w as f32)))
+                    Ok((v, w))
                 },
                 &mut acting,
             )?;

@@ -18,7 +18,7 @@ use formation_core::config::{Algorithm, CriticArchitecture, EnvConfig, LearnConf
 use formation_core::features::CriticFeatures;
 use formation_core::observation::Layout;
 use formation_ipc::placement;
-use formation_model::actor::{Actor, ActorShape, dense, flatten_parameters};
+use formation_model::actor::{Actor, ActorShape, dense, var_map_actor_weights};
 use formation_model::checkpoint::{self, CheckpointMeta, actor_prefix};
 use formation_protocol::ACTION_DIM;
 use formation_replay::sample::Batch;
@@ -678,16 +678,7 @@ impl Learner {
 
     /// Flat weights of actor `index`, in the order agents rebuild them.
     pub fn actor_weights(&self, index: usize) -> Result<Vec<f32>> {
-        let data = self
-            .actor_vars
-            .data()
-            .lock()
-            .map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
-        flatten_parameters(
-            |name| data.get(name).map(|v| v.as_tensor().clone()),
-            &actor_prefix(index),
-            &self.actor_shape,
-        )
+        var_map_actor_weights(&self.actor_vars, &actor_prefix(index), &self.actor_shape)
     }
 
     fn all_tensors(&self) -> Result<Vec<(String, Tensor)>> {

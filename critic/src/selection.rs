@@ -199,8 +199,9 @@ impl Game {
         }
     }
 
-    /// One tick: each robot that was told answers through `answer` with its (v, w) command (a
-    /// lost answer leaves the command in use); the motors act through the reality and the
+    /// One tick: each robot that was told answers through `answer` with its (v, w) command,
+    /// rounded to the f32 of the wire as the sim receives it (a lost answer leaves the command
+    /// in use); the motors act through the reality and the
     /// world clamps and integrates as in the sim; the mission judges the step, changes the
     /// formation on schedule and takes a robot whose controller failed at this tick out of the
     /// formation, as in the sim.
@@ -214,14 +215,14 @@ impl Game {
         for (agent, window) in self.windows.iter().enumerate() {
             let present = self.world.slot_of[agent] != NO_SLOT;
             if self.asked[agent] {
-                let command = answer(Asked {
+                let (v, w) = answer(Asked {
                     agent,
                     step,
                     present,
                     window,
                 })?;
                 if !self.reality.command_lost(agent) {
-                    self.in_use[agent] = command;
+                    self.in_use[agent] = (f64::from(v as f32), f64::from(w as f32));
                 }
             }
             // A robot out of the formation is commanded to stand still, as the sim commands it.
@@ -315,10 +316,11 @@ pub fn play(
             game.step(
                 |asked| {
                     let actor = &mut actors[asked.agent % actors.len()];
-                    let (v, w) = env.command_from_action(actor.act(asked.window.as_flat())?);
                     let imposed = turn.and_then(|turn| turn.command(env, asked.agent, asked.step));
-                    // Rounded to the f32 of the wire, as an agent sends it.
-                    Ok(imposed.unwrap_or((f64::from(v as f32), f64::from(w as f32))))
+                    match imposed {
+                        Some(command) => Ok(command),
+                        None => Ok(env.command_from_action(actor.act(asked.window.as_flat())?)),
+                    }
                 },
                 &mut acting,
             )?;

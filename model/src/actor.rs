@@ -220,6 +220,16 @@ pub fn flatten_parameters(
     Ok(flat)
 }
 
+/// The flat weights of the actor under `prefix` in a candle `VarMap` (a learner's or a
+/// distiller's), in the order agents rebuild them.
+pub fn var_map_actor_weights(vars: &candle_nn::VarMap, prefix: &str, shape: &ActorShape) -> anyhow::Result<Vec<f32>> {
+    let data = vars
+        .data()
+        .lock()
+        .map_err(|_| anyhow::anyhow!("var map lock poisoned"))?;
+    flatten_parameters(|name| data.get(name).map(|v| v.as_tensor().clone()), prefix, shape)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
