@@ -11,7 +11,6 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use clap::Parser;
 use formation_core::config::{RunConfig, validate_agent_count};
-use formation_core::reality::RealityConfig;
 use formation_critic::distill::{DistillOptions, Distiller, RoundReport};
 use formation_critic::selection::Selector;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -165,7 +164,7 @@ fn try_main(cli: Cli) -> Result<()> {
     if let Some(start) = &cli.checkpoint {
         extra.insert("distill_start".into(), start.display().to_string());
     }
-    if config.reality != RealityConfig::default() {
+    if !config.reality.is_ideal() {
         extra.insert("reality".into(), config.reality.one_line());
     }
     distiller.save(&cli.out, extra)?;
