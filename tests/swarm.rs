@@ -197,6 +197,104 @@ fn an_eval_reads_the_window_its_checkpoint_was_trained_with() {
 }
 
 #[test]
+fn a_gain_schedule_drives_as_the_baseline_s_law_with_the_gains_it_outputs() {
+    use formation_core::baseline::BaselineGains;
+    use formation_core::observation::Layout;
+    use formation_model::actor::{ActorHead, ActorShape};
+    use formation_model::checkpoint::{CheckpointMeta, actor_prefix};
+    let dir = scratch_dir("gain-schedule");
+    std::fs::create_dir_all(&dir).expect("dir");
+    let config = RunConfig::default();
+    let shape = ActorShape {
+        obs_dim: Layout::of(config.env.observation).dim(),
+        history: config.env.history,
+        hidden: config.learn.actor_hidden.clone(),
+        head: ActorHead::Gains,
+    };
+    // Zero weights and a last bias of atanh(gains): the actor outputs the field's fast gains
+    // whatever it reads; `gains` is exactly what the agents decode.
+    let bias = BaselineGains {
+        k_form: 0.45,
+        k_goal: 1.07,
+        k_turn: 1.3,
+        repulsion_range: 0.51,
+        k_repulsion: 1.58,
+    }
+    .to_unit()
+    .map(f32::atanh);
+    let gains = BaselineGains::from_unit(&bias.map(f32::tanh));
+    let parameters = shape.parameters();
+    let last = parameters.len() - 1;
+    let tensors: Vec<(String, candle_core::Tensor)> = parameters
+        .into_iter()
+        .enumerate()
+        .map(|(i, (name, dims))| {
+            let len: usize = dims.iter().product();
+            let values = if i == last { bias.to_vec() } else { vec![0.0f32; len] };
+            let tensor = candle_core::Tensor::from_vec(values, dims, &candle_core::Device::Cpu).expect("tensor");
+            (format!("{}{name}", actor_prefix(0)), tensor)
+        })
+        .collect();
+    let model = dir.join("fast-gains.safetensors");
+    let meta = CheckpointMeta {
+        n_agents: 3,
+        observation: config.env.observation,
+        n_actors: 1,
+        actor: shape,
+        extra: Default::default(),
+    };
+    checkpoint::save(&model, &tensors, &meta).expect("saved");
+    // The scripted baseline with the same gains, from a config.
+    let scripted_config = dir.join("fast-gains.toml");
+    std::fs::write(
+        &scripted_config,
+        format!(
+            "[baseline]\nk_form = {:?}\nk_goal = {:?}\nk_turn = {:?}\nrepulsion_range = {:?}\nk_repulsion = {:?}\n",
+            gains.k_form, gains.k_goal, gains.k_turn, gains.repulsion_range, gains.k_repulsion
+        ),
+    )
+    .expect("config");
+    let episodes = |name: &str, team: &[&str]| {
+        let mut args = vec![
+            "3",
+            "--mode",
+            "eval",
+            "--episodes",
+            "3",
+            "--seed",
+            "8",
+            "--viewer",
+            "off",
+        ];
+        args.extend_from_slice(team);
+        let run = run_swarm(&args, &dir.join(name), Duration::from_secs(120)).expect("launch");
+        assert_eq!(run.status, Some(0), "launcher failed:\n{}", run.output);
+        assert_clean(&run);
+        let csv = std::fs::read_to_string(run.run_dir.join("episodes.csv")).expect("episodes.csv");
+        // Everything but the wall time (the last column).
+        csv.lines()
+            .map(|line| line.rsplit_once(',').expect("columns").0.to_owned())
+            .collect::<Vec<_>>()
+    };
+    let learned = episodes("learned", &["--checkpoint", model.to_str().expect("utf-8")]);
+    let scripted = episodes(
+        "scripted",
+        &[
+            "--scripted",
+            "all",
+            "--config",
+            scripted_config.to_str().expect("utf-8"),
+        ],
+    );
+    assert_eq!(learned.len(), 4, "{learned:?}");
+    assert_eq!(learned, scripted);
+    // And not as the default gains do.
+    let default = episodes("default", &["--scripted", "all"]);
+    assert_ne!(learned, default);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
 fn one_critic_trains_one_actor_on_two_swarm_sizes_at_once() {
     let dir = scratch_dir("two-sizes");
     std::fs::create_dir_all(&dir).expect("dir");

@@ -11,7 +11,7 @@ use formation_core::baseline::{BaselineGains, ScriptedBaseline};
 use formation_core::config::{EnvConfig, ObservationModel, RunConfig};
 use formation_core::formation::random_episode;
 use formation_core::world::World;
-use formation_model::actor::ActorShape;
+use formation_model::actor::{ActorHead, ActorShape};
 use formation_model::history::ObservationHistory;
 use formation_protocol::MAX_OBS_DIM;
 use rand::SeedableRng;
@@ -108,6 +108,7 @@ fn agent_ticks_allocate_nothing() {
             obs_dim: 16,
             history,
             hidden: config.learn.actor_hidden.clone(),
+            head: ActorHead::Command,
         };
         let weights: Vec<f32> = (0..shape.parameter_count())
             .map(|i| (i as f32 * 0.013).sin() * 0.1)
@@ -133,6 +134,21 @@ fn agent_ticks_allocate_nothing() {
             fresh.load(&weights, 1).expect("weights");
             assert!(allocations() > before);
         }
+        // A gain schedule runs the baseline's law on its outputs, in eval mode.
+        let gains = ActorShape {
+            head: ActorHead::Gains,
+            ..shape.clone()
+        };
+        let weights: Vec<f32> = (0..gains.parameter_count())
+            .map(|i| (i as f32 * 0.013).sin() * 0.1)
+            .collect();
+        let mut learned = LearnedPolicy::new(&config.env, gains.clone(), None, StdRng::seed_from_u64(3));
+        learned.load(&weights, 1).expect("weights");
+        assert_eq!(
+            allocations_per_500_ticks(&mut learned, history, gains.obs_dim),
+            0,
+            "gain schedule, H = {history}"
+        );
     }
 }
 

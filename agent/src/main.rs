@@ -11,7 +11,7 @@ use formation_core::baseline::ScriptedBaseline;
 use formation_core::observation::Layout;
 use formation_ipc::cli::{Mode, RunArgs};
 use formation_ipc::placement::Role;
-use formation_model::actor::ActorShape;
+use formation_model::actor::{ActorHead, ActorShape};
 use formation_model::checkpoint;
 use iceoryx2::prelude::*;
 use rand::SeedableRng;
@@ -96,10 +96,16 @@ fn try_main(cli: Cli) -> Result<()> {
                     config.learn.actor_hidden = loaded.meta.actor.hidden.clone();
                 }
             }
+            // Training streams command actors; an evaluation runs whatever head it was given.
+            let head = match (&loaded, cli.run.mode) {
+                (Some(loaded), Mode::Eval) => loaded.meta.actor.head,
+                _ => ActorHead::Command,
+            };
             let shape = ActorShape {
                 obs_dim,
                 history: config.env.history,
                 hidden: config.learn.actor_hidden.clone(),
+                head,
             };
             let exploration = (cli.run.mode == Mode::Train).then_some(Exploration {
                 std_start: config.learn.noise_std,
@@ -112,7 +118,7 @@ fn try_main(cli: Cli) -> Result<()> {
                 (Some(loaded), _) => {
                     if loaded.meta.actor != shape {
                         bail!(
-                            "checkpoint {} holds actors of shape {:?}, the config asks for {:?} (env.history, learn.actor_hidden)",
+                            "checkpoint {} holds actors of shape {:?}, the config asks for {:?} (env.history, learn.actor_hidden; training carries on command actors only)",
                             loaded.path.display(),
                             loaded.meta.actor,
                             shape

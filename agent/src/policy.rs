@@ -95,16 +95,19 @@ impl LearnedPolicy {
 
 impl Policy for LearnedPolicy {
     fn command(&mut self, history: &ObservationHistory) -> Result<(f64, f64)> {
-        let mut action = match &mut self.actor {
-            Some(actor) => actor.act(history.as_flat())?,
-            None => [self.rng.random_range(-1.0..=1.0), self.rng.random_range(-1.0..=1.0)],
+        let Some(actor) = &mut self.actor else {
+            // Train mode before the first weights: uniformly random commands.
+            let action = [self.rng.random_range(-1.0..=1.0), self.rng.random_range(-1.0..=1.0)];
+            return Ok(self.env.command_from_action(action));
         };
-        if self.exploration.is_some() && self.actor.is_some() && self.noise_std > 0.0 {
-            let normal = Normal::new(0.0, self.noise_std as f32)?;
-            for a in &mut action {
-                *a = (*a + normal.sample(&mut self.rng)).clamp(-1.0, 1.0);
-            }
+        if self.noise_std == 0.0 {
+            return actor.command(history.as_flat(), &self.env);
         }
+        // Exploring (train mode, whose actors output commands): Gaussian noise on the
+        // normalised command.
+        let outputs = actor.act(history.as_flat())?;
+        let normal = Normal::new(0.0, self.noise_std as f32)?;
+        let action = [outputs[0], outputs[1]].map(|a| (a + normal.sample(&mut self.rng)).clamp(-1.0, 1.0));
         Ok(self.env.command_from_action(action))
     }
 

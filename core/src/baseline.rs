@@ -47,7 +47,71 @@ impl Default for BaselineGains {
     }
 }
 
+/// The range of each gain (in the order of [`BaselineGains::to_unit`]) that a gain-scheduling
+/// actor's output spans, log-uniformly from -1 to 1: the default gains, the searched sets' and
+/// the teachers' with room. A teacher outside is refused ([`BaselineGains::check_schedulable`]).
+pub const SCHEDULED_GAIN_RANGES: [(f64, f64); 5] = [
+    (0.2, 4.0),  // k_form
+    (0.25, 1.6), // k_goal
+    (0.5, 5.0),  // k_turn
+    (0.25, 1.0), // repulsion_range
+    (0.5, 6.0),  // k_repulsion
+];
+
 impl BaselineGains {
+    /// The gains as a gain-scheduling actor outputs them: each in [-1, 1], log-uniform over its
+    /// [`SCHEDULED_GAIN_RANGES`] (clamped to the range).
+    pub fn to_unit(&self) -> [f32; 5] {
+        let values = [
+            self.k_form,
+            self.k_goal,
+            self.k_turn,
+            self.repulsion_range,
+            self.k_repulsion,
+        ];
+        std::array::from_fn(|i| {
+            let (lo, hi) = SCHEDULED_GAIN_RANGES[i];
+            let t = (values[i].clamp(lo, hi) / lo).ln() / (hi / lo).ln();
+            (2.0 * t - 1.0) as f32
+        })
+    }
+
+    /// Refuses gains a gain-scheduling actor cannot output, naming the gain and its range.
+    pub fn check_schedulable(&self) -> Result<(), String> {
+        let values = [
+            self.k_form,
+            self.k_goal,
+            self.k_turn,
+            self.repulsion_range,
+            self.k_repulsion,
+        ];
+        let names = ["k_form", "k_goal", "k_turn", "repulsion_range", "k_repulsion"];
+        for ((name, value), (lo, hi)) in names.iter().zip(values).zip(SCHEDULED_GAIN_RANGES) {
+            if !(lo..=hi).contains(&value) {
+                return Err(format!(
+                    "{name} = {value} lies outside the gain schedule's range [{lo}, {hi}]"
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The gains of a gain-scheduling actor's output (five values in [-1, 1], clamped).
+    pub fn from_unit(unit: &[f32]) -> Self {
+        let gain = |i: usize| {
+            let (lo, hi) = SCHEDULED_GAIN_RANGES[i];
+            let t = (f64::from(unit[i].clamp(-1.0, 1.0)) + 1.0) / 2.0;
+            lo * (hi / lo).powf(t)
+        };
+        Self {
+            k_form: gain(0),
+            k_goal: gain(1),
+            k_turn: gain(2),
+            repulsion_range: gain(3),
+            k_repulsion: gain(4),
+        }
+    }
+
     /// Refuses gains the controller cannot use, naming the field: every gain finite and >= 0,
     /// `k_turn` > 0 (a robot that never turns never arrives).
     pub fn validate(&self) -> Result<(), ConfigError> {
@@ -215,6 +279,44 @@ mod tests {
             let message = gains.validate().expect_err(text).to_string();
             assert!(message.contains(field), "{text}: {message}");
         }
+    }
+
+    #[test]
+    fn gains_survive_the_gain_scheduling_actor_s_unit_range() {
+        for gains in [
+            BaselineGains::default(),
+            BaselineGains {
+                k_form: 0.45,
+                k_goal: 1.0706,
+                k_turn: 1.3015,
+                repulsion_range: 0.5084,
+                k_repulsion: 1.58,
+            },
+        ] {
+            gains.check_schedulable().expect("inside the ranges");
+            let unit = gains.to_unit();
+            assert!(unit.iter().all(|u| u.abs() < 0.9), "{unit:?} is near the range's ends");
+            let back = BaselineGains::from_unit(&unit);
+            for (a, b) in [
+                (back.k_form, gains.k_form),
+                (back.k_goal, gains.k_goal),
+                (back.k_turn, gains.k_turn),
+                (back.repulsion_range, gains.repulsion_range),
+                (back.k_repulsion, gains.k_repulsion),
+            ] {
+                assert!((a / b - 1.0).abs() < 1e-5, "{back:?} vs {gains:?}");
+            }
+        }
+        let too_fast = BaselineGains {
+            k_goal: 3.0,
+            ..BaselineGains::default()
+        };
+        let refusal = too_fast.check_schedulable().expect_err("outside the range");
+        assert!(refusal.contains("k_goal = 3"), "{refusal}");
+        let lowest = BaselineGains::from_unit(&[-5.0; 5]);
+        assert_eq!(lowest.k_form, SCHEDULED_GAIN_RANGES[0].0);
+        let highest = BaselineGains::from_unit(&[1.0; 5]);
+        assert!((highest.k_repulsion - SCHEDULED_GAIN_RANGES[4].1).abs() < 1e-9);
     }
 
     #[test]

@@ -4,6 +4,9 @@
 //!
 //! The teacher is the scripted baseline with the run's `[baseline]` gains, answering from what
 //! the robot was told (the noisy observation under a `[reality]`), as a scripted agent does.
+//! A student with a command head is taught the teacher's command; one with a gains head (a gain
+//! schedule, [`ActorHead::Gains`]) is taught the teacher's gains, and runs the baseline's law
+//! with the gains it outputs.
 //! Each round plays episodes of every swarm size as a lockstep sim plays them (the games of
 //! model selection, [`crate::selection`]), labels every answer a robot gives with the teacher's
 //! command for the same window, and adds the pairs to a buffer; then the actor takes gradient
@@ -27,7 +30,7 @@ use formation_core::baseline::{BaselineGains, ScriptedBaseline};
 use formation_core::config::RunConfig;
 use formation_core::observation::Layout;
 use formation_core::task::Outcome;
-use formation_model::actor::{Actor, ActorShape, FrozenActor, var_map_actor_weights};
+use formation_model::actor::{Actor, ActorHead, ActorShape, FrozenActor, var_map_actor_weights};
 use formation_model::checkpoint::{self, CheckpointMeta, actor_prefix};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -59,13 +62,18 @@ pub struct DistillOptions {
     pub capacity: usize,
     /// Seeds the episodes, the sampling and a fresh actor's weights.
     pub seed: u64,
-    /// A privileged teacher: the gains for a robot whose drawn position noise is 0 (the run's
-    /// `[baseline]` gains apply from `noise_scale_m` up, blended linearly between). `None`: the
-    /// `[baseline]` gains for every robot.
+    /// A privileged teacher: the gains for a robot whose drawn position noise is at most
+    /// `quiet_below_m` (the run's `[baseline]` gains apply from `noise_scale_m` up, blended
+    /// linearly between). `None`: the `[baseline]` gains for every robot.
     pub quiet_teacher: Option<BaselineGains>,
+    /// The position noise (standard deviation, metres) up to which the quiet teacher applies in
+    /// full: a whole band of windows with one answer, which a student learns flat.
+    pub quiet_below_m: f64,
     /// The position noise (standard deviation, metres) from which the `[baseline]` gains apply
     /// in full.
     pub noise_scale_m: f64,
+    /// What the student outputs (a student carried on from a checkpoint has the checkpoint's).
+    pub head: ActorHead,
 }
 
 impl Default for DistillOptions {
@@ -82,29 +90,33 @@ impl Default for DistillOptions {
             capacity: 2_000_000,
             seed: 1,
             quiet_teacher: None,
+            quiet_below_m: 0.0,
             noise_scale_m: 0.05,
+            head: ActorHead::Command,
         }
     }
 }
 
-/// Labelled windows: each robot window the actor reads and the teacher's action for it.
+/// Labelled windows: each robot window the actor reads and the teacher's outputs for it.
 #[derive(Debug, Clone)]
 pub struct Samples {
     windows: Vec<f32>,
     labels: Vec<f32>,
     width: usize,
+    label_width: usize,
     capacity: usize,
     next: usize,
     len: usize,
 }
 
 impl Samples {
-    /// An empty buffer of `capacity` windows of `width` floats.
-    pub fn new(width: usize, capacity: usize) -> Self {
+    /// An empty buffer of `capacity` windows of `width` floats, labelled with `label_width`.
+    pub fn new(width: usize, label_width: usize, capacity: usize) -> Self {
         Self {
             windows: vec![0.0; width * capacity],
-            labels: vec![0.0; 2 * capacity],
+            labels: vec![0.0; label_width * capacity],
             width,
+            label_width,
             capacity,
             next: 0,
             len: 0,
@@ -122,19 +134,20 @@ impl Samples {
     }
 
     /// Adds one, overwriting the oldest when full.
-    pub fn push(&mut self, window: &[f32], label: [f32; 2]) {
-        let i = self.next;
+    pub fn push(&mut self, window: &[f32], label: &[f32]) {
+        let (i, l) = (self.next, self.label_width);
         self.windows[i * self.width..(i + 1) * self.width].copy_from_slice(window);
-        self.labels[2 * i..2 * i + 2].copy_from_slice(&label);
+        self.labels[l * i..l * (i + 1)].copy_from_slice(label);
         self.next = (self.next + 1) % self.capacity;
         self.len = (self.len + 1).min(self.capacity);
     }
 
     /// Sample `i` (0 = the oldest still held).
-    pub fn get(&self, i: usize) -> (&[f32], [f32; 2]) {
+    pub fn get(&self, i: usize) -> (&[f32], &[f32]) {
         let slot = (self.next + self.capacity - self.len + i) % self.capacity;
+        let l = self.label_width;
         let window = &self.windows[slot * self.width..(slot + 1) * self.width];
-        (window, [self.labels[2 * slot], self.labels[2 * slot + 1]])
+        (window, &self.labels[l * slot..l * (slot + 1)])
     }
 
     /// Windows and labels of `rows` as two tensors.
@@ -144,12 +157,12 @@ impl Samples {
         for i in rows {
             let (window, label) = self.get(i);
             windows.extend_from_slice(window);
-            labels.extend_from_slice(&label);
+            labels.extend_from_slice(label);
         }
-        let rows = labels.len() / 2;
+        let rows = labels.len() / self.label_width;
         Ok((
             Tensor::from_vec(windows, (rows, self.width), device)?,
-            Tensor::from_vec(labels, (rows, 2), device)?,
+            Tensor::from_vec(labels, (rows, self.label_width), device)?,
         ))
     }
 }
@@ -170,7 +183,7 @@ pub struct RoundReport {
     pub round: usize,
     /// Samples in the buffer.
     pub samples: usize,
-    /// Mean squared error of the round's gradient steps (actions in [-1, 1]).
+    /// Mean squared error of the round's gradient steps (outputs in [-1, 1]).
     pub loss: f64,
     /// The learning rate of the round.
     pub lr: f64,
@@ -193,8 +206,8 @@ pub struct Distiller {
 }
 
 impl Distiller {
-    /// A student of the shape `config` asks for (`env.history`, `learn.actor_hidden`), fresh or
-    /// carried over from the shared actor of `start`.
+    /// A student of the shape `config` asks for (`env.history`, `learn.actor_hidden`) with the
+    /// options' head, fresh or carried over from the shared actor of `start`.
     pub fn new(config: &RunConfig, options: DistillOptions, start: Option<&Path>) -> Result<Self> {
         config.validate()?;
         ensure!(!options.sizes.is_empty(), "distillation needs at least one swarm size");
@@ -213,8 +226,26 @@ impl Distiller {
             "the noise scale must be > 0 metres, not {}",
             options.noise_scale_m
         );
+        ensure!(
+            (0.0..options.noise_scale_m).contains(&options.quiet_below_m),
+            "the quiet band must lie in [0, {}) metres (the noise scale), not {}",
+            options.noise_scale_m,
+            options.quiet_below_m
+        );
         if let Some(quiet) = &options.quiet_teacher {
             quiet.validate()?;
+        }
+        if options.head == ActorHead::Gains {
+            for (teacher, gains) in [
+                ("[baseline]", Some(config.baseline)),
+                ("the quiet teacher", options.quiet_teacher),
+            ] {
+                if let Some(gains) = gains {
+                    gains
+                        .check_schedulable()
+                        .map_err(|why| anyhow::anyhow!("{teacher}: {why}; a gains head cannot be taught it"))?;
+                }
+            }
         }
         ensure!(
             (0.0..=1.0).contains(&options.teacher_share),
@@ -226,6 +257,7 @@ impl Distiller {
             obs_dim: layout.dim(),
             history: config.env.history,
             hidden: config.learn.actor_hidden.clone(),
+            head: options.head,
         };
         let device = Device::Cpu;
         let vars = VarMap::new();
@@ -247,7 +279,7 @@ impl Distiller {
             },
         )?;
         Ok(Self {
-            samples: Samples::new(shape.input_dim(), options.capacity),
+            samples: Samples::new(shape.input_dim(), shape.head.outputs(), options.capacity),
             config: config.clone(),
             options,
             shape,
@@ -260,14 +292,16 @@ impl Distiller {
         })
     }
 
-    /// The teacher of a robot whose drawn position noise is `sigma` metres: the `[baseline]`
-    /// gains, or with a quiet teacher the blend of the two by `sigma / noise_scale_m`.
-    pub fn teacher_for(&self, sigma: f64) -> ScriptedBaseline {
+    /// The teacher's gains for a robot whose drawn position noise is `sigma` metres: the
+    /// `[baseline]` gains, or with a quiet teacher the quiet gains up to `quiet_below_m`, the
+    /// `[baseline]` gains from `noise_scale_m`, blended linearly between.
+    pub fn teacher_gains(&self, sigma: f64) -> BaselineGains {
         let noisy = self.config.baseline;
-        let gains = match self.options.quiet_teacher {
+        match self.options.quiet_teacher {
             None => noisy,
             Some(quiet) => {
-                let t = (sigma / self.options.noise_scale_m).clamp(0.0, 1.0);
+                let (below, scale) = (self.options.quiet_below_m, self.options.noise_scale_m);
+                let t = ((sigma - below) / (scale - below)).clamp(0.0, 1.0);
                 let blend = |a: f64, b: f64| a + t * (b - a);
                 BaselineGains {
                     k_form: blend(quiet.k_form, noisy.k_form),
@@ -277,8 +311,7 @@ impl Distiller {
                     k_repulsion: blend(quiet.k_repulsion, noisy.k_repulsion),
                 }
             }
-        };
-        ScriptedBaseline::new(&self.config.env, gains)
+        }
     }
 
     /// The student's shape.
@@ -306,25 +339,32 @@ impl Distiller {
             let (mut student_episodes, mut student_successes) = (0usize, 0usize);
             for mut game in played.games(&self.config.env, n) {
                 let teacher_drives = first || self.rng.random::<f64>() < self.options.teacher_share;
-                let teachers: Vec<ScriptedBaseline> = (0..n)
-                    .map(|agent| self.teacher_for(game.reality().position_noise_m(agent)))
+                let teachers: Vec<(ScriptedBaseline, [f32; 5])> = (0..n)
+                    .map(|agent| {
+                        let gains = self.teacher_gains(game.reality().position_noise_m(agent));
+                        (ScriptedBaseline::new(&self.config.env, gains), gains.to_unit())
+                    })
                     .collect();
                 let mut acting = Vec::with_capacity(n);
                 while game.outcome == Outcome::Running {
-                    let (env, samples) = (&self.config.env, &mut self.samples);
+                    let (env, samples, head) = (&self.config.env, &mut self.samples, self.shape.head);
                     game.step(
                         |asked| {
-                            let (v, w) = teachers[asked.agent].command(asked.window.latest());
-                            let label = env.action_from_command(v, w);
+                            let (teacher, unit_gains) = &teachers[asked.agent];
+                            let (v, w) = teacher.command(asked.window.latest());
                             if asked.present {
-                                samples.push(asked.window.as_flat(), label);
+                                let window = asked.window.as_flat();
+                                match head {
+                                    ActorHead::Command => samples.push(window, &env.action_from_command(v, w)),
+                                    ActorHead::Gains => samples.push(window, unit_gains),
+                                }
                             }
-                            let action = if teacher_drives {
-                                label
+                            if teacher_drives {
+                                // The command the label stands for, as the wire rounds it.
+                                Ok(env.command_from_action(env.action_from_command(v, w)))
                             } else {
-                                student.act(asked.window.as_flat())?
-                            };
-                            Ok(env.command_from_action(action))
+                                student.command(asked.window.as_flat(), env)
+                            }
                         },
                         &mut acting,
                     )?;
@@ -367,7 +407,7 @@ impl Distiller {
         o.lr_start * (o.lr_end / o.lr_start).powf(progress.min(1.0))
     }
 
-    /// The student's mean squared error to the labels of `samples` (actions in [-1, 1]).
+    /// The student's mean squared error to the labels of `samples` (outputs in [-1, 1]).
     pub fn mean_squared_error(&self, samples: &Samples) -> Result<f64> {
         ensure!(!samples.is_empty(), "no samples to measure the student on");
         let (windows, labels) = samples.batch(0..samples.len(), &self.device)?;
@@ -390,12 +430,13 @@ impl Distiller {
             extra.insert(
                 "distilled_from_quiet".into(),
                 format!(
-                    "baseline k_form {} k_goal {} k_turn {} repulsion_range {} k_repulsion {} at no position noise, blended up to {} m",
+                    "baseline k_form {} k_goal {} k_turn {} repulsion_range {} k_repulsion {} up to {} m of position noise, blended up to {} m",
                     quiet.k_form,
                     quiet.k_goal,
                     quiet.k_turn,
                     quiet.repulsion_range,
                     quiet.k_repulsion,
+                    self.options.quiet_below_m,
                     self.options.noise_scale_m
                 ),
             );
@@ -431,7 +472,11 @@ impl Distiller {
 pub fn teacher_samples(config: &RunConfig, n: usize, seed: u64, count: usize) -> Result<Samples> {
     let teacher = ScriptedBaseline::new(&config.env, config.baseline);
     let width = Layout::of(config.env.observation).dim() * config.env.history;
-    let mut samples = Samples::new(width, count * n * config.env.episode_steps(n) as usize);
+    let mut samples = Samples::new(
+        width,
+        ActorHead::Command.outputs(),
+        count * n * config.env.episode_steps(n) as usize,
+    );
     let played = Played {
         seed,
         count,
@@ -445,7 +490,7 @@ pub fn teacher_samples(config: &RunConfig, n: usize, seed: u64, count: usize) ->
                 |asked| {
                     let (v, w) = teacher.command(asked.window.latest());
                     if asked.present {
-                        samples.push(asked.window.as_flat(), env.action_from_command(v, w));
+                        samples.push(asked.window.as_flat(), &env.action_from_command(v, w));
                     }
                     Ok((v, w))
                 },
@@ -454,6 +499,52 @@ pub fn teacher_samples(config: &RunConfig, n: usize, seed: u64, count: usize) ->
         }
     }
     Ok(samples)
+}
+
+/// The mean and standard deviation of each gain a gain schedule ([`ActorHead::Gains`]) answers
+/// over every window of `count` episodes of `n` robots from `seed` under `reality`, in the order
+/// of [`BaselineGains::to_unit`]: what it learned to pick where.
+pub fn gain_profile(
+    env: &formation_core::config::EnvConfig,
+    reality: &formation_core::reality::RealityConfig,
+    shape: &ActorShape,
+    weights: &[f32],
+    (n, seed, count): (usize, u64, usize),
+) -> Result<[(f64, f64); 5]> {
+    ensure!(shape.head == ActorHead::Gains, "only a gains head has a gain profile");
+    let mut actor = FrozenActor::from_flat(weights, shape)?;
+    let (mut sum, mut sum_sq, mut answers) = ([0.0f64; 5], [0.0f64; 5], 0usize);
+    let played = Played { seed, count, reality };
+    for mut game in played.games(env, n) {
+        let mut acting = Vec::with_capacity(n);
+        while game.outcome == Outcome::Running {
+            game.step(
+                |asked| {
+                    let window = asked.window.as_flat();
+                    let gains = BaselineGains::from_unit(actor.act(window)?);
+                    let values = [
+                        gains.k_form,
+                        gains.k_goal,
+                        gains.k_turn,
+                        gains.repulsion_range,
+                        gains.k_repulsion,
+                    ];
+                    for (i, value) in values.into_iter().enumerate() {
+                        sum[i] += value;
+                        sum_sq[i] += value * value;
+                    }
+                    answers += 1;
+                    actor.command(window, env)
+                },
+                &mut acting,
+            )?;
+        }
+    }
+    ensure!(answers > 0, "no robot answered");
+    Ok(std::array::from_fn(|i| {
+        let mean = sum[i] / answers as f64;
+        (mean, (sum_sq[i] / answers as f64 - mean * mean).max(0.0).sqrt())
+    }))
 }
 
 /// The episode seed of size `n` in round `round`: far above the held-out seeds (1000 and up),
@@ -496,14 +587,14 @@ mod tests {
 
     #[test]
     fn the_buffer_overwrites_the_oldest_and_reads_them_in_order() {
-        let mut samples = Samples::new(1, 3);
+        let mut samples = Samples::new(1, 2, 3);
         for i in 0..5 {
-            samples.push(&[i as f32], [i as f32, 0.0]);
+            samples.push(&[i as f32], &[i as f32, 0.0]);
         }
         assert_eq!(samples.len(), 3);
         let held: Vec<f32> = (0..3).map(|i| samples.get(i).0[0]).collect();
         assert_eq!(held, vec![2.0, 3.0, 4.0]);
-        assert_eq!(samples.get(2).1, [4.0, 0.0]);
+        assert_eq!(samples.get(2).1, &[4.0, 0.0]);
     }
 
     #[test]
@@ -525,7 +616,6 @@ mod tests {
         // An observation of two neighbours and a goal, in the robot's frame.
         let mut obs = [0.0_f32; formation_protocol::MAX_OBS_DIM];
         obs[..12].copy_from_slice(&[1.2, 0.3, 1.0, 0.0, 1.0, -0.2, 1.1, 1.0, 0.0, 1.0, 2.0, 1.0]);
-        let command = |teacher: ScriptedBaseline| teacher.command(&obs);
         let gains_noisy = config.baseline;
         let half = BaselineGains {
             k_form: (quiet.k_form + gains_noisy.k_form) / 2.0,
@@ -533,13 +623,32 @@ mod tests {
             ..gains_noisy
         };
         let of = |gains| ScriptedBaseline::new(&config.env, gains).command(&obs);
-        assert_eq!(command(distiller.teacher_for(0.0)), of(quiet));
-        assert_eq!(command(distiller.teacher_for(0.04)), of(gains_noisy));
-        assert_eq!(command(distiller.teacher_for(0.5)), of(gains_noisy));
-        let (v, w) = command(distiller.teacher_for(0.02));
+        assert_eq!(of(distiller.teacher_gains(0.0)), of(quiet));
+        assert_eq!(of(distiller.teacher_gains(0.04)), of(gains_noisy));
+        assert_eq!(of(distiller.teacher_gains(0.5)), of(gains_noisy));
+        let (v, w) = of(distiller.teacher_gains(0.02));
         let (hv, hw) = of(half);
         assert!((v - hv).abs() < 1e-12 && (w - hw).abs() < 1e-12);
         assert_ne!(of(quiet), of(gains_noisy), "the two teachers answer alike");
+        // A quiet band: the quiet gains in full up to 1 cm, the blend's middle at 2.5 cm.
+        let banded = DistillOptions {
+            sizes: vec![3],
+            capacity: 2048,
+            quiet_teacher: Some(quiet),
+            quiet_below_m: 0.01,
+            noise_scale_m: 0.04,
+            ..DistillOptions::default()
+        };
+        let distiller = Distiller::new(&config, banded, None).expect("a distiller");
+        assert_eq!(of(distiller.teacher_gains(0.01)), of(quiet));
+        let (v, w) = of(distiller.teacher_gains(0.025));
+        assert!((v - hv).abs() < 1e-12 && (w - hw).abs() < 1e-12);
+        let outside = DistillOptions {
+            quiet_below_m: 0.05,
+            ..DistillOptions::default()
+        };
+        let refused = Distiller::new(&config, outside, None).err().expect("refused");
+        assert!(refused.to_string().contains("quiet band"), "{refused}");
     }
 
     #[test]

@@ -18,7 +18,7 @@ use formation_core::config::{Algorithm, CriticArchitecture, EnvConfig, LearnConf
 use formation_core::features::CriticFeatures;
 use formation_core::observation::Layout;
 use formation_ipc::placement;
-use formation_model::actor::{Actor, ActorShape, dense, var_map_actor_weights};
+use formation_model::actor::{Actor, ActorHead, ActorShape, dense, var_map_actor_weights};
 use formation_model::checkpoint::{self, CheckpointMeta, actor_prefix};
 use formation_protocol::ACTION_DIM;
 use formation_replay::sample::Batch;
@@ -351,6 +351,7 @@ impl Learner {
             obs_dim: Layout::of(env.observation).dim(),
             history,
             hidden: config.actor_hidden.clone(),
+            head: ActorHead::Command,
         };
         let n_actors = if config.shared_actor { 1 } else { n_agents };
         let n_critics = match config.algorithm {

@@ -319,7 +319,7 @@ pub fn play(
                     let imposed = turn.and_then(|turn| turn.command(env, asked.agent, asked.step));
                     match imposed {
                         Some(command) => Ok(command),
-                        None => Ok(env.command_from_action(actor.act(asked.window.as_flat())?)),
+                        None => actor.command(asked.window.as_flat(), env),
                     }
                 },
                 &mut acting,

@@ -5,9 +5,10 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 use std::process::Command;
 
+use formation_core::baseline::BaselineGains;
 use formation_core::config::{ObservationModel, RunConfig};
 use formation_critic::distill::{DistillOptions, Distiller, teacher_samples};
-use formation_model::actor::FrozenActor;
+use formation_model::actor::{ActorHead, FrozenActor};
 use formation_model::checkpoint;
 
 fn small_options() -> DistillOptions {
@@ -49,6 +50,54 @@ fn a_few_rounds_bring_a_fresh_student_close_to_its_teacher_under_the_field_prese
     assert!(reports[1..].iter().any(|r| r.student[0].success.is_some()));
     assert!(reports.windows(2).all(|w| w[1].samples > w[0].samples));
     assert!(reports[9].lr < reports[0].lr);
+}
+
+#[test]
+fn a_gain_schedule_student_is_taught_its_teacher_s_gains() {
+    // The field's fast gains teach, under the field preset.
+    let mut config = field_config();
+    let fast = BaselineGains {
+        k_form: 0.45,
+        k_goal: 1.07,
+        k_turn: 1.3,
+        repulsion_range: 0.51,
+        k_repulsion: 1.58,
+    };
+    config.baseline = fast;
+    let options = DistillOptions {
+        head: ActorHead::Gains,
+        rounds: 4,
+        ..small_options()
+    };
+    // A teacher outside the schedule's ranges is refused, naming the gain.
+    let mut too_fast = config.clone();
+    too_fast.baseline.k_goal = 3.0;
+    let refused = Distiller::new(&too_fast, options.clone(), None).err().expect("refused");
+    assert!(format!("{refused:#}").contains("k_goal = 3"), "{refused:#}");
+    let mut distiller = Distiller::new(&config, options, None).expect("a distiller");
+    assert_eq!(distiller.shape().head.outputs(), 5);
+    for _ in 0..4 {
+        distiller.round().expect("a round");
+    }
+    let mut student =
+        FrozenActor::from_flat(&distiller.actor_weights().expect("weights"), distiller.shape()).expect("actor");
+    // On episodes it never played, every window is answered with the teacher's gains.
+    let samples = teacher_samples(&config, 3, 77, 2).expect("samples");
+    for i in (0..samples.len()).step_by(5) {
+        let answered = BaselineGains::from_unit(student.act(samples.get(i).0).expect("acts"));
+        for (got, want) in [
+            (answered.k_form, fast.k_form),
+            (answered.k_goal, fast.k_goal),
+            (answered.k_turn, fast.k_turn),
+            (answered.repulsion_range, fast.repulsion_range),
+            (answered.k_repulsion, fast.k_repulsion),
+        ] {
+            assert!(
+                (got / want - 1.0).abs() < 0.05,
+                "answered {answered:?}, taught {fast:?}"
+            );
+        }
+    }
 }
 
 #[test]
@@ -118,6 +167,8 @@ fn the_tool_refuses_bad_sizes_and_an_existing_output_naming_them() {
         "64",
         "--save-every",
         "1",
+        "--head",
+        "gains",
     ]);
     assert!(
         two_rounds.status.success(),
@@ -131,6 +182,7 @@ fn the_tool_refuses_bad_sizes_and_an_existing_output_naming_them() {
         saved.meta.extra
     );
     assert!(!saved.meta.extra.contains_key("distill_unfinished"));
+    assert_eq!(saved.meta.actor.head, ActorHead::Gains);
     std::fs::write(&out, b"keep me").expect("written");
     let exists = run(&["--out", out_arg, "--rounds", "1"]);
     assert!(!exists.status.success());

@@ -1,5 +1,8 @@
-//! The actor network pi(o_{t-H+1..t}) -> action in [-1, 1]^2: an MLP over the flattened
-//! observation history with ReLU hidden layers and a tanh output.
+//! The actor network pi(o_{t-H+1..t}) -> outputs in [-1, 1]: an MLP over the flattened
+//! observation history with ReLU hidden layers and a tanh output. Its [`ActorHead`] says what the
+//! outputs are: the command itself (v, w), as the paper's actor, or the five gains of the
+//! baseline's control law, which then turns the newest observation into the command (a learned
+//! gain schedule).
 //!
 //! An MLP over the flat window is what the paper's fixed H = 15 calls for and is cheap at
 //! batch 1; a recurrent actor would add state to carry across ticks and restarts for no
@@ -11,8 +14,46 @@
 
 use candle_core::Tensor;
 use candle_nn::{Linear, VarBuilder};
+use formation_core::baseline::{BaselineGains, SCHEDULED_GAIN_RANGES, ScriptedBaseline};
+use formation_core::config::EnvConfig;
 use formation_protocol::ACTION_DIM;
 use nalgebra::{DMatrix, DMatrixView, DVector, DVectorView};
+
+/// What an actor's outputs mean.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ActorHead {
+    /// The command (v, w), normalised to [-1, 1]^2 ([`EnvConfig::command_from_action`]).
+    #[default]
+    Command,
+    /// The baseline's gains ([`BaselineGains::from_unit`]); the baseline's law with them turns
+    /// the newest observation into the command. Trained by distillation only.
+    Gains,
+}
+
+impl ActorHead {
+    /// Outputs of the network.
+    pub fn outputs(self) -> usize {
+        match self {
+            Self::Command => ACTION_DIM,
+            Self::Gains => SCHEDULED_GAIN_RANGES.len(),
+        }
+    }
+
+    /// The head's name in checkpoints and on command lines.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Command => "command",
+            Self::Gains => "gains",
+        }
+    }
+
+    /// The head called `name`.
+    pub fn from_name(name: &str) -> Option<Self> {
+        [Self::Command, Self::Gains]
+            .into_iter()
+            .find(|head| head.as_str() == name)
+    }
+}
 
 /// Sizes of an actor.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -23,6 +64,8 @@ pub struct ActorShape {
     pub history: usize,
     /// Widths of the hidden layers.
     pub hidden: Vec<usize>,
+    /// What the outputs mean.
+    pub head: ActorHead,
 }
 
 impl ActorShape {
@@ -38,7 +81,7 @@ impl ActorShape {
             dims.push((input, width));
             input = width;
         }
-        dims.push((input, ACTION_DIM));
+        dims.push((input, self.head.outputs()));
         dims
     }
 
@@ -103,7 +146,7 @@ impl Actor {
         Ok(Self { layers })
     }
 
-    /// Actions in [-1, 1]^2 for a batch of flattened windows (rows of H * obs_dim).
+    /// Outputs in [-1, 1] for a batch of flattened windows (rows of H * obs_dim).
     pub fn forward(&self, windows: &Tensor) -> candle_core::Result<Tensor> {
         let mut x = windows.clone();
         for (i, layer) in self.layers.iter().enumerate() {
@@ -171,8 +214,8 @@ impl FrozenActor {
         Ok(())
     }
 
-    /// The action in [-1, 1]^2 for one flattened window (H * obs_dim values).
-    pub fn act(&mut self, window: &[f32]) -> anyhow::Result<[f32; ACTION_DIM]> {
+    /// The outputs in [-1, 1] for one flattened window (H * obs_dim values).
+    pub fn act(&mut self, window: &[f32]) -> anyhow::Result<&[f32]> {
         anyhow::ensure!(
             window.len() == self.shape.input_dim(),
             "a window of {} values, the actor takes {}",
@@ -195,8 +238,19 @@ impl FrozenActor {
                 output.apply(|x| *x = x.tanh());
             }
         }
-        let action = &self.outputs[last];
-        Ok([action[0], action[1]])
+        Ok(self.outputs[last].as_slice())
+    }
+
+    /// The robot's command (v, w) for one flattened window (newest observation last), as its
+    /// head makes it from the outputs.
+    pub fn command(&mut self, window: &[f32], env: &EnvConfig) -> anyhow::Result<(f64, f64)> {
+        let head = self.shape.head;
+        let newest = &window[window.len().saturating_sub(self.shape.obs_dim)..];
+        let outputs = self.act(window)?;
+        Ok(match head {
+            ActorHead::Command => env.command_from_action([outputs[0], outputs[1]]),
+            ActorHead::Gains => ScriptedBaseline::new(env, BaselineGains::from_unit(outputs)).command(newest),
+        })
     }
 }
 
@@ -275,34 +329,91 @@ mod tests {
 
     #[test]
     fn frozen_actor_acts_as_the_trained_network() {
-        let shape = ActorShape {
-            obs_dim: 12,
-            history: 4,
-            hidden: vec![16, 8],
-        };
-        let varmap = VarMap::new();
-        let actor = Actor::new(VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu), &shape).expect("actor");
-        let data = varmap.data().lock().expect("lock").clone();
-        let flat = flatten_parameters(|name| data.get(name).map(|v| v.as_tensor().clone()), "", &shape).expect("flat");
-        assert_eq!(flat.len(), shape.parameter_count());
-        let mut frozen = FrozenActor::from_flat(&flat, &shape).expect("from flat");
-        for seed in 0..5 {
-            let window: Vec<f32> = (0..shape.input_dim())
-                .map(|i| ((i + 7 * seed) as f32 * 0.37).sin() * 3.0)
-                .collect();
-            let input = Tensor::from_slice(&window, (1, window.len()), &Device::Cpu).expect("tensor");
-            let expected = actor.forward(&input).expect("forward").flatten_all().expect("flat");
-            let expected = expected.to_vec1::<f32>().expect("vec");
-            let got = frozen.act(&window).expect("act");
-            for (a, b) in got.iter().zip(&expected) {
-                assert!((a - b).abs() < 1e-5, "frozen {got:?} vs candle {expected:?}");
+        for head in [ActorHead::Command, ActorHead::Gains] {
+            let shape = ActorShape {
+                obs_dim: 12,
+                history: 4,
+                hidden: vec![16, 8],
+                head,
+            };
+            let varmap = VarMap::new();
+            let actor = Actor::new(VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu), &shape).expect("actor");
+            let data = varmap.data().lock().expect("lock").clone();
+            let flat =
+                flatten_parameters(|name| data.get(name).map(|v| v.as_tensor().clone()), "", &shape).expect("flat");
+            assert_eq!(flat.len(), shape.parameter_count());
+            let mut frozen = FrozenActor::from_flat(&flat, &shape).expect("from flat");
+            for seed in 0..5 {
+                let window: Vec<f32> = (0..shape.input_dim())
+                    .map(|i| ((i + 7 * seed) as f32 * 0.37).sin() * 3.0)
+                    .collect();
+                let input = Tensor::from_slice(&window, (1, window.len()), &Device::Cpu).expect("tensor");
+                let expected = actor.forward(&input).expect("forward").flatten_all().expect("flat");
+                let expected = expected.to_vec1::<f32>().expect("vec");
+                let got = frozen.act(&window).expect("act");
+                assert_eq!(got.len(), head.outputs());
+                for (a, b) in got.iter().zip(&expected) {
+                    assert!((a - b).abs() < 1e-5, "frozen {got:?} vs candle {expected:?}");
+                }
+                assert!(got.iter().all(|v| (-1.0..=1.0).contains(v)));
             }
-            assert!(got.iter().all(|v| (-1.0..=1.0).contains(v)));
+            assert!(frozen.act(&[0.0; 3]).is_err());
+            assert!(FrozenActor::from_flat(&flat[1..], &shape).is_err());
+            // New weights land in place: all zero gives tanh(0) = 0.
+            frozen.load(&vec![0.0; flat.len()]).expect("load");
+            assert!(
+                frozen
+                    .act(&vec![1.0; shape.input_dim()])
+                    .expect("act")
+                    .iter()
+                    .all(|&v| v == 0.0)
+            );
         }
-        assert!(frozen.act(&[0.0; 3]).is_err());
-        assert!(FrozenActor::from_flat(&flat[1..], &shape).is_err());
-        // New weights land in place: all zero gives tanh(0) = 0.
-        frozen.load(&vec![0.0; flat.len()]).expect("load");
-        assert_eq!(frozen.act(&vec![1.0; shape.input_dim()]).expect("act"), [0.0, 0.0]);
+    }
+
+    #[test]
+    fn a_gains_head_commands_as_the_baseline_with_its_gains_from_the_newest_observation() {
+        use formation_core::config::{ObservationModel, RunConfig};
+        use formation_core::observation::Layout;
+        let env = RunConfig::default().env;
+        assert_eq!(env.observation, ObservationModel::default());
+        let obs_dim = Layout::of(env.observation).dim();
+        let shape = ActorShape {
+            obs_dim,
+            history: 3,
+            hidden: vec![4],
+            head: ActorHead::Gains,
+        };
+        let gains = BaselineGains {
+            k_form: 0.45,
+            k_goal: 1.07,
+            k_turn: 1.3,
+            repulsion_range: 0.51,
+            k_repulsion: 1.58,
+        };
+        // Zero weights and a last bias of atanh(unit gains): the actor outputs the gains whatever
+        // it reads.
+        let mut flat = vec![0.0f32; shape.parameter_count()];
+        let unit = gains.to_unit();
+        let tail = flat.len() - unit.len();
+        for (slot, u) in flat[tail..].iter_mut().zip(unit) {
+            *slot = u.atanh();
+        }
+        let mut frozen = FrozenActor::from_flat(&flat, &shape).expect("actor");
+        let window: Vec<f32> = (0..shape.input_dim())
+            .map(|i| ((i as f32) * 0.61).sin() * 2.0)
+            .collect();
+        let newest = &window[2 * obs_dim..];
+        let (v, w) = frozen.command(&window, &env).expect("command");
+        let (v_ref, w_ref) = ScriptedBaseline::new(&env, gains).command(newest);
+        assert!(
+            (v - v_ref).abs() < 1e-4 && (w - w_ref).abs() < 1e-4,
+            "({v}, {w}) vs ({v_ref}, {w_ref})"
+        );
+        let (v_default, w_default) = ScriptedBaseline::new(&env, BaselineGains::default()).command(newest);
+        assert!(
+            (v - v_default).abs() + (w - w_default).abs() > 1e-3,
+            "the window does not tell the gains apart"
+        );
     }
 }

@@ -10,7 +10,7 @@ use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
 use formation_core::config::ObservationModel;
 
-use crate::actor::ActorShape;
+use crate::actor::{ActorHead, ActorShape};
 
 /// Marks files written by this project.
 pub const FORMAT: &str = "formation-rl/1";
@@ -47,6 +47,7 @@ impl CheckpointMeta {
         map.insert("obs_dim".into(), self.actor.obs_dim.to_string());
         map.insert("history".into(), self.actor.history.to_string());
         map.insert("actor_hidden".into(), format!("{:?}", self.actor.hidden));
+        map.insert("actor_head".into(), self.actor.head.as_str().into());
         map
     }
 
@@ -80,6 +81,12 @@ impl CheckpointMeta {
         } else {
             PAPER_OBS_DIM
         };
+        // Files written before gain-scheduling actors existed output commands.
+        let head = match map.get("actor_head") {
+            None => ActorHead::Command,
+            Some(name) => ActorHead::from_name(name)
+                .with_context(|| format!("checkpoint {}: unknown actor head {name:?}", path.display()))?,
+        };
         Ok(Self {
             n_agents: number("n_agents")?,
             observation,
@@ -88,6 +95,7 @@ impl CheckpointMeta {
                 obs_dim,
                 history: number("history")?,
                 hidden,
+                head,
             },
             extra: map.clone(),
         })
@@ -408,6 +416,7 @@ mod tests {
             obs_dim: 14,
             history: 2,
             hidden: vec![4],
+            head: ActorHead::Gains,
         };
         let tensors: Vec<(String, Tensor)> = shape
             .parameters()

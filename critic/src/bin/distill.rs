@@ -11,8 +11,10 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use clap::Parser;
 use formation_core::config::{RunConfig, validate_agent_count};
-use formation_critic::distill::{DistillOptions, Distiller, RoundReport};
+use formation_core::reality::RealityConfig;
+use formation_critic::distill::{DistillOptions, Distiller, RoundReport, gain_profile};
 use formation_critic::selection::Selector;
+use formation_model::actor::ActorHead;
 use indicatif::{ProgressBar, ProgressStyle};
 
 /// Distils the scripted baseline (the config's `[baseline]` gains) into the shared actor:
@@ -70,14 +72,24 @@ struct Cli {
     #[arg(long, default_value_t = 1)]
     seed: u64,
     /// A privileged teacher: a TOML file whose [baseline] gains teach the robots the episode
-    /// drew no position noise for; the config's [baseline] teaches those with
-    /// --noise-scale-m or more, the gains blended linearly between. The student cannot read
+    /// drew no position noise for (--quiet-below-m or less); the config's [baseline] teaches
+    /// those with --noise-scale-m or more, the gains blended linearly between. The student cannot read
     /// the noise: with an observation history (env.history > 1) it can see it.
     #[arg(long, value_name = "FILE")]
     quiet_teacher: Option<PathBuf>,
     /// With --quiet-teacher: the position noise (metres) from which the config's gains apply.
     #[arg(long, default_value_t = 0.05)]
     noise_scale_m: f64,
+    /// With --quiet-teacher: the position noise (metres) up to which the quiet gains apply in
+    /// full (blended from there to --noise-scale-m).
+    #[arg(long, default_value_t = 0.0)]
+    quiet_below_m: f64,
+    /// What the student outputs: "command" (v, w), as the paper's actor; or "gains", the five
+    /// [baseline] gains, taught the teacher's gains, which the baseline's law then turns into
+    /// the command (a learned gain schedule: the formation's equilibrium is the law's, exact).
+    /// With --checkpoint, the checkpoint's head.
+    #[arg(long, default_value = "command", value_parser = ["command", "gains"])]
+    head: String,
     /// Also write the student to --out every this many rounds (unscored; its metadata says the
     /// rounds done), so an interrupted run keeps its work; 0: only at the end.
     #[arg(long, default_value_t = 50)]
@@ -125,6 +137,8 @@ fn try_main(cli: Cli) -> Result<()> {
             None => None,
         },
         noise_scale_m: cli.noise_scale_m,
+        quiet_below_m: cli.quiet_below_m,
+        head: ActorHead::from_name(&cli.head).context("--head")?,
         ..DistillOptions::default()
     };
     let mut distiller = Distiller::new(&config, options, cli.checkpoint.as_deref())?;
@@ -166,6 +180,29 @@ fn try_main(cli: Cli) -> Result<()> {
     }
     if !config.reality.is_ideal() {
         extra.insert("reality".into(), config.reality.one_line());
+    }
+    if distiller.shape().head == ActorHead::Gains {
+        // What the schedule picks, in the ideal world and under the reality, on the selection's
+        // episodes of the largest size.
+        let n = *cli.sizes.iter().max().expect("sizes checked non-empty");
+        let episodes = (n, config.learn.selection_seed, config.learn.selection_episodes);
+        for (world, reality) in [("ideal", RealityConfig::default()), ("reality", config.reality.clone())] {
+            let profile = gain_profile(
+                &config.env,
+                &reality,
+                distiller.shape(),
+                &distiller.actor_weights()?,
+                episodes,
+            )?;
+            let line = ["k_form", "k_goal", "k_turn", "repulsion_range", "k_repulsion"]
+                .iter()
+                .zip(profile)
+                .map(|(name, (mean, std))| format!("{name} {mean:.3} +- {std:.3}"))
+                .collect::<Vec<_>>()
+                .join(", ");
+            println!("formation-distill: gains picked at N = {n}, {world}: {line}");
+            extra.insert(format!("gain_profile_{world}"), line);
+        }
     }
     distiller.save(&cli.out, extra)?;
     let by_size = |sizes: &[formation_model::checkpoint::SizeScore]| {
