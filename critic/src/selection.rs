@@ -295,10 +295,14 @@ pub fn play(
     let layout = Layout::of(env.observation);
     let dim = layout.dim();
     ensure!(
-        shape.obs_dim == dim && shape.history == env.history,
-        "selection: an actor of shape {shape:?} cannot read windows of {} observations of {dim} floats",
-        env.history
+        shape.obs_dim == dim,
+        "selection: an actor of shape {shape:?} cannot read observations of {dim} floats"
     );
+    // The robots keep the window the actor reads, as an agent evaluating a checkpoint does.
+    let env = &EnvConfig {
+        history: shape.history,
+        ..env.clone()
+    };
     ensure!(
         actors.len() == 1 || actors.len() == n,
         "selection: {} independent actors cannot drive {n} robots",
