@@ -59,16 +59,24 @@ pub const SCHEDULED_GAIN_RANGES: [(f64, f64); 5] = [
 ];
 
 impl BaselineGains {
-    /// The gains as a gain-scheduling actor outputs them: each in [-1, 1], log-uniform over its
-    /// [`SCHEDULED_GAIN_RANGES`] (clamped to the range).
-    pub fn to_unit(&self) -> [f32; 5] {
-        let values = [
+    /// The gains' names, in the order of [`BaselineGains::values`].
+    pub const NAMES: [&str; 5] = ["k_form", "k_goal", "k_turn", "repulsion_range", "k_repulsion"];
+
+    /// The five gains in one order (that of [`SCHEDULED_GAIN_RANGES`] and [`BaselineGains::NAMES`]).
+    pub fn values(&self) -> [f64; 5] {
+        [
             self.k_form,
             self.k_goal,
             self.k_turn,
             self.repulsion_range,
             self.k_repulsion,
-        ];
+        ]
+    }
+
+    /// The gains as a gain-scheduling actor outputs them: each in [-1, 1], log-uniform over its
+    /// [`SCHEDULED_GAIN_RANGES`] (clamped to the range).
+    pub fn to_unit(&self) -> [f32; 5] {
+        let values = self.values();
         std::array::from_fn(|i| {
             let (lo, hi) = SCHEDULED_GAIN_RANGES[i];
             let t = (values[i].clamp(lo, hi) / lo).ln() / (hi / lo).ln();
@@ -78,15 +86,7 @@ impl BaselineGains {
 
     /// Refuses gains a gain-scheduling actor cannot output, naming the gain and its range.
     pub fn check_schedulable(&self) -> Result<(), String> {
-        let values = [
-            self.k_form,
-            self.k_goal,
-            self.k_turn,
-            self.repulsion_range,
-            self.k_repulsion,
-        ];
-        let names = ["k_form", "k_goal", "k_turn", "repulsion_range", "k_repulsion"];
-        for ((name, value), (lo, hi)) in names.iter().zip(values).zip(SCHEDULED_GAIN_RANGES) {
+        for ((name, value), (lo, hi)) in Self::NAMES.iter().zip(self.values()).zip(SCHEDULED_GAIN_RANGES) {
             if !(lo..=hi).contains(&value) {
                 return Err(format!(
                     "{name} = {value} lies outside the gain schedule's range [{lo}, {hi}]"

@@ -503,7 +503,7 @@ pub fn teacher_samples(config: &RunConfig, n: usize, seed: u64, count: usize) ->
 
 /// The mean and standard deviation of each gain a gain schedule ([`ActorHead::Gains`]) answers
 /// over every window of `count` episodes of `n` robots from `seed` under `reality`, in the order
-/// of [`BaselineGains::to_unit`]: what it learned to pick where.
+/// of [`BaselineGains::values`]: what it learned to pick where.
 pub fn gain_profile(
     env: &formation_core::config::EnvConfig,
     reality: &formation_core::reality::RealityConfig,
@@ -522,14 +522,7 @@ pub fn gain_profile(
                 |asked| {
                     let window = asked.window.as_flat();
                     let gains = BaselineGains::from_unit(actor.act(window)?);
-                    let values = [
-                        gains.k_form,
-                        gains.k_goal,
-                        gains.k_turn,
-                        gains.repulsion_range,
-                        gains.k_repulsion,
-                    ];
-                    for (i, value) in values.into_iter().enumerate() {
+                    for (i, value) in gains.values().into_iter().enumerate() {
                         sum[i] += value;
                         sum_sq[i] += value * value;
                     }

@@ -10,6 +10,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::Parser;
+use formation_core::baseline::BaselineGains;
 use formation_core::config::{RunConfig, validate_agent_count};
 use formation_core::reality::RealityConfig;
 use formation_critic::distill::{DistillOptions, Distiller, RoundReport, gain_profile};
@@ -194,7 +195,7 @@ fn try_main(cli: Cli) -> Result<()> {
                 &distiller.actor_weights()?,
                 episodes,
             )?;
-            let line = ["k_form", "k_goal", "k_turn", "repulsion_range", "k_repulsion"]
+            let line = BaselineGains::NAMES
                 .iter()
                 .zip(profile)
                 .map(|(name, (mean, std))| format!("{name} {mean:.3} +- {std:.3}"))
