@@ -101,6 +101,47 @@ fn a_gain_schedule_student_is_taught_its_teacher_s_gains() {
 }
 
 #[test]
+fn the_gain_profile_reports_the_gains_a_schedule_picks() {
+    use formation_core::reality::RealityConfig;
+    use formation_critic::distill::gain_profile;
+    use formation_model::actor::ActorShape;
+    let config = field_config();
+    let shape = ActorShape {
+        obs_dim: formation_core::observation::Layout::of(config.env.observation).dim(),
+        history: 2,
+        hidden: vec![8],
+        head: ActorHead::Gains,
+    };
+    // Zero weights and a last bias of atanh(unit gains): the same gains for every window.
+    let picked = BaselineGains {
+        k_form: 0.9,
+        k_goal: 0.85,
+        k_turn: 2.0,
+        repulsion_range: 0.5,
+        k_repulsion: 2.0,
+    };
+    let mut weights = vec![0.0f32; shape.parameter_count()];
+    let tail = weights.len() - 5;
+    for (slot, unit) in weights[tail..].iter_mut().zip(picked.to_unit()) {
+        *slot = unit.atanh();
+    }
+    let mut env = config.env.clone();
+    env.history = 2;
+    let profile = gain_profile(&env, &RealityConfig::default(), &shape, &weights, (3, 1000, 2)).expect("a profile");
+    for ((mean, spread), want) in profile.iter().zip(picked.values()) {
+        assert!((mean / want - 1.0).abs() < 1e-4, "{profile:?} against {picked:?}");
+        assert!(*spread < 1e-4, "{profile:?}");
+    }
+    // A command actor has no gain profile.
+    let command = ActorShape {
+        head: ActorHead::Command,
+        ..shape.clone()
+    };
+    let weights = vec![0.0f32; command.parameter_count()];
+    assert!(gain_profile(&env, &RealityConfig::default(), &command, &weights, (3, 1000, 1)).is_err());
+}
+
+#[test]
 fn the_saved_student_is_a_checkpoint_the_agents_load_with_its_teacher_recorded() {
     let config = field_config();
     let options = DistillOptions {
