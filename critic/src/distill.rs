@@ -72,6 +72,9 @@ pub struct DistillOptions {
     /// The position noise (standard deviation, metres) from which the `[baseline]` gains apply
     /// in full.
     pub noise_scale_m: f64,
+    /// With a quiet teacher: the actuation delay (ticks) from which the `[baseline]` gains apply
+    /// in full whatever the noise. `None`: the noise alone chooses.
+    pub soft_from_delay_ticks: Option<u32>,
     /// What the student outputs (a student carried on from a checkpoint has the checkpoint's).
     pub head: ActorHead,
 }
@@ -92,6 +95,7 @@ impl Default for DistillOptions {
             quiet_teacher: None,
             quiet_below_m: 0.0,
             noise_scale_m: 0.05,
+            soft_from_delay_ticks: None,
             head: ActorHead::Command,
         }
     }
@@ -292,16 +296,22 @@ impl Distiller {
         })
     }
 
-    /// The teacher's gains for a robot whose drawn position noise is `sigma` metres: the
-    /// `[baseline]` gains, or with a quiet teacher the quiet gains up to `quiet_below_m`, the
-    /// `[baseline]` gains from `noise_scale_m`, blended linearly between.
-    pub fn teacher_gains(&self, sigma: f64) -> BaselineGains {
+    /// The teacher's gains for a robot whose drawn position noise is `sigma` metres and actuation
+    /// delay `delay` ticks: the `[baseline]` gains, or with a quiet teacher the quiet gains up to
+    /// `quiet_below_m`, the `[baseline]` gains from `noise_scale_m` (or from
+    /// `soft_from_delay_ticks` of delay), blended linearly between.
+    pub fn teacher_gains(&self, sigma: f64, delay: u32) -> BaselineGains {
         let noisy = self.config.baseline;
         match self.options.quiet_teacher {
             None => noisy,
             Some(quiet) => {
                 let (below, scale) = (self.options.quiet_below_m, self.options.noise_scale_m);
-                let t = ((sigma - below) / (scale - below)).clamp(0.0, 1.0);
+                let delayed = self.options.soft_from_delay_ticks.is_some_and(|from| delay >= from);
+                let t = if delayed {
+                    1.0
+                } else {
+                    ((sigma - below) / (scale - below)).clamp(0.0, 1.0)
+                };
                 let blend = |a: f64, b: f64| a + t * (b - a);
                 BaselineGains {
                     k_form: blend(quiet.k_form, noisy.k_form),
@@ -341,7 +351,8 @@ impl Distiller {
                 let teacher_drives = first || self.rng.random::<f64>() < self.options.teacher_share;
                 let teachers: Vec<(ScriptedBaseline, [f32; 5])> = (0..n)
                     .map(|agent| {
-                        let gains = self.teacher_gains(game.reality().position_noise_m(agent));
+                        let reality = game.reality();
+                        let gains = self.teacher_gains(reality.position_noise_m(agent), reality.delay(agent));
                         (ScriptedBaseline::new(&self.config.env, gains), gains.to_unit())
                     })
                     .collect();
@@ -438,7 +449,10 @@ impl Distiller {
                     quiet.k_repulsion,
                     self.options.quiet_below_m,
                     self.options.noise_scale_m
-                ),
+                ) + &self
+                    .options
+                    .soft_from_delay_ticks
+                    .map_or(String::new(), |ticks| format!(", the config's from {ticks} ticks of delay")),
             );
         }
         extra.insert("distill_rounds".into(), self.round.to_string());
@@ -616,10 +630,10 @@ mod tests {
             ..gains_noisy
         };
         let of = |gains| ScriptedBaseline::new(&config.env, gains).command(&obs);
-        assert_eq!(of(distiller.teacher_gains(0.0)), of(quiet));
-        assert_eq!(of(distiller.teacher_gains(0.04)), of(gains_noisy));
-        assert_eq!(of(distiller.teacher_gains(0.5)), of(gains_noisy));
-        let (v, w) = of(distiller.teacher_gains(0.02));
+        assert_eq!(of(distiller.teacher_gains(0.0, 0)), of(quiet));
+        assert_eq!(of(distiller.teacher_gains(0.04, 0)), of(gains_noisy));
+        assert_eq!(of(distiller.teacher_gains(0.5, 0)), of(gains_noisy));
+        let (v, w) = of(distiller.teacher_gains(0.02, 0));
         let (hv, hw) = of(half);
         assert!((v - hv).abs() < 1e-12 && (w - hw).abs() < 1e-12);
         assert_ne!(of(quiet), of(gains_noisy), "the two teachers answer alike");
@@ -633,8 +647,8 @@ mod tests {
             ..DistillOptions::default()
         };
         let distiller = Distiller::new(&config, banded, None).expect("a distiller");
-        assert_eq!(of(distiller.teacher_gains(0.01)), of(quiet));
-        let (v, w) = of(distiller.teacher_gains(0.025));
+        assert_eq!(of(distiller.teacher_gains(0.01, 0)), of(quiet));
+        let (v, w) = of(distiller.teacher_gains(0.025, 0));
         assert!((v - hv).abs() < 1e-12 && (w - hw).abs() < 1e-12);
         let outside = DistillOptions {
             quiet_below_m: 0.05,
@@ -642,6 +656,17 @@ mod tests {
         };
         let refused = Distiller::new(&config, outside, None).err().expect("refused");
         assert!(refused.to_string().contains("quiet band"), "{refused}");
+        // A delay from 2 ticks: the config's gains whatever the noise; below it the noise chooses.
+        let by_delay = DistillOptions {
+            sizes: vec![3],
+            capacity: 2048,
+            quiet_teacher: Some(quiet),
+            soft_from_delay_ticks: Some(2),
+            ..DistillOptions::default()
+        };
+        let distiller = Distiller::new(&config, by_delay, None).expect("a distiller");
+        assert_eq!(of(distiller.teacher_gains(0.0, 2)), of(gains_noisy));
+        assert_eq!(of(distiller.teacher_gains(0.0, 1)), of(quiet));
     }
 
     #[test]

@@ -85,6 +85,10 @@ struct Cli {
     /// full (blended from there to --noise-scale-m).
     #[arg(long, default_value_t = 0.0)]
     quiet_below_m: f64,
+    /// With --quiet-teacher: robots whose drawn actuation delay is this many ticks or more are
+    /// taught the config's gains whatever their noise (default: the noise alone chooses).
+    #[arg(long, value_name = "TICKS")]
+    soft_from_delay_ticks: Option<u32>,
     /// What the student outputs: "command" (v, w), as the paper's actor; or "gains", the five
     /// [baseline] gains, taught the teacher's gains, which the baseline's law then turns into
     /// the command (a learned gain schedule: the formation's equilibrium is the law's, exact).
@@ -139,6 +143,7 @@ fn try_main(cli: Cli) -> Result<()> {
         },
         noise_scale_m: cli.noise_scale_m,
         quiet_below_m: cli.quiet_below_m,
+        soft_from_delay_ticks: cli.soft_from_delay_ticks,
         head: ActorHead::from_name(&cli.head).context("--head")?,
         ..DistillOptions::default()
     };
