@@ -73,6 +73,18 @@ impl BaselineGains {
         ]
     }
 
+    /// The gains of five values in the order of [`BaselineGains::values`].
+    pub fn from_values(values: [f64; 5]) -> Self {
+        let [k_form, k_goal, k_turn, repulsion_range, k_repulsion] = values;
+        Self {
+            k_form,
+            k_goal,
+            k_turn,
+            repulsion_range,
+            k_repulsion,
+        }
+    }
+
     /// The gains as a gain-scheduling actor outputs them: each in [-1, 1], log-uniform over its
     /// [`SCHEDULED_GAIN_RANGES`] (clamped to the range).
     pub fn to_unit(&self) -> [f32; 5] {
@@ -98,18 +110,11 @@ impl BaselineGains {
 
     /// The gains of a gain-scheduling actor's output (five values in [-1, 1], clamped).
     pub fn from_unit(unit: &[f32]) -> Self {
-        let gain = |i: usize| {
+        Self::from_values(std::array::from_fn(|i| {
             let (lo, hi) = SCHEDULED_GAIN_RANGES[i];
             let t = (f64::from(unit[i].clamp(-1.0, 1.0)) + 1.0) / 2.0;
             lo * (hi / lo).powf(t)
-        };
-        Self {
-            k_form: gain(0),
-            k_goal: gain(1),
-            k_turn: gain(2),
-            repulsion_range: gain(3),
-            k_repulsion: gain(4),
-        }
+        }))
     }
 
     /// Refuses gains the controller cannot use, naming the field: every gain finite and >= 0,
@@ -297,13 +302,7 @@ mod tests {
             let unit = gains.to_unit();
             assert!(unit.iter().all(|u| u.abs() < 0.9), "{unit:?} is near the range's ends");
             let back = BaselineGains::from_unit(&unit);
-            for (a, b) in [
-                (back.k_form, gains.k_form),
-                (back.k_goal, gains.k_goal),
-                (back.k_turn, gains.k_turn),
-                (back.repulsion_range, gains.repulsion_range),
-                (back.k_repulsion, gains.k_repulsion),
-            ] {
+            for (a, b) in back.values().into_iter().zip(gains.values()) {
                 assert!((a / b - 1.0).abs() < 1e-5, "{back:?} vs {gains:?}");
             }
         }

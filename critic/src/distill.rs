@@ -312,14 +312,8 @@ impl Distiller {
                 } else {
                     ((sigma - below) / (scale - below)).clamp(0.0, 1.0)
                 };
-                let blend = |a: f64, b: f64| a + t * (b - a);
-                BaselineGains {
-                    k_form: blend(quiet.k_form, noisy.k_form),
-                    k_goal: blend(quiet.k_goal, noisy.k_goal),
-                    k_turn: blend(quiet.k_turn, noisy.k_turn),
-                    repulsion_range: blend(quiet.repulsion_range, noisy.repulsion_range),
-                    k_repulsion: blend(quiet.k_repulsion, noisy.k_repulsion),
-                }
+                let (quiet, noisy) = (quiet.values(), noisy.values());
+                BaselineGains::from_values(std::array::from_fn(|i| quiet[i] + t * (noisy[i] - quiet[i])))
             }
         }
     }
@@ -363,16 +357,17 @@ impl Distiller {
                         |asked| {
                             let (teacher, unit_gains) = &teachers[asked.agent];
                             let (v, w) = teacher.command(asked.window.latest());
+                            let action = env.action_from_command(v, w);
                             if asked.present {
-                                let window = asked.window.as_flat();
-                                match head {
-                                    ActorHead::Command => samples.push(window, &env.action_from_command(v, w)),
-                                    ActorHead::Gains => samples.push(window, unit_gains),
-                                }
+                                let label: &[f32] = match head {
+                                    ActorHead::Command => &action,
+                                    ActorHead::Gains => unit_gains,
+                                };
+                                samples.push(asked.window.as_flat(), label);
                             }
                             if teacher_drives {
-                                // The command the label stands for, as the wire rounds it.
-                                Ok(env.command_from_action(env.action_from_command(v, w)))
+                                // The command the label stands for.
+                                Ok(env.command_from_action(action))
                             } else {
                                 student.command(asked.window.as_flat(), env)
                             }
@@ -429,30 +424,18 @@ impl Distiller {
     /// Writes the student as a checkpoint of one shared actor (its target copy too, so training
     /// can carry it on with a fresh critic), with `extra` and the teacher's gains as metadata.
     pub fn save(&self, path: &Path, mut extra: HashMap<String, String>) -> Result<()> {
-        let gains = self.config.baseline;
-        extra.insert(
-            "distilled_from".into(),
-            format!(
-                "baseline k_form {} k_goal {} k_turn {} repulsion_range {} k_repulsion {}",
-                gains.k_form, gains.k_goal, gains.k_turn, gains.repulsion_range, gains.k_repulsion
-            ),
-        );
+        extra.insert("distilled_from".into(), gains_text(&self.config.baseline));
         if let Some(quiet) = self.options.quiet_teacher {
             extra.insert(
                 "distilled_from_quiet".into(),
                 format!(
-                    "baseline k_form {} k_goal {} k_turn {} repulsion_range {} k_repulsion {} up to {} m of position noise, blended up to {} m",
-                    quiet.k_form,
-                    quiet.k_goal,
-                    quiet.k_turn,
-                    quiet.repulsion_range,
-                    quiet.k_repulsion,
+                    "{} up to {} m of position noise, blended up to {} m",
+                    gains_text(&quiet),
                     self.options.quiet_below_m,
                     self.options.noise_scale_m
-                ) + &self
-                    .options
-                    .soft_from_delay_ticks
-                    .map_or(String::new(), |ticks| format!(", the config's from {ticks} ticks of delay")),
+                ) + &self.options.soft_from_delay_ticks.map_or(String::new(), |ticks| {
+                    format!(", the config's from {ticks} ticks of delay")
+                }),
             );
         }
         extra.insert("distill_rounds".into(), self.round.to_string());
@@ -479,6 +462,16 @@ impl Distiller {
         };
         checkpoint::save(path, &tensors, &meta)
     }
+}
+
+/// Gains as the checkpoint's metadata names a teacher: "baseline k_form 0.45 k_goal ...".
+fn gains_text(gains: &BaselineGains) -> String {
+    let pairs: Vec<String> = BaselineGains::NAMES
+        .iter()
+        .zip(gains.values())
+        .map(|(name, value)| format!("{name} {value}"))
+        .collect();
+    format!("baseline {}", pairs.join(" "))
 }
 
 /// The teacher's labelled windows of `count` episodes of `n` robots from `seed`, the teacher
