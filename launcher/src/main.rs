@@ -92,9 +92,9 @@ pub struct LaunchArgs {
     #[arg(long, value_enum)]
     pub shape: Option<FormationShape>,
     /// auto: the sim's tick thread and the robots share the last CPU this process may use, the
-    /// critic and the view get the others (ticks are 2-4x faster than letting the OS place
-    /// them); 24 robots or more split into groups of at least 12 per CPU. off: the OS places
-    /// every process.
+    /// critic and the view get the others (measured: 2.6x the tick rate of letting the OS place
+    /// them at N = 3, 1.3x at N = 12, docs/BENCHMARKS.md); 24 robots or more split into groups
+    /// of at least 12 per CPU. off: the OS places every process.
     #[arg(long, value_enum, default_value_t = Placement::Auto)]
     pub placement: Placement,
     /// Train mode: besides the N-robot swarm, one swarm of each of these sizes (its own sim and

@@ -26,8 +26,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 /// At the end the student is scored by model selection (learn.selection_*, under the reality
 /// and in the ideal world) and saved with that score.
 ///
-/// The shipped model's last stage (12-19 minutes of one CPU here):
-/// `formation-distill --config configs/field-distill.toml --checkpoint models/formation-field-stage3.safetensors --out runs/distill/s1.safetensors --seed 1`
+/// The shipped model, models/formation.safetensors, a gain schedule (29-33 minutes a seed with
+/// three seeds at once on two CPUs here; models/README.md):
+/// `formation-distill --config configs/field-gains.toml --head gains --quiet-teacher configs/quiet-gains.toml --quiet-below-m 0.02 --out runs/gains/s1.safetensors --seed 1`
 #[derive(Debug, Parser)]
 #[command(version, about, long_about)]
 struct Cli {
