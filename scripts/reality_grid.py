@@ -1,13 +1,14 @@
 #!/usr/bin/env python3
-"""The reality comparison grid (issue 28, item 6): the scripted baseline, the tuned baseline and
+"""The reality comparison grid: the scripted baseline, the tuned baseline and
 the learned policy under each condition of the real world, at several swarm sizes, on held-out
 episodes (seed 1000 and up). Prints a Markdown table and writes a grouped-bar PNG.
 
 Rows: ideal; each effect alone at the field preset's strength (noise: position and heading noise;
 delay: actuation delay; lag: both acceleration limits; loss: command and observation loss);
-the lab preset; the field preset; field with controller_failure = 1 and dead_robot = "stop"
-(reported only). Columns: scripted (default gains), scripted tuned (the gain search's best set
-for the row, scripts/gain_search.py), learned (the shipped model or --checkpoint).
+3-4 ticks of actuation delay alone (delay-3-4: past the field preset's 1-3); the lab preset;
+the field preset; field with controller_failure = 1 and dead_robot = "stop" (reported only).
+Columns: scripted (default gains), scripted tuned (the gain search's best set for the row,
+scripts/gain_search.py), learned (the shipped model or --checkpoint).
 
   scripts/reality_grid.py                                   # the full grid: 100 episodes a cell
   FORMATION_BIN_DIR=target/debug scripts/reality_grid.py --episodes 10 --n 3,12

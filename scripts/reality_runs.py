@@ -32,13 +32,17 @@ EFFECT_KEYS = {
     "lag": ("max_linear_accel_mps2", "max_angular_accel_radps2"),
     "loss": ("command_loss", "observation_loss"),
 }
-ROW_NAMES = ("ideal", "noise", "delay", "lag", "loss", "lab", "field", "field-failure")
+ROW_NAMES = ("ideal", "noise", "delay", "lag", "loss", "delay-3-4", "lab", "field", "field-failure")
+# Past the field preset's 1-3 ticks: the delay the shipped gain schedule does not hold (it picks
+# its gains from the noise it sees), where a command actor does (docs/RESULTS.md).
+LONG_DELAY = {"actuation_delay_ticks": [3, 4]}
 ROW_TITLES = {
     "ideal": "ideal",
     "noise": "noise alone (field)",
     "delay": "delay alone (field)",
     "lag": "motor lag alone (field)",
     "loss": "loss alone (field)",
+    "delay-3-4": "delay 3-4 ticks alone",
     "lab": "lab",
     "field": "field",
     "field-failure": "field + controller failure, stop",
@@ -68,6 +72,7 @@ def rows(field_preset: Path, lab_preset: Path) -> dict[str, dict]:
     out: dict[str, dict] = {"ideal": {}}
     for effect, keys in EFFECT_KEYS.items():
         out[effect] = {key: fld[key] for key in keys if key in fld}
+    out["delay-3-4"] = dict(LONG_DELAY)
     out["lab"] = dict(lab)
     out["field"] = dict(fld)
     out["field-failure"] = {**fld, "controller_failure": 1.0, "dead_robot": "stop"}

@@ -100,7 +100,7 @@ pub struct LaunchArgs {
     /// Train mode: besides the N-robot swarm, one swarm of each of these sizes (its own sim and
     /// robots, all learned, results in RUN_DIR/swarm-K-nNK), every one feeding this run's one
     /// critic, so one actor learns all the sizes at once; needs learn.critic = "pooled"
-    /// (configs/any-n.toml).
+    /// (configs/multi-size.toml).
     #[arg(long, value_name = "N1,N2", value_delimiter = ',', value_parser = extra_swarm_size)]
     pub extra_swarms: Vec<usize>,
     /// Robots that run as if on another computer: each with its own iceoryx2 (its own prefix and
