@@ -1,0 +1,288 @@
+use super::*;
+use crate::baseline::BaselineGains;
+use crate::config::FormationShape;
+use crate::formation::{EpisodeInit, Episodes};
+use crate::planner::{FILE_MARGIN_M, FORMATION_MARGIN_M, PlanMode, Planner};
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ObstaclesFile {
+    obstacles: ObstacleConfig,
+}
+
+fn parse(text: &str) -> Result<ObstacleConfig, toml::de::Error> {
+    toml::from_str::<ObstaclesFile>(text).map(|file| file.obstacles)
+}
+
+#[test]
+fn kinds_parse_by_name_and_a_bad_name_is_named_in_the_error() {
+    for kind in ObstacleKind::ALL {
+        assert_eq!(kind.as_str().parse::<ObstacleKind>(), Ok(kind));
+        let config = parse(&format!("[obstacles]\nkind = \"{kind}\"\n")).expect("parses");
+        assert_eq!(config.kind, kind);
+    }
+    let err = "forrest".parse::<ObstacleKind>().expect_err("unknown");
+    assert!(err.to_string().contains("\"forrest\""), "{err}");
+    assert!(parse("[obstacles]\nkind = \"wall\"\n").is_err());
+}
+
+/// `KINDS` is every kind but `none` and `mixed` and `ALL` every kind, as clap's derive lists
+/// them: a kind added to the enum and not to the lists fails here.
+#[test]
+fn the_kind_lists_are_exhaustive() {
+    let all = <ObstacleKind as clap::ValueEnum>::value_variants();
+    assert_eq!(ObstacleKind::ALL.as_slice(), all);
+    let drawn: Vec<ObstacleKind> = all
+        .iter()
+        .copied()
+        .filter(|kind| !matches!(kind, ObstacleKind::None | ObstacleKind::Mixed))
+        .collect();
+    assert_eq!(ObstacleKind::KINDS.as_slice(), drawn.as_slice());
+}
+
+#[test]
+fn the_section_defaults_to_none_takes_ranges_and_refuses_bad_values_naming_the_key() {
+    let default = parse("[obstacles]\n").expect("parses");
+    assert_eq!(default, ObstacleConfig::default());
+    assert_eq!(default.kind, ObstacleKind::None);
+    default.validate().expect("defaults are valid");
+    let tuned =
+        parse("[obstacles]\nkind = \"passage\"\ngap_width_m = [0.4, 0.45]\nwall_thickness_m = 0.2\n").expect("parses");
+    assert_eq!(tuned.gap_width_m, Spread::range(0.4, 0.45));
+    assert_eq!(tuned.wall_thickness_m, Spread::fixed(0.2));
+    assert_eq!(tuned.trap_depth_m, ObstacleConfig::default().trap_depth_m);
+    let err = parse("[obstacles]\ngap_width = 0.4\n").expect_err("unknown key");
+    assert!(err.to_string().contains("unknown field"), "{err}");
+    for (text, field) in [
+        ("forest_radius_m = 0.0", "obstacles.forest_radius_m"),
+        ("forest_density = [0.1, 0.6]", "obstacles.forest_density"),
+        ("gap_width_m = [0.5, 0.4]", "obstacles.gap_width_m"),
+        ("wall_thickness_m = -0.1", "obstacles.wall_thickness_m"),
+        ("trap_depth_m = nan", "obstacles.trap_depth_m"),
+        ("trap_margin_m = -0.2", "obstacles.trap_margin_m"),
+    ] {
+        let config = parse(&format!("[obstacles]\n{text}\n")).expect(text);
+        let message = config.validate().expect_err(text).to_string();
+        assert!(message.contains(field), "{text}: {message}");
+    }
+}
+
+#[test]
+fn distances_and_hits_match_the_shapes() {
+    let obstacles = Obstacles::new(vec![
+        Obstacle::Disc {
+            centre: [2.0, 2.0],
+            radius: 0.5,
+        },
+        Obstacle::Wall {
+            a: [5.0, 0.0],
+            b: [5.0, 4.0],
+            thickness: 0.2,
+        },
+    ]);
+    let close = |a: f64, b: f64| (a - b).abs() < 1e-9;
+    assert!(close(obstacles.distance([2.0, 3.0]), 0.5));
+    assert!(close(obstacles.distance([4.0, 2.0]), 0.9), "the wall's face at 4.9");
+    assert!(
+        close(obstacles.distance([5.0, 5.0]), 1.0),
+        "the wall's flat end at y = 4"
+    );
+    assert_eq!(obstacles.distance([2.1, 2.0]), 0.0, "inside a disc");
+    assert!(obstacles.hits_robot([2.0, 2.59], 0.1));
+    assert!(!obstacles.hits_robot([2.0, 2.61], 0.1));
+    assert!(obstacles.hits_robot([4.81, 1.0], 0.1) && !obstacles.hits_robot([4.79, 1.0], 0.1));
+    assert!(close(
+        obstacles.cast_ray([0.0, 2.0], [1.0, 0.0], 10.0).expect("hits the disc"),
+        1.5
+    ));
+    assert!(close(
+        obstacles.cast_ray([3.0, 3.0], [1.0, 0.0], 10.0).expect("hits the wall"),
+        1.9
+    ));
+    assert_eq!(obstacles.cast_ray([3.0, 3.0], [1.0, 0.0], 1.0), None, "beyond max");
+    assert_eq!(
+        obstacles.cast_ray([3.0, 4.5], [1.0, 0.0], 10.0),
+        None,
+        "passes the wall's end"
+    );
+    assert!(obstacles.segment_is_clear([0.0, 3.0], [4.0, 3.0], 0.49));
+    assert!(!obstacles.segment_is_clear([0.0, 3.0], [4.0, 3.0], 0.51));
+    assert!(
+        !obstacles.segment_is_clear([4.0, 4.0], [6.0, 4.0], 0.1),
+        "crosses the wall's end"
+    );
+    assert!(Obstacles::none().distance([1.0, 1.0]).is_infinite());
+}
+
+/// An environment whose goals lie far enough for `kind` at `n` robots (what validation will ask
+/// of a run with obstacles): goals from the kind's minimum to 1 m beyond.
+fn env_for(kind: ObstacleKind, n: usize, shape: FormationShape) -> EnvConfig {
+    let env = EnvConfig {
+        shape,
+        ..EnvConfig::default()
+    };
+    let nearest = min_goal_distance_m(&ObstacleConfig::default(), kind, n, &env);
+    EnvConfig {
+        goal_min_m: nearest,
+        goal_max_m: nearest + 1.0,
+        ..env
+    }
+}
+
+fn draw_for(kind: ObstacleKind, init: &EpisodeInit, env: &EnvConfig, seed: u64) -> Obstacles {
+    let starts: Vec<[f64; 2]> = init.poses.iter().map(|p| [p.x, p.y]).collect();
+    draw(
+        &ObstacleConfig::default(),
+        kind,
+        &starts,
+        init.goal,
+        &init.slots,
+        env,
+        seed,
+    )
+}
+
+#[test]
+fn kind_none_draws_nothing() {
+    let env = EnvConfig::default();
+    for (episode, init) in Episodes::new(6, &env, 1000).take(50).enumerate() {
+        assert!(draw_for(ObstacleKind::None, &init, &env, obstacle_seed(1000, episode as u64)).is_empty());
+    }
+    assert_eq!(
+        min_goal_distance_m(&ObstacleConfig::default(), ObstacleKind::None, 6, &env),
+        0.0
+    );
+    assert_eq!(
+        episode_steps_with_obstacles(ObstacleKind::None, 2.0, 6, &env),
+        env.episode_steps(6)
+    );
+}
+
+/// 1,000 draws of each kind (over 4, 8 and 16 robots of every shape): reproducible from the
+/// seed, every start position and goal slot clear by 2 eps_coll, and obstacles drawn (a goal
+/// at the kind's minimum distance always has room).
+#[test]
+fn draws_are_reproducible_and_keep_starts_and_goal_slots_clear() {
+    for kind in ObstacleKind::KINDS.into_iter().chain([ObstacleKind::Mixed]) {
+        let mut drawn = 0;
+        for (n, shape, episodes) in [
+            (4, FormationShape::Mixed, 500),
+            (8, FormationShape::Mixed, 300),
+            (16, FormationShape::Ring, 200),
+        ] {
+            let env = env_for(kind, n, shape);
+            for (episode, init) in Episodes::new(n, &env, 7).take(episodes).enumerate() {
+                let seed = obstacle_seed(7, episode as u64);
+                let obstacles = draw_for(kind, &init, &env, seed);
+                assert!(!obstacles.is_empty(), "{kind} n={n} episode {episode}: nothing drawn");
+                assert_eq!(obstacles, draw_for(kind, &init, &env, seed), "same seed, same draw");
+                assert_ne!(
+                    obstacles,
+                    draw_for(kind, &init, &env, seed ^ 1),
+                    "another seed, another draw"
+                );
+                let goal_slots = init.slots.iter().map(|o| [init.goal[0] + o[0], init.goal[1] + o[1]]);
+                for p in init.poses.iter().map(|p| [p.x, p.y]).chain(goal_slots) {
+                    let distance = obstacles.distance(p);
+                    assert!(
+                        distance >= 2.0 * env.eps_coll_m,
+                        "{kind} n={n} episode {episode}: {p:?} {distance} from a surface"
+                    );
+                }
+                drawn += 1;
+            }
+        }
+        assert_eq!(drawn, 1000);
+    }
+}
+
+#[test]
+fn passages_leave_one_gap_of_the_drawn_width_near_the_straight_line() {
+    let env = env_for(ObstacleKind::Passage, 6, FormationShape::Mixed);
+    let config = ObstacleConfig::default();
+    for (episode, init) in Episodes::new(6, &env, 3).take(200).enumerate() {
+        let obstacles = draw_for(ObstacleKind::Passage, &init, &env, obstacle_seed(3, episode as u64));
+        let [Obstacle::Wall { b: left_end, .. }, Obstacle::Wall { a: right_end, .. }] = obstacles.list() else {
+            panic!("two walls: {:?}", obstacles.list());
+        };
+        let width = (left_end[0] - right_end[0]).hypot(left_end[1] - right_end[1]);
+        assert!(
+            (config.gap_width_m.lo - 1e-9..=config.gap_width_m.hi + 1e-9).contains(&width),
+            "gap {width}"
+        );
+        let gap = [0.5 * (left_end[0] + right_end[0]), 0.5 * (left_end[1] + right_end[1])];
+        let start = crate::task::centroid(&init.poses);
+        let (dx, dy) = (init.goal[0] - start[0], init.goal[1] - start[1]);
+        let off_line = ((gap[0] - start[0]) * dy - (gap[1] - start[1]) * dx).abs() / dx.hypot(dy);
+        assert!(off_line <= MAX_GAP_OFFSET_M + 1e-9, "gap {off_line} m off the line");
+    }
+}
+
+#[test]
+fn time_limits_grow_with_distance_and_the_file_and_mixed_takes_the_largest() {
+    let env = EnvConfig::default();
+    for kind in ObstacleKind::KINDS {
+        let near = episode_steps_with_obstacles(kind, 4.0, 8, &env);
+        let far = episode_steps_with_obstacles(kind, 8.0, 8, &env);
+        assert!(env.episode_steps(8) < near && near < far, "{kind}: {near} {far}");
+        assert!(episode_steps_with_obstacles(ObstacleKind::Mixed, 8.0, 8, &env) >= far);
+    }
+    let few = episode_steps_with_obstacles(ObstacleKind::Passage, 6.0, 4, &env);
+    let many = episode_steps_with_obstacles(ObstacleKind::Passage, 6.0, 16, &env);
+    assert!(few < many, "a longer file takes longer: {few} {many}");
+}
+
+/// Samples a leg every centimetre: the planner's clearance, checked by point distances alone.
+fn leg_clearance(obstacles: &Obstacles, a: [f64; 2], b: [f64; 2]) -> f64 {
+    let steps = ((b[0] - a[0]).hypot(b[1] - a[1]) / 0.01).ceil().max(1.0) as usize;
+    (0..=steps)
+        .map(|k| {
+            let t = k as f64 / steps as f64;
+            obstacles.distance([a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])])
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+/// 1,000 draws of `mixed` obstacles over 4, 8 and 16 robots: the planner finds a path every
+/// time, and none of its legs comes nearer a surface than its inflation (the formation's
+/// radius, or a robot's in file).
+#[test]
+fn the_planners_paths_never_cross_an_inflated_obstacle() {
+    let mut modes = [0usize; 3];
+    for (n, shape, episodes) in [
+        (4, FormationShape::Mixed, 500),
+        (8, FormationShape::Mixed, 300),
+        (16, FormationShape::Ring, 200),
+    ] {
+        let env = env_for(ObstacleKind::Mixed, n, shape);
+        for (episode, init) in Episodes::new(n, &env, 11).take(episodes).enumerate() {
+            let obstacles = draw_for(ObstacleKind::Mixed, &init, &env, obstacle_seed(11, episode as u64));
+            let planner = Planner::new(
+                &init.poses,
+                init.goal,
+                &init.slots,
+                &obstacles,
+                &env,
+                BaselineGains::default(),
+            );
+            let reach = init.slots.iter().map(|o| o[0].hypot(o[1])).fold(0.0, f64::max);
+            let least = match planner.mode() {
+                PlanMode::Formation => reach + robot_radius_m(&env) + FORMATION_MARGIN_M,
+                PlanMode::Column => robot_radius_m(&env) + FILE_MARGIN_M,
+                PlanMode::Direct => panic!("n={n} episode {episode}: no path through {:?}", obstacles.list()),
+            };
+            let inflation = planner.inflation();
+            assert!(inflation >= least - 1e-12, "{inflation} < {least}");
+            modes[planner.mode() as usize] += 1;
+            for leg in planner.path().windows(2) {
+                let clearance = leg_clearance(&obstacles, leg[0], leg[1]);
+                assert!(
+                    clearance >= inflation - 1e-9,
+                    "n={n} episode {episode}: leg {leg:?} {clearance} from a surface, inflation {inflation}"
+                );
+            }
+        }
+    }
+    // Both ways of moving come up.
+    assert!(modes[0] > 0 && modes[1] > 0, "{modes:?}");
+}
