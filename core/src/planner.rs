@@ -20,7 +20,9 @@
 //! robot tracks its moving target with the baseline's unicycle law (turn towards the desired
 //! velocity, drive with its component along the heading), with a tracking gain of its own
 //! ([`K_TRACK`]), the baseline's repulsion from robots closer than its `repulsion_range`, and
-//! repulsion from obstacle surfaces nearer than [`OBSTACLE_RANGE_M`].
+//! repulsion from obstacle surfaces nearer than [`OBSTACLE_RANGE_M`]. Targets that waited
+//! [`PATIENCE_TICKS`] in a row move on anyway (robots pushing each other apart can hold one
+//! off its target for good).
 //!
 //! Everything is deterministic: robots in different processes that build the planner from the
 //! same state and call [`Planner::targets`] with the same poses every tick compute the same
@@ -48,7 +50,9 @@ pub const PACE: f64 = 0.8;
 /// its target and cuts the path's corners less).
 pub const NARROW_PACE: f64 = 0.3;
 /// A target nearer than this to a surface (beyond a robot's radius) is near, metres.
-pub const NARROW_M: f64 = 0.15;
+pub const NARROW_M: f64 = 0.1;
+/// The targets move on after waiting this many ticks in a row.
+pub const PATIENCE_TICKS: u32 = 20;
 /// The targets wait while a robot is farther than this from its target, metres.
 pub const KEEP_UP_M: f64 = 0.35;
 /// Gain of the tracking law, 1/s: at the targets' pace a robot runs 0.2 m behind its target.
@@ -57,6 +61,16 @@ pub const K_TRACK: f64 = 2.0;
 pub const OBSTACLE_RANGE_M: f64 = 0.15;
 /// Step at which the path is sampled to find where each robot may leave the file, metres.
 const SAMPLE_M: f64 = 0.1;
+/// Robots join the file where the path keeps this much more room than the file's from
+/// surfaces, metres,
+const JOIN_ROOM_M: f64 = 0.3;
+/// and at least this far before the first place it does not, metres (to line up behind each
+/// other before a narrow place).
+const JOIN_RUN_UP_M: f64 = 1.0;
+/// How much more room than the file's the way out to a slot keeps from surfaces, metres: a robot
+/// that fans out runs behind its target and cuts towards it, so it leaves only once clear of
+/// the narrow place by that much.
+const LEAVE_ROOM_M: f64 = 0.15;
 /// Distance along the path over which a robot leaving the file moves out to its slot, metres.
 const REFORM_M: f64 = 1.0;
 
@@ -114,7 +128,48 @@ pub fn plan_path(
         |&k| (length(points[k], to) * COST_PER_M).floor() as u64,
         |&k| k == 1,
     )?;
-    Some(nodes.into_iter().map(|k| points[k]).collect())
+    let mut path: Vec<[f64; 2]> = nodes.into_iter().map(|k| points[k]).collect();
+    centre_turns(obstacles, &mut path, inflation, arena_m);
+    Some(path)
+}
+
+/// How far around a turn of a path the surfaces push it away, beyond the inflation, metres.
+const CENTRING_RANGE_M: f64 = 0.6;
+/// Steps each turn of a path may take away from the surfaces, and their length, metres.
+const CENTRING_STEPS: usize = 80;
+const CENTRING_STEP_M: f64 = 0.01;
+
+/// Moves each turn of `path` (not its ends) away from the surfaces near it, step by step while
+/// both its legs keep `inflation` and it stays inside the arena: a shortest path turns on its
+/// grown obstacles' outlines, which a unicycle tracking it would cut; a turn pushed from both
+/// sides of a gap settles in the gap's middle.
+fn centre_turns(obstacles: &Obstacles, path: &mut [[f64; 2]], inflation: f64, arena_m: f64) {
+    let range = inflation + CENTRING_RANGE_M;
+    for k in 1..path.len().saturating_sub(1) {
+        for _ in 0..CENTRING_STEPS {
+            let here = path[k];
+            let mut push = [0.0, 0.0];
+            obstacles.for_each_nearest_within(here, range, |q| {
+                let (dx, dy) = (here[0] - q[0], here[1] - q[1]);
+                let distance = dx.hypot(dy).max(1e-9);
+                push[0] += (range - distance) * dx / distance;
+                push[1] += (range - distance) * dy / distance;
+            });
+            let size = push[0].hypot(push[1]);
+            if size < 1e-6 {
+                break;
+            }
+            let step = CENTRING_STEP_M.min(size);
+            let moved = [here[0] + step * push[0] / size, here[1] + step * push[1] / size];
+            let fits = moved.iter().all(|v| (inflation..=arena_m - inflation).contains(v))
+                && obstacles.segment_is_clear(path[k - 1], moved, inflation)
+                && obstacles.segment_is_clear(moved, path[k + 1], inflation);
+            if !fits {
+                break;
+            }
+            path[k] = moved;
+        }
+    }
 }
 
 /// A polyline with its arc lengths.
@@ -219,6 +274,8 @@ pub struct Planner {
     progress: f64,
     /// Where the progress ends: every robot at its slot at the goal.
     progress_end: f64,
+    /// Ticks the targets have waited in a row.
+    waited: u32,
     /// The tick the targets were last advanced to.
     tick: Option<u32>,
     step_m: f64,
@@ -271,9 +328,14 @@ impl Planner {
             PlanMode::Formation | PlanMode::Direct => (vec![0.0; n], Joins::default(), vec![0.0; n]),
             PlanMode::Column => {
                 // Each robot joins the file at the path's point nearest it within the
-                // formation's reach of the start; the foremost joins first.
+                // formation's reach of the start and a run-up before the first narrow place;
+                // the foremost joins first.
                 let spacing = file_spacing_m(env);
-                let entries: Vec<(f64, [f64; 2])> = starts.iter().map(|&p| path.project(p, reach)).collect();
+                let join_before = (first_narrow(&path, obstacles, inflation + JOIN_ROOM_M) - JOIN_RUN_UP_M).max(0.0);
+                let entries: Vec<(f64, [f64; 2])> = starts
+                    .iter()
+                    .map(|&p| path.project(p, reach.min(join_before)))
+                    .collect();
                 let walk = |k: usize| (starts[k][0] - entries[k].1[0]).hypot(starts[k][1] - entries[k].1[1]);
                 // Foremost first (to the tenth of a millimetre), then nearest the path.
                 let key = |k: usize| (-(entries[k].0 * 1e4).round() as i64, (walk(k) * 1e4).round() as i64, k);
@@ -290,7 +352,7 @@ impl Planner {
                 };
                 let leave_at = slots
                     .iter()
-                    .map(|offset| leave_file_at(&path, obstacles, *offset, inflation, arena))
+                    .map(|offset| leave_file_at(&path, obstacles, *offset, inflation + LEAVE_ROOM_M, arena))
                     .collect();
                 (lags, joins, leave_at)
             }
@@ -314,6 +376,7 @@ impl Planner {
             progress,
             progress_end,
             tick: None,
+            waited: 0,
             step_m: PACE * env.v_max * env.dt_s,
             robot_radius,
             gains,
@@ -361,7 +424,8 @@ impl Planner {
                 .iter()
                 .zip(&self.targets)
                 .all(|(p, t)| (p.x - t[0]).hypot(p.y - t[1]) <= KEEP_UP_M);
-            if kept_up {
+            self.waited = if kept_up { 0 } else { self.waited + steps };
+            if kept_up || self.waited >= PATIENCE_TICKS {
                 let near = self.robot_radius + NARROW_M;
                 let pace = if self.targets.iter().all(|&t| self.obstacles.is_clear(t, near)) {
                     1.0
@@ -466,6 +530,17 @@ impl Planner {
         let w = (g.k_turn * bearing).clamp(-self.w_max, self.w_max);
         (v, w)
     }
+}
+
+/// The arc length of the first point of `path` (sampled every [`SAMPLE_M`]) nearer than
+/// `clearance` to a surface; the path's length if none is.
+fn first_narrow(path: &Polyline, obstacles: &Obstacles, clearance: f64) -> f64 {
+    let length = path.length();
+    let samples = (length / SAMPLE_M).ceil() as usize;
+    (0..=samples)
+        .map(|k| (k as f64 * SAMPLE_M).min(length))
+        .find(|&s| !obstacles.is_clear(path.at(s), clearance))
+        .unwrap_or(length)
 }
 
 /// The arc length from which a robot in file at the path's point may move out by `offset` to
@@ -582,7 +657,7 @@ mod tests {
     fn planner_report() {
         for kind in ObstacleKind::KINDS {
             for n in [4, 8, 16] {
-                let [success, collisions, hits, column] = planner_rates(kind, n, 50, 1000);
+                let [success, collisions, hits, column] = planner_rates(kind, n, 100, 3000);
                 println!(
                     "{kind:>8} N={n:>2}: success {success:.2}  robot collisions {collisions:.2}  obstacle hits {hits:.2}  in file {column:.2}"
                 );

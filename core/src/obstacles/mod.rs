@@ -691,9 +691,10 @@ pub const PACE_ALLOWANCE: f64 = 2.4;
 ///   legs to a gap at the largest offset ([`MAX_GAP_OFFSET_M`]) with the wall half-way,
 ///   2 sqrt((d/2)^2 + 1.5^2); `trap` the straight distance plus going out past the U's side and
 ///   back, twice the formation's reach plus 1.2 m (the widest margin and wall, and clearance);
-/// * going in file (`forest` and `passage`, where the formation may not fit): the column's
-///   length, (n - 1) x [`file_spacing_m`], plus re-forming after it (crossing the formation,
-///   2 x reach, as a shape change's allowance), at the same pace.
+/// * going in file (where the formation fits nowhere along the way: a passage always, a
+///   forest or a trap near the arena's side sometimes): the column's length,
+///   (n - 1) x [`file_spacing_m`], plus re-forming after it (crossing the formation, 2 x reach,
+///   as a shape change's allowance), at the same pace.
 ///
 /// `none` is the open-world limit exactly; `mixed` (a caller should pass the episode's drawn
 /// kind) takes the largest of its kinds.
@@ -701,7 +702,7 @@ pub fn episode_steps_with_obstacles(kind: ObstacleKind, goal_distance: f64, n: u
     let open = env.episode_steps(n);
     let reach = env.formation_reach_m(n);
     let in_file = (n.saturating_sub(1)) as f64 * file_spacing_m(env) + 2.0 * reach;
-    let (path, file) = match kind {
+    let path = match kind {
         ObstacleKind::None => return open,
         ObstacleKind::Mixed => {
             return ObstacleKind::KINDS
@@ -709,11 +710,11 @@ pub fn episode_steps_with_obstacles(kind: ObstacleKind, goal_distance: f64, n: u
                 .map(|&kind| episode_steps_with_obstacles(kind, goal_distance, n, env))
                 .fold(open, u32::max);
         }
-        ObstacleKind::Forest => (1.3 * goal_distance, in_file),
-        ObstacleKind::Passage => (2.0 * (0.5 * goal_distance).hypot(MAX_GAP_OFFSET_M), in_file),
-        ObstacleKind::Trap => (goal_distance + 2.0 * reach + 1.2, 0.0),
+        ObstacleKind::Forest => 1.3 * goal_distance,
+        ObstacleKind::Passage => 2.0 * (0.5 * goal_distance).hypot(MAX_GAP_OFFSET_M),
+        ObstacleKind::Trap => goal_distance + 2.0 * reach + 1.2,
     };
-    let ticks = (PACE_ALLOWANCE * (path + file) / (env.v_max * env.dt_s)).ceil() as u32;
+    let ticks = (PACE_ALLOWANCE * (path + in_file) / (env.v_max * env.dt_s)).ceil() as u32;
     open - env.max_steps + ticks.max(env.max_steps)
 }
 
