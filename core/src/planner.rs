@@ -15,14 +15,15 @@
 //! goal in its slots. Without any path ([`PlanMode::Direct`]) every robot heads for its slot.
 //!
 //! The targets move along the path at [`PACE`] x `v_max` (slower, [`NARROW_PACE`], while a
-//! target is near a surface) while every robot is within [`KEEP_UP_M`] of its target, and wait
-//! otherwise, so a robot held up holds the others. Each
+//! target is near a surface) while every robot is within [`KEEP_UP_M`] of its target
+//! ([`KEEP_UP_OPEN_M`] in the open), and wait otherwise, so a robot held up holds the others. Each
 //! robot tracks its moving target with the baseline's unicycle law (turn towards the desired
 //! velocity, drive with its component along the heading), with a tracking gain of its own
-//! ([`K_TRACK`]), the baseline's repulsion from robots closer than its `repulsion_range`, and
+//! ([`K_TRACK`]), the baseline's repulsion from robots closer than its `repulsion_range` (near
+//! surfaces, [`NEAR_ROBOT_RANGE_M`] beyond `eps_coll_m`), and
 //! repulsion from obstacle surfaces nearer than [`OBSTACLE_RANGE_M`]. Targets that waited
-//! [`PATIENCE_TICKS`] in a row move on anyway (robots pushing each other apart can hold one
-//! off its target for good).
+//! [`PATIENCE_TICKS`] in a row move on by one step (robots pushing each other apart can hold
+//! one off its target for good).
 //!
 //! Everything is deterministic: robots in different processes that build the planner from the
 //! same state and call [`Planner::targets`] with the same poses every tick compute the same
@@ -50,13 +51,21 @@ pub const PACE: f64 = 0.8;
 /// its target and cuts the path's corners less).
 pub const NARROW_PACE: f64 = 0.3;
 /// A target nearer than this to a surface (beyond a robot's radius) is near, metres.
-pub const NARROW_M: f64 = 0.1;
-/// The targets move on after waiting this many ticks in a row.
+pub const NARROW_M: f64 = 0.06;
+/// The targets move on by one step after waiting this many ticks in a row.
 pub const PATIENCE_TICKS: u32 = 20;
-/// The targets wait while a robot is farther than this from its target, metres.
-pub const KEEP_UP_M: f64 = 0.35;
+/// The targets wait while a robot is farther than this from its target, metres,
+pub const KEEP_UP_M: f64 = 0.25;
+/// or than this from a target in the open (farther than [`OPEN_M`] from every surface beyond
+/// a robot's radius), metres.
+pub const KEEP_UP_OPEN_M: f64 = 0.4;
+/// How far from surfaces a target is in the open, metres.
+pub const OPEN_M: f64 = 0.5;
 /// Gain of the tracking law, 1/s: at the targets' pace a robot runs 0.2 m behind its target.
 pub const K_TRACK: f64 = 2.0;
+/// Near surfaces (within [`OPEN_M`]), robots push away from robots nearer than this beyond
+/// `eps_coll_m` only, metres.
+pub const NEAR_ROBOT_RANGE_M: f64 = 0.15;
 /// Robots push away from obstacle surfaces nearer than this to their disc, metres.
 pub const OBSTACLE_RANGE_M: f64 = 0.15;
 /// Step at which the path is sampled to find where each robot may leave the file, metres.
@@ -337,8 +346,21 @@ impl Planner {
                     .map(|&p| path.project(p, reach.min(join_before)))
                     .collect();
                 let walk = |k: usize| (starts[k][0] - entries[k].1[0]).hypot(starts[k][1] - entries[k].1[1]);
-                // Foremost first (to the tenth of a millimetre), then nearest the path.
-                let key = |k: usize| (-(entries[k].0 * 1e4).round() as i64, (walk(k) * 1e4).round() as i64, k);
+                // Foremost first: by where a robot joins, and for those that join at the
+                // path's start, by how far behind it they stand along the path's first leg (to
+                // the tenth of a millimetre). The formation at the goal is the start's shape,
+                // so on a path that does not turn much the file's order is the slots' order
+                // along the way, and no two robots fanning out behind the narrow place head
+                // for one spot.
+                let entry = path.at(0.0);
+                let first_leg = path.at(path.length().min(1.0));
+                let (dx, dy) = (first_leg[0] - entry[0], first_leg[1] - entry[1]);
+                let span = dx.hypot(dy).max(1e-9);
+                let ahead = |k: usize| {
+                    let behind = ((starts[k][0] - entry[0]) * dx + (starts[k][1] - entry[1]) * dy) / span;
+                    entries[k].0 + behind.min(0.0)
+                };
+                let key = |k: usize| (-(ahead(k) * 1e4).round() as i64, (walk(k) * 1e4).round() as i64, k);
                 let mut order: Vec<usize> = (0..n).collect();
                 order.sort_by_key(|&k| key(k));
                 let mut lags = vec![0.0; n];
@@ -420,12 +442,24 @@ impl Planner {
         }
         self.tick = Some(tick);
         if steps > 0 && self.mode != PlanMode::Direct {
-            let kept_up = poses
-                .iter()
-                .zip(&self.targets)
-                .all(|(p, t)| (p.x - t[0]).hypot(p.y - t[1]) <= KEEP_UP_M);
+            // Robots out in their slots behind the narrow places are not waited for: they are
+            // in the clear, and robots fanning out can hold each other off their targets.
+            let kept_up = (0..poses.len()).all(|k| {
+                let (p, t) = (poses[k], self.targets[k]);
+                let joining = self.mode == PlanMode::Column && self.progress - self.lags[k] < self.joins.at[k];
+                let keep_up = if !joining && self.obstacles.is_clear(t, self.robot_radius + OPEN_M) {
+                    KEEP_UP_OPEN_M
+                } else {
+                    KEEP_UP_M
+                };
+                self.fanned_out(k) || (p.x - t[0]).hypot(p.y - t[1]) <= keep_up
+            });
             self.waited = if kept_up { 0 } else { self.waited + steps };
-            if kept_up || self.waited >= PATIENCE_TICKS {
+            let patience_out = self.waited >= PATIENCE_TICKS;
+            if patience_out {
+                self.waited = 0;
+            }
+            if kept_up || patience_out {
                 let near = self.robot_radius + NARROW_M;
                 let pace = if self.targets.iter().all(|&t| self.obstacles.is_clear(t, near)) {
                     1.0
@@ -447,6 +481,12 @@ impl Planner {
             self.commands[agent] = self.track(poses, agent);
         }
         &self.commands
+    }
+
+    /// Whether robot `k` of a file has left it for its slot (never in formation).
+    fn fanned_out(&self, k: usize) -> bool {
+        self.mode == PlanMode::Column
+            && self.progress - self.lags[k] >= self.leave_at[k].max(self.joins.at[k]) + REFORM_M
     }
 
     /// The targets at the current progress.
@@ -515,9 +555,15 @@ impl Planner {
                 u[1] += push * dy;
             }
         };
+        // Near surfaces robots push each other less far, so as not to push one into a wall.
+        let robot_range = if self.obstacles.is_clear([me.x, me.y], self.robot_radius + OPEN_M) {
+            g.repulsion_range
+        } else {
+            g.repulsion_range.min(2.0 * self.robot_radius + NEAR_ROBOT_RANGE_M)
+        };
         for (k, other) in poses.iter().enumerate() {
             if k != agent {
-                push_from([other.x, other.y], g.repulsion_range);
+                push_from([other.x, other.y], robot_range);
             }
         }
         // Every surface in range pushes, so that a robot in a gap is held in its middle.
