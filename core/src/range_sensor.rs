@@ -190,6 +190,62 @@ mod tests {
         assert_eq!(out[3], 2.0);
     }
 
+    /// Prints the cost of every robot's scan in a forest episode at N = 32 (16 rays, 2 m):
+    /// `cargo test --release -p formation-core scan_cost -- --ignored --nocapture`.
+    #[test]
+    #[ignore = "a measurement, not a check"]
+    fn scan_cost() {
+        use crate::config::EnvConfig;
+        use crate::formation::Episodes;
+        use crate::obstacles::{ObstacleConfig, ObstacleKind, draw, min_goal_distance_m, obstacle_seed};
+        let n = 32;
+        let base = EnvConfig::default();
+        let nearest = min_goal_distance_m(&ObstacleConfig::default(), ObstacleKind::Forest, n, &base);
+        let env = EnvConfig {
+            goal_min_m: nearest,
+            goal_max_m: nearest + 1.0,
+            ..base
+        };
+        let init = Episodes::new(n, &env, 1).next().expect("an episode");
+        let starts: Vec<[f64; 2]> = init.poses.iter().map(|p| [p.x, p.y]).collect();
+        let forest = draw(
+            &ObstacleConfig::default(),
+            ObstacleKind::Forest,
+            &starts,
+            init.goal,
+            &init.slots,
+            &env,
+            obstacle_seed(1, 0),
+        );
+        let mut sensor = RangeSensor::new(16, 2.0);
+        let mut out = [0.0f32; 16];
+        let arena = env.effective_arena_m(n);
+        // The formation moved half-way to the goal, among the discs.
+        let start = crate::task::centroid(&init.poses);
+        let half_way = [0.5 * (init.goal[0] - start[0]), 0.5 * (init.goal[1] - start[1])];
+        let poses: Vec<Pose> = init
+            .poses
+            .iter()
+            .map(|p| at(p.x + half_way[0], p.y + half_way[1], p.theta))
+            .collect();
+        let ticks = 2000;
+        let started = std::time::Instant::now();
+        let mut sum = 0.0f32;
+        for _ in 0..ticks {
+            for own in 0..n {
+                sensor.scan(&forest, &poses, own, R, arena, &mut out);
+                sum += out[0];
+            }
+        }
+        let per_tick = started.elapsed().as_secs_f64() / f64::from(ticks);
+        println!(
+            "{} discs, N = {n}: {:.1} us a tick for every robot's scan ({:.2} us a robot) [{sum}]",
+            forest.list().len(),
+            per_tick * 1e6,
+            per_tick * 1e6 / n as f64
+        );
+    }
+
     #[test]
     fn the_nearest_of_several_surfaces_wins() {
         let obstacles = Obstacles::new(vec![
