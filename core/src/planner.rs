@@ -2,28 +2,29 @@
 //! (what the sim knows, not what robots sense), the hand-written rival a roboticist with a map
 //! would write.
 //!
-//! It plans once per episode (or whenever it is built again): an A* path on a grid
-//! ([`plan_path`], the `pathfinding` crate's A*) from the formation's centroid to the goal over
-//! the obstacles inflated by the formation's radius, along which the formation moves rigidly
-//! ([`PlanMode::Formation`]). When the formation fits nowhere along the way (a passage's gap, a
-//! dense forest), the path is planned over the obstacles inflated by one robot's radius and the
-//! robots go in file ([`PlanMode::Column`]): foremost first, each walks onto the path where it
-//! is nearest (within the formation's reach of the start) and follows it
-//! [`crate::obstacles::file_spacing_m`] behind the one before, and each
-//! returns to its own slot's offset from the path as soon as the straight way out to it is
-//! clear until the end, so the formation re-forms behind the narrow place and arrives at the
-//! goal in its slots. Without any path ([`PlanMode::Direct`]) every robot heads for its slot.
+//! It plans once per episode (or whenever it is built again) a path from the formation's
+//! centroid to the goal ([`plan_path`]: the `pathfinding` crate's A* over a visibility graph,
+//! its turns then pushed away from the surfaces). Over the obstacles grown by the formation's
+//! radius, the formation moves along it rigidly ([`PlanMode::Formation`]). When the formation
+//! fits nowhere along the way (a passage's gap, a dense forest, a trap by the arena's side),
+//! the path is planned over the obstacles grown by one robot's radius and the robots go in file
+//! ([`PlanMode::Column`]): foremost first, each walks onto the path where it is nearest (within
+//! the formation's reach of the start and a run-up before the first narrow place) and follows
+//! it [`crate::obstacles::file_spacing_m`] behind the one before; each moves out to its own
+//! slot's offset from the path once the straight way out to it is clear (with room to spare)
+//! until the end, so the formation re-forms behind the narrow place and arrives at the goal in
+//! its slots. Without any path ([`PlanMode::Direct`]) every robot heads for its slot.
 //!
 //! The targets move along the path at [`PACE`] x `v_max` (slower, [`NARROW_PACE`], while a
 //! target is near a surface) while every robot is within [`KEEP_UP_M`] of its target
-//! ([`KEEP_UP_OPEN_M`] in the open), and wait otherwise, so a robot held up holds the others. Each
-//! robot tracks its moving target with the baseline's unicycle law (turn towards the desired
-//! velocity, drive with its component along the heading), with a tracking gain of its own
-//! ([`K_TRACK`]), the baseline's repulsion from robots closer than its `repulsion_range` (near
-//! surfaces, [`NEAR_ROBOT_RANGE_M`] beyond `eps_coll_m`), and
-//! repulsion from obstacle surfaces nearer than [`OBSTACLE_RANGE_M`]. Targets that waited
-//! [`PATIENCE_TICKS`] in a row move on by one step (robots pushing each other apart can hold
-//! one off its target for good).
+//! ([`KEEP_UP_OPEN_M`] in the open; robots already out in their slots are not waited for), and
+//! wait otherwise, so a robot held up holds the others; after [`PATIENCE_TICKS`] of waiting in
+//! a row they move on by one step (robots pushing each other apart can hold one off its target
+//! for good). Each robot tracks its moving target with the baseline's unicycle law (turn
+//! towards the desired velocity, drive with its component along the heading), with a tracking
+//! gain of its own ([`K_TRACK`]), the baseline's repulsion from robots closer than its
+//! `repulsion_range` (near surfaces, [`NEAR_ROBOT_RANGE_M`] beyond `eps_coll_m`), and
+//! repulsion from obstacle surfaces nearer than [`OBSTACLE_RANGE_M`].
 //!
 //! Everything is deterministic: robots in different processes that build the planner from the
 //! same state and call [`Planner::targets`] with the same poses every tick compute the same
@@ -97,13 +98,14 @@ pub enum PlanMode {
 /// Path lengths in A*'s integer costs: micrometres.
 const COST_PER_M: f64 = 1e6;
 
-/// A shortest path from `from` to `to` for a disc of radius `inflation` that touches no
-/// obstacle and stays inside the arena [0, `arena_m`]^2: A* (the `pathfinding` crate's) over
+/// A path from `from` to `to` for a disc of radius `inflation` that touches no obstacle and
+/// stays inside the arena [0, `arena_m`]^2: the shortest by A* (the `pathfinding` crate's) over
 /// the visibility graph of `from`, `to` and the corners of the grown obstacles
 /// ([`Obstacles::waypoints`]) that lie `inflation` inside the arena, two points joined when the
 /// straight leg between them keeps `inflation` from every surface (checked exactly, with
-/// parry). `None` when `from` or `to` is not that clear, or no such path exists through these
-/// corners. A visibility graph rather than a grid: a gap only a little wider than a robot is
+/// parry); then its turns are pushed away from the surfaces while every leg still keeps
+/// `inflation`. `None` when `from` or `to` is not that clear, or no such path exists through
+/// these corners. A visibility graph rather than a grid: a gap only a little wider than a robot is
 /// found exactly, where a grid would need cells a fraction of the gap's spare room.
 pub fn plan_path(
     obstacles: &Obstacles,
@@ -283,6 +285,8 @@ pub struct Planner {
     progress: f64,
     /// Where the progress ends: every robot at its slot at the goal.
     progress_end: f64,
+    /// The robots the targets wait for (every robot unless [`Planner::wait_only_for`]).
+    waits_for: Vec<bool>,
     /// Ticks the targets have waited in a row.
     waited: u32,
     /// The tick the targets were last advanced to.
@@ -399,6 +403,7 @@ impl Planner {
             progress_end,
             tick: None,
             waited: 0,
+            waits_for: vec![true; n],
             step_m: PACE * env.v_max * env.dt_s,
             robot_radius,
             gains,
@@ -407,6 +412,14 @@ impl Planner {
             targets: vec![[0.0; 2]; n],
             commands: vec![(0.0, 0.0); n],
         }
+    }
+
+    /// Makes the targets wait only for the robots marked in `driven` (one flag per robot): those
+    /// the planner drives, when others run controllers of their own that need not follow its
+    /// targets (the others' targets are still computed).
+    pub fn wait_only_for(&mut self, driven: &[bool]) {
+        debug_assert_eq!(driven.len(), self.waits_for.len());
+        self.waits_for.copy_from_slice(driven);
     }
 
     /// How the plan moves the formation.
@@ -452,7 +465,7 @@ impl Planner {
                 } else {
                     KEEP_UP_M
                 };
-                self.fanned_out(k) || (p.x - t[0]).hypot(p.y - t[1]) <= keep_up
+                !self.waits_for[k] || self.fanned_out(k) || (p.x - t[0]).hypot(p.y - t[1]) <= keep_up
             });
             self.waited = if kept_up { 0 } else { self.waited + steps };
             let patience_out = self.waited >= PATIENCE_TICKS;
@@ -709,6 +722,50 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn the_targets_wait_for_the_robots_they_drive_only() {
+        let env = EnvConfig::default();
+        let poses: Vec<Pose> = [[2.0, 2.0], [2.5, 2.0], [2.25, 2.5]]
+            .iter()
+            .map(|p| Pose {
+                x: p[0],
+                y: p[1],
+                theta: 0.0,
+            })
+            .collect();
+        let slots = [[-0.25, -1.0 / 6.0], [0.25, -1.0 / 6.0], [0.0, 1.0 / 3.0]];
+        // Robots 0 and 1 sit on their targets, robot 2 stays put: 30 ticks later its target
+        // waited near it (within the keep-up and a step), unless the planner drives only 0 and 1.
+        let run = |planner: &mut Planner| {
+            let mut moved = poses.clone();
+            for tick in 0..30 {
+                let targets = planner.targets(&moved, tick).to_vec();
+                for k in 0..2 {
+                    (moved[k].x, moved[k].y) = (targets[k][0], targets[k][1]);
+                }
+            }
+            let target = planner.targets(&moved, 30)[2];
+            (target[0] - poses[2].x).hypot(target[1] - poses[2].y)
+        };
+        let step = PACE * env.v_max * env.dt_s;
+        let plan = || {
+            Planner::new(
+                &poses,
+                [6.0, 2.0],
+                &slots,
+                &Obstacles::none(),
+                &env,
+                BaselineGains::default(),
+            )
+        };
+        let waited = run(&mut plan());
+        assert!(waited <= KEEP_UP_OPEN_M + step + 1e-9, "{waited}");
+        let mut some = plan();
+        some.wait_only_for(&[true, true, false]);
+        let moved_on = run(&mut some);
+        assert!((moved_on - 30.0 * step).abs() < 1e-9, "{moved_on}");
     }
 
     #[test]
