@@ -613,6 +613,22 @@ fn wall_across(way: &Way, along: f64, from: f64, to: f64, thickness: f64) -> Obs
     }
 }
 
+/// `kind`, or for `mixed` one of [`ObstacleKind::KINDS`] drawn from `rng` (the first draw of
+/// the episode's stream).
+fn resolve(kind: ObstacleKind, rng: &mut StdRng) -> ObstacleKind {
+    match kind {
+        ObstacleKind::Mixed => ObstacleKind::KINDS[rng.random_range(0..ObstacleKind::KINDS.len())],
+        kind => kind,
+    }
+}
+
+/// The kind [`draw`] draws for `kind` with `seed`: `kind` itself, or for `mixed` the one of
+/// [`ObstacleKind::KINDS`] the episode plays (what its time limit,
+/// [`episode_steps_with_obstacles`], needs).
+pub fn drawn_kind(kind: ObstacleKind, seed: u64) -> ObstacleKind {
+    resolve(kind, &mut StdRng::seed_from_u64(seed))
+}
+
 /// The obstacles of one episode of kind `kind` (`config.kind` unless the caller overrides it;
 /// `mixed` draws one of [`ObstacleKind::KINDS`] first), between the start positions and the goal
 /// (`goal_slots` are offsets from `goal`, as `EpisodeInit::slots`), drawn from
@@ -629,10 +645,7 @@ pub fn draw(
     seed: u64,
 ) -> Obstacles {
     let mut rng = StdRng::seed_from_u64(seed);
-    let kind = match kind {
-        ObstacleKind::Mixed => ObstacleKind::KINDS[rng.random_range(0..ObstacleKind::KINDS.len())],
-        kind => kind,
-    };
+    let kind = resolve(kind, &mut rng);
     let way = Way::new(start_positions, goal, goal_slots, env);
     let obstacles = match kind {
         ObstacleKind::None | ObstacleKind::Mixed => return Obstacles::none(),

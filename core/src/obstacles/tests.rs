@@ -197,6 +197,35 @@ fn draws_are_reproducible_and_keep_starts_and_goal_slots_clear() {
 }
 
 #[test]
+fn mixed_draws_every_kind_and_drawn_kind_names_the_one_drawn() {
+    let env = env_for(ObstacleKind::Mixed, 4, FormationShape::Mixed);
+    let mut seen = Vec::new();
+    for (episode, init) in Episodes::new(4, &env, 5).take(60).enumerate() {
+        let seed = obstacle_seed(5, episode as u64);
+        let kind = drawn_kind(ObstacleKind::Mixed, seed);
+        assert!(ObstacleKind::KINDS.contains(&kind));
+        let mixed = draw_for(ObstacleKind::Mixed, &init, &env, seed);
+        // A forest has no walls, a passage two, a trap three.
+        let walls = mixed
+            .list()
+            .iter()
+            .filter(|o| matches!(o, Obstacle::Wall { .. }))
+            .count();
+        let expected = match kind {
+            ObstacleKind::Forest => 0,
+            ObstacleKind::Passage => 2,
+            _ => 3,
+        };
+        assert_eq!(walls, expected, "{kind}: {:?}", mixed.list());
+        if !seen.contains(&kind) {
+            seen.push(kind);
+        }
+    }
+    assert_eq!(seen.len(), 3, "{seen:?}");
+    assert_eq!(drawn_kind(ObstacleKind::Trap, 9), ObstacleKind::Trap);
+}
+
+#[test]
 fn passages_leave_one_gap_of_the_drawn_width_near_the_straight_line() {
     let env = env_for(ObstacleKind::Passage, 6, FormationShape::Mixed);
     let config = ObstacleConfig::default();
