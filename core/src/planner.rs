@@ -639,8 +639,9 @@ mod tests {
 
     /// Plays `episodes` episodes of `n` robots among obstacles of `kind` with every robot driven
     /// by the planner (goals at the kind's least distance and up to 1 m beyond, the kind's
-    /// time limit): success, robot collisions, obstacle hits, and the episodes planned in file.
-    pub(crate) fn planner_rates(kind: ObstacleKind, n: usize, episodes: usize, seed: u64) -> [f64; 4] {
+    /// time limit): success, robot collisions, obstacle hits, the episodes planned in file, and
+    /// the mean time to plan, milliseconds.
+    pub(crate) fn planner_rates(kind: ObstacleKind, n: usize, episodes: usize, seed: u64) -> [f64; 5] {
         let base = EnvConfig::default();
         let nearest = min_goal_distance_m(&ObstacleConfig::default(), kind, n, &base);
         let env = EnvConfig {
@@ -650,6 +651,7 @@ mod tests {
         };
         let radius = robot_radius_m(&env);
         let mut counts = [0usize; 4];
+        let mut planning = std::time::Duration::ZERO;
         for (episode, init) in Episodes::new(n, &env, seed).take(episodes).enumerate() {
             let starts: Vec<[f64; 2]> = init.poses.iter().map(|p| [p.x, p.y]).collect();
             let seed = obstacle_seed(seed, episode as u64);
@@ -668,6 +670,7 @@ mod tests {
                 max_steps: episode_steps_with_obstacles(kind, distance, n, &env),
                 ..env.clone()
             };
+            let started = std::time::Instant::now();
             let mut planner = Planner::new(
                 &init.poses,
                 init.goal,
@@ -676,6 +679,7 @@ mod tests {
                 &env,
                 BaselineGains::default(),
             );
+            planning += started.elapsed();
             counts[3] += usize::from(planner.mode() == PlanMode::Column);
             let mut world = World::new(&limited, init);
             loop {
@@ -694,13 +698,15 @@ mod tests {
                 break;
             }
         }
-        counts.map(|c| c as f64 / episodes as f64)
+        let [success, collisions, hits, column] = counts.map(|c| c as f64 / episodes as f64);
+        let planning_ms = 1e3 * planning.as_secs_f64() / episodes as f64;
+        [success, collisions, hits, column, planning_ms]
     }
 
     #[test]
     fn the_planner_brings_small_teams_through_every_kind() {
         for kind in ObstacleKind::KINDS {
-            let [success, collisions, hits, _] = planner_rates(kind, 4, 20, 2000);
+            let [success, collisions, hits, ..] = planner_rates(kind, 4, 20, 2000);
             assert!(success >= 0.9, "{kind}: success {success}");
             assert!(
                 collisions + hits <= 0.05,
@@ -716,9 +722,9 @@ mod tests {
     fn planner_report() {
         for kind in ObstacleKind::KINDS {
             for n in [4, 8, 16] {
-                let [success, collisions, hits, column] = planner_rates(kind, n, 100, 3000);
+                let [success, collisions, hits, column, planning_ms] = planner_rates(kind, n, 100, 3000);
                 println!(
-                    "{kind:>8} N={n:>2}: success {success:.2}  robot collisions {collisions:.2}  obstacle hits {hits:.2}  in file {column:.2}"
+                    "{kind:>8} N={n:>2}: success {success:.2}  robot collisions {collisions:.2}  obstacle hits {hits:.2}  in file {column:.2}  planning {planning_ms:.1} ms"
                 );
             }
         }
