@@ -4,7 +4,7 @@ use crate::config::FormationShape;
 use crate::formation::{EpisodeInit, Episodes};
 use crate::planner::{FILE_MARGIN_M, FORMATION_MARGIN_M, PlanMode, Planner};
 
-#[derive(Deserialize)]
+#[derive(Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct ObstaclesFile {
     obstacles: ObstacleConfig,
@@ -51,6 +51,11 @@ fn the_section_defaults_to_none_takes_ranges_and_refuses_bad_values_naming_the_k
     assert_eq!(tuned.gap_width_m, Spread::range(0.4, 0.45));
     assert_eq!(tuned.wall_thickness_m, Spread::fixed(0.2));
     assert_eq!(tuned.trap_depth_m, ObstacleConfig::default().trap_depth_m);
+    let text = toml::to_string(&ObstaclesFile {
+        obstacles: tuned.clone(),
+    })
+    .expect("serialises");
+    assert_eq!(parse(&text).expect("round trip"), tuned, "{text}");
     let err = parse("[obstacles]\ngap_width = 0.4\n").expect_err("unknown key");
     assert!(err.to_string().contains("unknown field"), "{err}");
     for (text, field) in [
