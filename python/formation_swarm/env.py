@@ -33,6 +33,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import tomllib
 import weakref
 from pathlib import Path
 from typing import Any, Deque, Dict, List, Optional, Tuple, Union
@@ -129,6 +130,21 @@ def _script(checkout: Path) -> Path:
     return checkout / "scripts" / "run_swarm.sh"
 
 
+def _is_checkout(directory: Path) -> bool:
+    """A formation-swarm checkout: its ``scripts/run_swarm.sh`` beside the ``python/`` package."""
+    return _script(directory).is_file() and (directory / "python" / "formation_swarm").is_dir()
+
+
+def checkout_around(start: Union[str, Path]) -> Optional[Path]:
+    """The formation-swarm checkout holding ``start`` (it, or the nearest directory above it
+    that is one), else None."""
+    start = Path(start).resolve()
+    for directory in (start, *start.parents):
+        if _is_checkout(directory):
+            return directory
+    return None
+
+
 def _missing(directory: Path) -> List[str]:
     return [b for b in BINARIES if not os.access(directory / b, os.X_OK) or not (directory / b).is_file()]
 
@@ -143,7 +159,10 @@ def find_launcher(repo: Union[str, Path, None] = None, bin_dir: Union[str, Path,
     4. the checkout this package sits in (``pip install -e ./python``, or ``PYTHONPATH``): its
        ``scripts/run_swarm.sh``;
     5. ``formation`` on ``PATH`` with ``formation-sim``, ``formation-agent`` and
-       ``formation-critic`` beside it (as ``cargo install`` puts them, python/README.md).
+       ``formation-critic`` beside it (as ``cargo install`` puts them, python/README.md);
+    6. the checkout holding the current directory (it or the nearest directory above it with
+       ``scripts/run_swarm.sh`` and ``python/formation_swarm``): its ``scripts/run_swarm.sh``
+       (a package installed with ``pip install ./python``, used from inside the checkout).
 
     A checkout's script uses the binaries of 3 when given, else builds a release first. Raises
     ``FormationError`` naming each place tried."""
@@ -177,10 +196,16 @@ def find_launcher(repo: Union[str, Path, None] = None, bin_dir: Union[str, Path,
         tried.append(f"PATH (formation in {directory}, but not {', '.join(missing)} beside it)")
     else:
         tried.append("PATH (no formation)")
+    here = Path.cwd()
+    around = checkout_around(here)
+    if around is not None:
+        return Launcher(_script(around), None, f"the checkout holding the current directory, {around}")
+    tried.append(f"the checkout holding the current directory (neither {here} nor a directory above it "
+                 "has scripts/run_swarm.sh and python/formation_swarm)")
     raise FormationError(
         "cannot find the formation-swarm binaries; tried, in order: " + "; ".join(tried) + ". Install them "
         "(python/README.md: cargo install ...), or pass FormationEnv(repo=...) / set FORMATION_REPO to a "
-        "checkout, or set FORMATION_BIN_DIR to a directory of built binaries"
+        "checkout, or set FORMATION_BIN_DIR to a directory of built binaries, or run from inside a checkout"
     )
 
 
@@ -219,17 +244,6 @@ def _toml_dumps(data: Dict[str, Any], prefix: str = "") -> str:
 Reality = Union[str, Path, Dict[str, Any], None]
 
 
-def _tomllib() -> Any:
-    try:
-        import tomllib  # Python 3.11+
-    except ImportError:  # pragma: no cover - Python 3.9 and 3.10
-        try:
-            import tomli as tomllib
-        except ImportError:
-            tomllib = None
-    return tomllib
-
-
 def reality_section(reality: Union[str, Path, Dict[str, Any]]) -> Dict[str, Any]:
     """The ``[reality]`` keys ``reality`` stands for: a TOML file's ``[reality]`` table (its
     other tables are not read, as run_swarm.sh ``--reality``), or a dict of the keys themselves
@@ -241,9 +255,6 @@ def reality_section(reality: Union[str, Path, Dict[str, Any]]) -> Dict[str, Any]
     path = Path(reality)
     if not path.is_file():
         raise FormationError(f"reality file {path} does not exist")
-    tomllib = _tomllib()
-    if tomllib is None:  # pragma: no cover
-        raise FormationError("reality= with a file needs Python 3.11 or `pip install tomli`")
     try:
         section = tomllib.loads(path.read_text()).get("reality")
     except tomllib.TOMLDecodeError as err:
@@ -262,16 +273,6 @@ def swarm_config(config: Union[str, Path, None], step_timeout_s: Optional[float]
     text = Path(config).read_text() if config is not None else ""
     if step_timeout_s is None and reality is None:
         return text
-    tomllib = _tomllib()
-    if tomllib is None:  # pragma: no cover
-        if reality is not None:
-            raise FormationError("reality= needs Python 3.11 or `pip install tomli`")
-        command_timeout_ms = max(1, int(round(step_timeout_s * 1000)))
-        startup_floor = int(math.ceil(step_timeout_s)) + 60
-        if "[ticks]" in text or "ticks." in text:
-            raise FormationError("a --config with a [ticks] table needs Python 3.11 or `pip install tomli`")
-        return (f"{text}\n[ticks]\ncommand_timeout_ms = {command_timeout_ms}\n"
-                f"startup_timeout_s = {startup_floor}\n")
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
@@ -436,13 +437,12 @@ class FormationEnv(ParallelEnv):
         self.close_timeout_s = args["close_timeout_s"]
         #: How this env starts its swarms (:func:`find_launcher`).
         self.launcher = find_launcher(args["repo"], args["bin_dir"])
-        run_dir = args["run_dir"]
-        self._own_base = run_dir is None
-        if run_dir is None:
-            self.base_dir = Path(tempfile.mkdtemp(prefix="formation-env-"))
-        else:
-            Path(run_dir).mkdir(parents=True, exist_ok=True)
-            self.base_dir = Path(tempfile.mkdtemp(prefix="copy-", dir=run_dir)) if copy else Path(run_dir)
+        self._own_base = args["run_dir"] is None
+        self._copy = copy
+        #: Where this env's runs go: ``run_dir``, else a temporary directory (a copy's: one of
+        #: its own, under ``run_dir`` when given). Made when the first swarm starts (None until
+        #: then), so a copy never used leaves nothing behind.
+        self.base_dir: Optional[Path] = None
         self.keep_runs = not self._own_base or render_mode == "rerun"
 
         self.possible_agents: List[str] = [f"{AGENT_PREFIX}{i}" for i in range(self.n)]
@@ -665,7 +665,7 @@ class FormationEnv(ParallelEnv):
         try:
             self._shutdown()
         finally:
-            if self._own_base and not self.keep_runs:
+            if self._own_base and not self.keep_runs and self.base_dir is not None:
                 shutil.rmtree(self.base_dir, ignore_errors=True)
 
     def __enter__(self) -> "FormationEnv":
@@ -707,8 +707,20 @@ class FormationEnv(ParallelEnv):
             return ""
         return f"\n{log} (last lines):\n" + "\n".join(text[-lines:])
 
+    def _make_base_dir(self) -> Path:
+        """:attr:`base_dir`, made on first use."""
+        if self.base_dir is None:
+            run_dir = self._args["run_dir"]
+            if run_dir is None:
+                self.base_dir = Path(tempfile.mkdtemp(prefix="formation-env-"))
+            else:
+                Path(run_dir).mkdir(parents=True, exist_ok=True)
+                self.base_dir = Path(tempfile.mkdtemp(prefix="copy-", dir=run_dir)) if self._copy else Path(run_dir)
+        return self.base_dir
+
     def _launch(self, seed: int) -> None:
         """Starts run_swarm.sh for ``seed``, waits for run.json, attaches every robot slot."""
+        self._make_base_dir()
         self._launches += 1
         k = self._launches
         run_dir = self.base_dir / f"swarm-{k}"
@@ -955,7 +967,14 @@ class FormationEnv(ParallelEnv):
         self.agents = []
 
     def _play_out(self, proc: subprocess.Popen, deadline: float) -> None:
-        """While the sim winds the run down: answer every live tick with (0, 0)."""
+        """While the sim winds the run down: answer every live tick with (0, 0), until the sim
+        announces the run's end or its node is gone.
+
+        A sim can end without the announcement (killed by the signal before it could catch it,
+        or stopped while it was starting). Then nothing is left to answer, and the ports must go
+        at once: the launcher waits for them only briefly after its members have exited, then
+        removes the run's files, and a port dropped after that warns of "a corrupted system"
+        for each of its files."""
         if self._owed:
             for robot, tick in zip(self._robots, self._current):
                 if tick is not None:
@@ -963,11 +982,13 @@ class FormationEnv(ParallelEnv):
             self._owed = False
         while not self._run_ended and proc.poll() is None and time.monotonic() < deadline:
             self._wait()
-            self._drain()
+            came = self._drain()
             for robot, queue in zip(self._robots, self._queues):
                 if queue and not queue[-1].episode_end and not queue[-1].run_end:
                     robot.answer(queue[-1], 0.0, 0.0)
                 queue.clear()
+            if not came and not self.run.node_alive("sim"):
+                return
 
     def _hold_clients_lock(self) -> None:
         """The run's clients lock while the ports are open (``RunInfo.hold_clients_lock``)."""

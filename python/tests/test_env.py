@@ -3,11 +3,14 @@ scripts/run_swarm.sh N --external all (the sim and the critic as processes) with
 binaries, plays all robots from this process, and checks that close() leaves no process,
 shared memory or iceoryx2 root path of the run. Each test runs under a watchdog."""
 
+import contextlib
 import csv
 import os
 import json
 import signal
 import time
+import tomllib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -207,7 +210,6 @@ def test_paper_observation_config_and_slow_caller(make_env, tmp_path):
 
 
 def test_swarm_config_keeps_the_users_settings(tmp_path):
-    tomllib = pytest.importorskip("tomllib")
     config = tmp_path / "user.toml"
     config.write_text('# mine\n[env]\nobservation = "slot"\nmax_steps = 80\n\n[learn]\nactor_hidden = [64, 64]\n'
                       '\n[ticks]\nstartup_timeout_s = 2000\n')
@@ -220,7 +222,6 @@ def test_swarm_config_keeps_the_users_settings(tmp_path):
 
 
 def test_swarm_config_takes_reality_from_a_file_or_a_dict_over_the_configs(tmp_path):
-    tomllib = pytest.importorskip("tomllib")
     config = tmp_path / "user.toml"
     config.write_text('[env]\nmax_steps = 80\n\n[reality]\ncommand_loss = 0.2\n')
     preset = tmp_path / "preset.toml"
@@ -244,7 +245,6 @@ def test_swarm_config_takes_reality_from_a_file_or_a_dict_over_the_configs(tmp_p
 def test_reality_reaches_the_swarms_config_and_bad_values_are_refused_by_name(make_env, tmp_path):
     """reality= (a preset file) is the run's [reality], as the sim and the critic read it
     (config.toml in the run directory); an out-of-range value is refused naming the field."""
-    tomllib = pytest.importorskip("tomllib")
     preset = REPO / "configs" / "reality-field.toml"
     config = tmp_path / "user.toml"
     config.write_text("[env]\nmax_steps = 80\n")
@@ -366,6 +366,108 @@ def test_close_prints_nothing(tmp_path, watchdog):
     assert len(ids) == 4
     for run_id in ids:
         assert_clean(run_id)
+
+
+FRESH_PROCESSES = 10
+
+
+@contextlib.contextmanager
+def short_temp_dir():
+    """A temporary directory of the test's own, with a short path as the system's: a run's
+    iceoryx2 root path goes under it, and the sockets there allow 107 bytes of path."""
+    import shutil
+    import tempfile
+
+    temp = Path(tempfile.mkdtemp(prefix="fs-test-"))
+    try:
+        yield temp
+    finally:
+        shutil.rmtree(temp, ignore_errors=True)
+
+
+def test_fresh_processes_print_nothing_and_leave_nothing():
+    """The first reset() in a fresh process, then a restart at tick 0 (reset with another seed)
+    and a close: in each of FRESH_PROCESSES processes the Python process's stderr stays empty and
+    nothing of the env is left in its temporary directory (no formation-env-* directory, no
+    iceoryx2 root path) nor in /dev/shm. Stopping a swarm at tick 0 is where a sim ends without
+    announcing the run's end (asked to stop before it catches the signal); the env must then
+    drop its ports at once, before the launcher removes the run's files (iceoryx2 prints "The
+    static storage was already removed" for each otherwise)."""
+    with short_temp_dir() as temp:
+        fresh_processes_print_nothing_and_leave_nothing(temp)
+
+
+def fresh_processes_print_nothing_and_leave_nothing(temp):
+    import subprocess
+    import sys
+
+    script = (
+        "import sys\n"
+        "import formation_swarm as fs\n"
+        f"env = fs.FormationEnv(n=3, seed=int(sys.argv[1]), bin_dir={str(bin_dir())!r})\n"
+        "obs, _ = env.reset()\n"
+        "first = env.run.run_id\n"
+        "obs, _ = env.reset(seed=int(sys.argv[1]) + 1)\n"
+        "env.step({a: [0.5, 0.0] for a in env.agents})\n"
+        "env.close()\n"
+        "print(env.base_dir, first, env.run.run_id)\n"
+    )
+    environ = dict(os.environ, TMPDIR=str(temp), PYTHONPATH=os.pathsep.join(sys.path))
+    for k in range(FRESH_PROCESSES):
+        done = subprocess.run([sys.executable, "-c", script, str(40 + 2 * k)], capture_output=True, text=True,
+                              timeout=150, env=environ)
+        assert done.returncode == 0, done.stderr
+        assert done.stderr == "", f"process {k}: {done.stderr}"
+        base, *run_ids = done.stdout.split()
+        assert Path(base).parent == temp and not Path(base).exists(), f"process {k}: {base} left"
+        for run_id in run_ids:
+            assert not shm_leftovers(run_id), f"process {k}: shared memory of run {run_id} left"
+            assert not processes_mentioning(run_id), f"process {k}: processes of run {run_id} left"
+        left = [p.name for p in temp.iterdir() if p.name != "formation-iox2"]
+        left += [f"formation-iox2/{p.name}" for p in (temp / "formation-iox2").iterdir()]
+        assert not left, f"process {k} left {left} in its temporary directory"
+
+
+def test_a_closed_env_leaves_its_runs_only_when_asked(monkeypatch, watchdog):
+    """Without run_dir a closed env leaves nothing in the temporary directory, and neither does
+    a copy (pickle) that was never used, nor one that ran and was closed; render_mode="rerun"
+    keeps its directory, with the recording in it."""
+    with short_temp_dir() as temp:
+        closed_envs_leave_their_runs_only_when_asked(temp, monkeypatch)
+
+
+def closed_envs_leave_their_runs_only_when_asked(temp, monkeypatch):
+    import gc
+    import pickle
+    import tempfile
+
+    monkeypatch.setenv("TMPDIR", str(temp))
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))
+    envs = []
+    try:
+        env = fs.FormationEnv(n=3, seed=50, bin_dir=bin_dir(), max_cycles=3)
+        envs.append(env)
+        unused = pickle.loads(pickle.dumps(env))
+        used = pickle.loads(pickle.dumps(env))
+        envs.append(used)
+        recorded = fs.FormationEnv(n=3, seed=51, bin_dir=bin_dir(), render_mode="rerun", max_cycles=3)
+        envs.append(recorded)
+        for e in (env, used, recorded):
+            e.reset()
+            while e.agents:
+                e.step({a: [0.5, 0.0] for a in e.agents})
+        del unused
+        gc.collect()
+    finally:
+        for e in envs:
+            e.close()
+    ids = [e.run.run_id for e in envs]
+    left = sorted(p.name for p in temp.iterdir() if p.name != "formation-iox2")
+    assert left == [recorded.base_dir.name], left
+    assert recorded.recording.is_file() and recorded.recording.stat().st_size > 0
+    assert not list((temp / "formation-iox2").iterdir())
+    for run_id in ids:
+        assert not shm_leftovers(run_id) and not processes_mentioning(run_id)
 
 
 def test_a_held_launcher_lock_keeps_its_run_from_the_sweep(make_env, tmp_path):

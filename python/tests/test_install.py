@@ -1,6 +1,7 @@
-"""The package installed away from any checkout (``pip install ./python``, then used from
-another directory): FormationEnv finds the binaries as an installed tool does (here on PATH,
-as ``cargo install`` puts them), and says where it looked when it finds none."""
+"""The package installed away from any checkout (``pip install ./python``): used from another
+directory, FormationEnv finds the binaries as an installed tool does (here on PATH, as ``cargo
+install`` puts them); used from inside a checkout, it finds that checkout; and it says where it
+looked when it finds none."""
 
 import os
 import shutil
@@ -68,6 +69,50 @@ def test_installed_package_finds_the_binaries_on_path(installed, tmp_path):
     assert done.stderr == ""
 
 
+def test_installed_package_finds_the_checkout_around_the_current_directory(installed, tmp_path):
+    """`pip install ./python`, then FormationEnv(n=3) from a directory inside a checkout, with no
+    FORMATION_REPO, FORMATION_BIN_DIR or formation on PATH: the env runs that checkout's
+    scripts/run_swarm.sh. The checkout here is made for the test: the real script, the package,
+    and its target/release holding the tests' binaries; `cargo` on PATH is a stand-in that
+    succeeds, so the script's release build is a no-op."""
+    site, work, env = installed
+    checkout = tmp_path / "checkout"
+    (checkout / "scripts").mkdir(parents=True)
+    shutil.copy2(REPO / "scripts" / "run_swarm.sh", checkout / "scripts" / "run_swarm.sh")
+    shutil.copytree(site / "formation_swarm", checkout / "python" / "formation_swarm")
+    release = checkout / "target" / "release"
+    release.mkdir(parents=True)
+    for name in BINARIES:
+        (release / name).symlink_to(bin_dir() / name)
+    tools = tmp_path / "tools"
+    tools.mkdir()
+    (tools / "cargo").write_text("#!/bin/sh\nexit 0\n")
+    (tools / "cargo").chmod(0o755)
+    env["PATH"] = f"{tools}{os.pathsep}{os.path.dirname(shutil.which('true'))}"
+    env.pop("CARGO_TARGET_DIR", None)
+    inside = checkout / "docs" / "notes"  # two levels below the checkout's top
+    inside.mkdir(parents=True)
+    code = (
+        "import formation_swarm as fs, formation_swarm.env as fe\n"
+        f"assert fe.__file__.startswith({str(site)!r}), fe.__file__\n"
+        f"env = fs.FormationEnv(n=3, seed=2, run_dir={str(tmp_path / 'runs')!r})\n"
+        "print(env.launcher.found, flush=True)\n"
+        "obs, _ = env.reset()\n"
+        "for _ in range(3):\n"
+        "    obs, rewards, *_ = env.step({a: [0.5, 0.0] for a in env.agents})\n"
+        "print(env.run.run_id, env.world().tick, flush=True)\n"
+        "env.close()\n"
+    )
+    done = run_python(code, inside, env)
+    assert done.returncode == 0, done.stdout + done.stderr
+    found, run_line = done.stdout.splitlines()[:2]
+    assert found == f"the checkout holding the current directory, {checkout}"
+    run_id, tick = run_line.split()
+    assert int(tick) == 3
+    assert not shm_leftovers(run_id) and not processes_mentioning(run_id)
+    assert done.stderr == ""
+
+
 def test_no_binaries_anywhere_names_every_place_tried(installed, tmp_path):
     site, work, env = installed
     lone = tmp_path / "lone-bin"
@@ -86,7 +131,9 @@ def test_no_binaries_anywhere_names_every_place_tried(installed, tmp_path):
     message = done.stdout
     places = ("repo=", "FORMATION_REPO", "FORMATION_BIN_DIR",
               f"the checkout the package sits in ({site.parent} has no scripts/run_swarm.sh)",
-              f"PATH (formation in {lone}, but not formation-sim, formation-agent, formation-critic")
+              f"PATH (formation in {lone}, but not formation-sim, formation-agent, formation-critic",
+              f"the checkout holding the current directory (neither {work} nor a directory above it",
+              "or run from inside a checkout")
     for place in places:
         assert place in message, (place, message)
     assert "cargo install" in message
