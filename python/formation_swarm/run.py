@@ -136,11 +136,17 @@ class RunInfo:
         return self.n_agents + 2 + wire.SPARE_PORTS
 
     def iceoryx_config(self) -> Any:
-        """The iceoryx2 configuration every process of this run uses."""
+        """The iceoryx2 configuration every process of this run uses (its prefix and root path).
+
+        A Python client does not clean up dead nodes when its own nodes go (it still does when
+        it creates one): a client that closes after a sim was killed would race the run's other
+        processes over the dead node's files, and iceoryx2 prints "No config file was loaded"
+        when it finds one half removed. The launcher removes the run's files at its end."""
         config = iox2.config.default()
         config.global_cfg.prefix = iox2.FileName.new(self.shm_prefix)
         root = self.root_path if self.root_path.endswith("/") else self.root_path + "/"
         config.global_cfg.root_path = iox2.Path.new(root)
+        config.global_cfg.node.cleanup_dead_nodes_on_destruction = False
         return config
 
     def create_node(self, name: str) -> Any:
