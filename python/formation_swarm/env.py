@@ -924,21 +924,31 @@ class FormationEnv(ParallelEnv):
         """Ends the running swarm: SIGINT to the launcher (it asks the sim to end the run),
         robots answering (0, 0) until the sim announces the end, ports released, the launcher
         waited for; past ``close_timeout_s`` its process group is killed and the run's shared
-        memory removed."""
+        memory removed. Whatever fails on the way, the ports go and the launcher is waited for
+        (so nothing of the run writes into its directory once this returns or raises)."""
         proc = self._proc
         deadline = time.monotonic() + self.close_timeout_s
-        if proc is not None and proc.poll() is None:
-            try:
-                os.kill(proc.pid, signal.SIGINT)
-            except ProcessLookupError:
-                pass
-            if self._robots and self._waitset is not None:
+        try:
+            if proc is not None and proc.poll() is None:
                 try:
-                    self._play_out(proc, deadline)
-                except FormationError:
+                    os.kill(proc.pid, signal.SIGINT)
+                except ProcessLookupError:
                     pass
-        self._release_ports()
-        self._release_clients_lock()
+                if self._robots and self._waitset is not None:
+                    try:
+                        self._play_out(proc, deadline)
+                    except FormationError:
+                        pass
+        finally:
+            try:
+                self._release_ports()
+                self._release_clients_lock()
+            finally:
+                self._end_processes(proc, deadline)
+
+    def _end_processes(self, proc: Optional[subprocess.Popen], deadline: float) -> None:
+        """Waits for the launcher (past ``deadline`` kills its group), lets the watcher go and
+        removes what the run left in /dev/shm."""
         if proc is not None:
             try:
                 proc.wait(timeout=max(0.1, deadline - time.monotonic()))

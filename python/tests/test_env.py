@@ -8,6 +8,7 @@ import csv
 import os
 import json
 import signal
+import tempfile
 import time
 import tomllib
 from pathlib import Path
@@ -376,7 +377,6 @@ def short_temp_dir():
     """A temporary directory of the test's own, with a short path as the system's: a run's
     iceoryx2 root path goes under it, and the sockets there allow 107 bytes of path."""
     import shutil
-    import tempfile
 
     temp = Path(tempfile.mkdtemp(prefix="fs-test-"))
     try:
@@ -439,7 +439,6 @@ def test_a_closed_env_leaves_its_runs_only_when_asked(monkeypatch, watchdog):
 def closed_envs_leave_their_runs_only_when_asked(temp, monkeypatch):
     import gc
     import pickle
-    import tempfile
 
     monkeypatch.setenv("TMPDIR", str(temp))
     monkeypatch.setattr(tempfile, "tempdir", str(temp))
@@ -468,6 +467,32 @@ def closed_envs_leave_their_runs_only_when_asked(temp, monkeypatch):
     assert not list((temp / "formation-iox2").iterdir())
     for run_id in ids:
         assert not shm_leftovers(run_id) and not processes_mentioning(run_id)
+
+
+def test_close_waits_for_the_swarm_even_when_it_fails(monkeypatch, watchdog):
+    """An error while close() plays the run out still releases the ports and waits for the
+    launcher before the env's directory is removed: when close() has raised, no process of the
+    env is left to write into that directory, and the directory and the run's files are gone."""
+    with short_temp_dir() as temp:
+        monkeypatch.setenv("TMPDIR", str(temp))
+        monkeypatch.setattr(tempfile, "tempdir", str(temp))
+        play_out = fs.FormationEnv._play_out
+
+        def play_out_then_fail(self, proc, deadline):
+            play_out(self, proc, deadline)
+            raise RuntimeError("injected after the play-out")
+
+        monkeypatch.setattr(fs.FormationEnv, "_play_out", play_out_then_fail)
+        env = fs.FormationEnv(n=3, seed=52, bin_dir=bin_dir())
+        env.reset()
+        env.step({a: [0.5, 0.0] for a in env.agents})
+        base, run_id = env.base_dir, env.run.run_id
+        with pytest.raises(RuntimeError, match="injected"):
+            env.close()
+        assert not processes_mentioning(str(base)), "the launcher or its watcher outlived close()"
+        assert not base.exists()
+        assert not shm_leftovers(run_id) and not processes_mentioning(run_id)
+        assert not list((temp / "formation-iox2").iterdir())
 
 
 def test_a_held_launcher_lock_keeps_its_run_from_the_sweep(make_env, tmp_path):
