@@ -46,17 +46,6 @@ fn long_eval_hurt_by(name: &str, hurt: impl FnOnce(&str, u32)) -> (formation_swa
     (run, dir)
 }
 
-/// Serialises the runs that were seen to disturb each other: a robot restarted beside the
-/// N = 6 lockstep swarm of `a_dead_robot_under_restart_off_misses_its_ticks_alone` (both
-/// running flat out on the lockstep CPU) was, in most runs, never heard by its sim again (no
-/// rejoin, every later tick missed), with or without the deadline fix. Until that is
-/// understood, these two tests do not run at once.
-static RESTARTS: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
-fn restarts_alone() -> std::sync::MutexGuard<'static, ()> {
-    RESTARTS.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
-}
-
 /// Kills the process of run `run_id` whose command line contains `needle`.
 fn kill_process(run_id: &str, needle: &str) {
     let pid = pid_of(run_id, needle).unwrap_or_else(|| panic!("no process matching {needle:?} runs"));
@@ -65,7 +54,6 @@ fn kill_process(run_id: &str, needle: &str) {
 
 #[test]
 fn killed_agent_is_held_then_restarted_and_rejoins() {
-    let _alone = restarts_alone();
     let (run, dir) = long_eval_hurt_by("kill-agent", |run_id, _| kill_process(run_id, "--agent 1"));
     assert_eq!(run.status, Some(0), "{}", run.output);
     assert!(run.output.contains("agent 1 died"), "{}", run.output);
@@ -457,7 +445,6 @@ fn steps_and_misses(run_dir: &std::path::Path) -> Vec<(u64, u64)> {
 
 #[test]
 fn a_dead_robot_under_restart_off_misses_its_ticks_alone() {
-    let _alone = restarts_alone();
     // N = 6 lockstep with the tick gate: the five robots left answer quietly (only the last
     // one of a tick raises the sim's event), so a tick the dead robot never completes ends at
     // the deadline, and their on-time answers must still be read and applied.

@@ -85,6 +85,12 @@ where
         while let Some(sample) = ports.receive_observation()? {
             let msg = sample.payload();
             services::check_sim_protocol(&msg.header, &format!("agent {agent}"), "agent")?;
+            if !sim_watch.heard_any() {
+                eprintln!(
+                    "agent {agent}: first observation at episode {} tick {} (session {:08x})",
+                    msg.header.episode, msg.header.tick, ports.session
+                );
+            }
             sim_watch.heard();
             if msg.header.has(FLAG_RUN_END) {
                 return Ok(stats);
