@@ -36,5 +36,6 @@ pub mod reality;
 pub mod run_dir;
 pub mod scene;
 pub mod shapes;
+pub mod stepper;
 pub mod task;
 pub mod world;

@@ -350,34 +350,30 @@ impl Distiller {
                         (ScriptedBaseline::new(&self.config.env, gains), gains.to_unit())
                     })
                     .collect();
-                let mut acting = Vec::with_capacity(n);
-                while game.outcome == Outcome::Running {
+                while game.running() {
                     let (env, samples, head) = (&self.config.env, &mut self.samples, self.shape.head);
-                    game.step(
-                        |asked| {
-                            let (teacher, unit_gains) = &teachers[asked.agent];
-                            let (v, w) = teacher.command(asked.window.latest());
-                            let action = env.action_from_command(v, w);
-                            if asked.present {
-                                let label: &[f32] = match head {
-                                    ActorHead::Command => &action,
-                                    ActorHead::Gains => unit_gains,
-                                };
-                                samples.push(asked.window.as_flat(), label);
-                            }
-                            if teacher_drives {
-                                // The command the label stands for.
-                                Ok(env.command_from_action(action))
-                            } else {
-                                student.command(asked.window.as_flat(), env)
-                            }
-                        },
-                        &mut acting,
-                    )?;
+                    game.step(|asked| {
+                        let (teacher, unit_gains) = &teachers[asked.agent];
+                        let (v, w) = teacher.command(asked.window.latest());
+                        let action = env.action_from_command(v, w);
+                        if asked.present {
+                            let label: &[f32] = match head {
+                                ActorHead::Command => &action,
+                                ActorHead::Gains => unit_gains,
+                            };
+                            samples.push(asked.window.as_flat(), label);
+                        }
+                        if teacher_drives {
+                            // The command the label stands for.
+                            Ok(env.command_from_action(action))
+                        } else {
+                            student.command(asked.window.as_flat(), env)
+                        }
+                    })?;
                 }
                 if !teacher_drives {
                     student_episodes += 1;
-                    student_successes += usize::from(game.outcome == Outcome::Success);
+                    student_successes += usize::from(game.outcome() == Outcome::Success);
                 }
             }
             scores.push(StudentScore {
@@ -491,18 +487,14 @@ pub fn teacher_samples(config: &RunConfig, n: usize, seed: u64, count: usize) ->
     };
     let env = &config.env;
     for mut game in played.games(env, n) {
-        let mut acting = Vec::with_capacity(n);
-        while game.outcome == Outcome::Running {
-            game.step(
-                |asked| {
-                    let (v, w) = teacher.command(asked.window.latest());
-                    if asked.present {
-                        samples.push(asked.window.as_flat(), &env.action_from_command(v, w));
-                    }
-                    Ok((v, w))
-                },
-                &mut acting,
-            )?;
+        while game.running() {
+            game.step(|asked| {
+                let (v, w) = teacher.command(asked.window.latest());
+                if asked.present {
+                    samples.push(asked.window.as_flat(), &env.action_from_command(v, w));
+                }
+                Ok((v, w))
+            })?;
         }
     }
     Ok(samples)
@@ -523,21 +515,17 @@ pub fn gain_profile(
     let (mut sum, mut sum_sq, mut answers) = ([0.0f64; 5], [0.0f64; 5], 0usize);
     let played = Played { seed, count, reality };
     for mut game in played.games(env, n) {
-        let mut acting = Vec::with_capacity(n);
-        while game.outcome == Outcome::Running {
-            game.step(
-                |asked| {
-                    let window = asked.window.as_flat();
-                    let gains = BaselineGains::from_unit(actor.act(window)?);
-                    for (i, value) in gains.values().into_iter().enumerate() {
-                        sum[i] += value;
-                        sum_sq[i] += value * value;
-                    }
-                    answers += 1;
-                    actor.command(window, env)
-                },
-                &mut acting,
-            )?;
+        while game.running() {
+            game.step(|asked| {
+                let window = asked.window.as_flat();
+                let gains = BaselineGains::from_unit(actor.act(window)?);
+                for (i, value) in gains.values().into_iter().enumerate() {
+                    sum[i] += value;
+                    sum_sq[i] += value * value;
+                }
+                answers += 1;
+                actor.command(window, env)
+            })?;
         }
     }
     ensure!(answers > 0, "no robot answered");

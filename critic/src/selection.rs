@@ -7,26 +7,26 @@
 //! swarm size the critic trains on: the ones a sim started with that `--seed` plays, from the
 //! same [`Episodes`]. Each robot keeps its window as an agent does ([`ObservationHistory`]) and
 //! acts through the agents' own [`FrozenActor`]; actions become commands as in an agent (scaled
-//! to the limits, sent as f32) and the world steps as in the sim, through the sim's
-//! [`Reality`] as a lockstep sim applies it (what a robot is told, lost observations and
-//! commands, the motors), and with the sim's [`Mission`]: the episode's shape changes at their
-//! ticks, its time limit ([`EnvConfig::episode_steps`], the world's), success only once the last
-//! change has come ([`Mission::judge`]), and a robot whose controller fails leaving the
-//! formation (the others re-form without it; it is commanded to stand still). So the score is what a lockstep swarm run with
-//! that seed measures, episode for episode.
+//! to the limits, sent as f32), and each tick follows the sim's own rules, the core's
+//! [`EpisodeStepper`]: what a robot is told through its [`Reality`], lost observations and
+//! commands, the motors, the [`Mission`]'s shape changes at their ticks, its time limit, success
+//! only once the last change has come, and a robot whose controller fails leaving the formation.
+//! So the score is what a lockstep swarm run with that seed measures, episode for episode
+//! ([`episode_records`] gives the very `episodes.csv` rows).
 //!
 //! Not a batched candle forward pass over every window of a tick: that measured two to three
 //! times cheaper, but its sums round differently (up to 1e-5 per action), and that alone
 //! changed the outcome of 6 of 200 episodes of the 3-robot paper model.
 
 use anyhow::{Context, Result, ensure};
+use formation_core::baseline::{BaselineGains, ScriptedBaseline};
 use formation_core::config::{EnvConfig, LearnConfig};
 use formation_core::formation::Episodes;
-use formation_core::mission::{Mission, NO_SLOT, team_seed};
+use formation_core::mission::{Attendance, Heard, NO_SLOT};
 use formation_core::observation::Layout;
 use formation_core::reality::{Command, Reality, RealityConfig};
+use formation_core::stepper::{EpisodeRecord, EpisodeStepper, TransportCounts};
 use formation_core::task::Outcome;
-use formation_core::world::World;
 use formation_model::actor::{ActorShape, FrozenActor};
 use formation_model::checkpoint::{SelectionScore, SizeScore};
 use formation_model::history::ObservationHistory;
@@ -137,63 +137,62 @@ pub(crate) struct Asked<'a> {
     pub window: &'a ObservationHistory,
 }
 
-/// One episode played in-process as a lockstep sim plays it: its world, mission and reality,
-/// each robot's window, the commands in use and what it has added up. Model selection and
-/// distillation (`crate::distill`) play these.
+/// One episode played in-process by the rules a lockstep sim plays it with (the core's
+/// [`EpisodeStepper`]): each robot's window and the commands in use, answered by in-process
+/// controllers. Model selection and distillation (`crate::distill`) play these.
 pub(crate) struct Game {
-    world: World,
-    mission: Mission,
-    reality: Reality,
-    layout: Layout,
+    stepper: EpisodeStepper,
+    /// No robot is ever silent here; the attendance still runs the rules of a team change.
+    attendance: Attendance,
     windows: Vec<ObservationHistory>,
     /// Whether each robot has been told anything yet this episode (its window starts then).
     heard: Vec<bool>,
-    /// Whether each robot was told this tick (a robot whose observation was lost is not asked).
-    asked: Vec<bool>,
     in_use: Vec<Command>,
-    pub(crate) outcome: Outcome,
-    formation_ticks: u32,
 }
 
 impl Game {
-    /// The episode's reality (what a privileged teacher may read).
-    pub(crate) fn reality(&self) -> &Reality {
-        &self.reality
-    }
-
-    fn new(world: World, mission: Mission, reality: Reality, history: usize, layout: Layout) -> Self {
-        let n = world.n_agents();
+    fn new(stepper: EpisodeStepper, history: usize, dim: usize) -> Self {
+        let n = stepper.world().n_agents();
         let mut game = Self {
-            world,
-            mission,
-            reality,
-            layout,
-            windows: (0..n).map(|_| ObservationHistory::new(history, layout.dim())).collect(),
+            stepper,
+            attendance: Attendance::new(n),
+            windows: (0..n).map(|_| ObservationHistory::new(history, dim)).collect(),
             heard: vec![false; n],
-            asked: vec![false; n],
             in_use: vec![(0.0, 0.0); n],
-            outcome: Outcome::Running,
-            formation_ticks: 0,
         };
-        game.tell();
+        game.stepper.start_team(&mut game.attendance);
+        game.listen();
         game
     }
 
-    /// What each robot is told of the world this tick, as the sim tells it: through the
-    /// sensor noise, unless the message is lost. A robot's window starts padded with the first
-    /// observation it is told in the episode, as an agent's does.
-    fn tell(&mut self) {
+    /// The episode's reality (what a privileged teacher may read).
+    pub(crate) fn reality(&self) -> &Reality {
+        self.stepper.reality()
+    }
+
+    /// Whether the episode goes on.
+    pub(crate) fn running(&self) -> bool {
+        self.stepper.running()
+    }
+
+    /// How it stands (ended: how it ended).
+    pub(crate) fn outcome(&self) -> Outcome {
+        self.stepper.last().outcome
+    }
+
+    /// The stepper tells the robots this tick; each robot that heard it keeps it in its
+    /// window, which starts padded with the first observation of the episode, as an agent's.
+    fn listen(&mut self) {
+        self.stepper.tell();
         for (agent, window) in self.windows.iter_mut().enumerate() {
-            let mut told = self.world.observation(agent);
-            self.reality.tell(agent, self.layout, &mut told);
-            self.asked[agent] = !self.reality.observation_lost(agent);
-            if !self.asked[agent] {
+            if self.stepper.lost()[agent] {
                 continue;
             }
+            let told = &self.stepper.told()[agent];
             if self.heard[agent] {
-                window.push(&told);
+                window.push(told);
             } else {
-                window.reset(&told);
+                window.reset(told);
                 self.heard[agent] = true;
             }
         }
@@ -201,54 +200,35 @@ impl Game {
 
     /// One tick: each robot that was told answers through `answer` with its (v, w) command,
     /// rounded to the f32 of the wire as the sim receives it (a lost answer leaves the command
-    /// in use); the motors act through the reality and the
-    /// world clamps and integrates as in the sim; the mission judges the step, changes the
-    /// formation on schedule and takes a robot whose controller failed at this tick out of the
-    /// formation, as in the sim.
-    pub(crate) fn step(
-        &mut self,
-        mut answer: impl FnMut(Asked) -> Result<Command>,
-        acting: &mut Vec<(f64, f64)>,
-    ) -> Result<()> {
-        acting.clear();
-        let step = self.world.steps;
+    /// in use); then the stepper steps, calls the roll and tells the next tick.
+    pub(crate) fn step(&mut self, mut answer: impl FnMut(Asked) -> Result<Command>) -> Result<()> {
+        let step = self.stepper.world().steps;
         for (agent, window) in self.windows.iter().enumerate() {
-            let present = self.world.slot_of[agent] != NO_SLOT;
-            if self.asked[agent] {
-                let (v, w) = answer(Asked {
-                    agent,
-                    step,
-                    present,
-                    window,
-                })?;
-                if !self.reality.command_lost(agent) {
-                    self.in_use[agent] = (f64::from(v as f32), f64::from(w as f32));
-                }
+            if self.stepper.lost()[agent] {
+                continue;
             }
-            // A robot out of the formation is commanded to stand still, as the sim commands it.
-            let command = if present { self.in_use[agent] } else { (0.0, 0.0) };
-            acting.push(self.reality.actuate(agent, step, command, true));
+            let (v, w) = answer(Asked {
+                agent,
+                step,
+                present: self.stepper.world().slot_of[agent] != NO_SLOT,
+                window,
+            })?;
+            if self.stepper.command_arrives(agent) {
+                self.in_use[agent] = (f64::from(v as f32), f64::from(w as f32));
+            }
         }
-        let result = self
-            .mission
-            .judge(self.world.step(acting), self.world.steps, &self.world.env);
-        self.outcome = result.outcome;
-        self.formation_ticks += u32::from(result.conditions.in_formation);
-        // A change due at this tick reaches the observations told next.
-        self.mission.after_step(
-            &mut self.world,
-            result.conditions.in_formation,
-            self.outcome == Outcome::Running,
-        );
-        if self.outcome == Outcome::Running {
-            // So does the team's change: a controller that failed at this tick leaves (not when
-            // fewer than three robots would stay, as in the sim).
-            if let Some(failure) = self.reality.failure().filter(|f| f.tick == step) {
-                let _refused_below_three = self.mission.leave(&mut self.world, failure.agent);
-            }
-            self.tell();
+        self.stepper.step(&self.in_use, |_| true);
+        if self.stepper.running() {
+            let _always_answered = self.stepper.call_the_roll(&mut self.attendance, |_| Heard::Answered);
+            self.listen();
         }
         Ok(())
+    }
+
+    /// The episode's `episodes.csv` row, as the sim writes it (no transport: nothing missed or
+    /// late, no wall time).
+    pub(crate) fn record(&self, episode: u32) -> EpisodeRecord {
+        self.stepper.record(episode, TransportCounts::default())
     }
 }
 
@@ -270,13 +250,10 @@ impl Played<'_> {
         let layout = Layout::of(env.observation);
         Episodes::new(n, env, self.seed)
             .take(self.count)
-            .enumerate()
-            .map(|(episode, mut init)| {
-                let reality = Reality::new(self.reality, env, self.seed, episode as u64, n);
-                let changes = std::mem::take(&mut init.changes);
-                let team_seed = team_seed(self.seed, episode as u32);
-                let mission = Mission::new(changes, &init.slots, init.spec, team_seed);
-                Game::new(World::new(env, init), mission, reality, env.history, layout)
+            .zip(0u32..)
+            .map(|(init, episode)| {
+                let stepper = EpisodeStepper::new(env, self.reality, self.seed, episode, init);
+                Game::new(stepper, env.history, layout.dim())
             })
             .collect()
     }
@@ -314,32 +291,78 @@ pub fn play(
         turn.map_or(0, |turn| turn.robot)
     );
     let mut games = episodes.games(env, n);
-    let mut acting = Vec::with_capacity(n);
     for game in &mut games {
-        while game.outcome == Outcome::Running {
-            game.step(
-                |asked| {
-                    let actor = &mut actors[asked.agent % actors.len()];
-                    let imposed = turn.and_then(|turn| turn.command(env, asked.agent, asked.step));
-                    match imposed {
-                        Some(command) => Ok(command),
-                        None => actor.command(asked.window.as_flat(), env),
-                    }
-                },
-                &mut acting,
-            )?;
+        while game.running() {
+            game.step(|asked| {
+                let actor = &mut actors[asked.agent % actors.len()];
+                let imposed = turn.and_then(|turn| turn.command(env, asked.agent, asked.step));
+                match imposed {
+                    Some(command) => Ok(command),
+                    None => actor.command(asked.window.as_flat(), env),
+                }
+            })?;
         }
     }
     let count = games.len().max(1) as f64;
-    let successes = games.iter().filter(|g| g.outcome == Outcome::Success).count();
+    let records: Vec<EpisodeRecord> = games.iter().map(|g| g.record(0)).collect();
+    let successes = records.iter().filter(|r| r.outcome == Outcome::Success).count();
     Ok(SizeScore {
         n_agents: n,
         success: successes as f64 / count,
-        formation_held: games
-            .iter()
-            .map(|g| f64::from(g.formation_ticks) / f64::from(g.world.steps.max(1)))
-            .sum::<f64>()
-            / count,
-        mean_steps: games.iter().map(|g| f64::from(g.world.steps)).sum::<f64>() / count,
+        formation_held: records.iter().map(|r| r.formation_hold_rate).sum::<f64>() / count,
+        mean_steps: records.iter().map(|r| f64::from(r.steps)).sum::<f64>() / count,
     })
+}
+
+/// Who drives every robot of an in-process play.
+pub enum Team<'a> {
+    /// The scripted baseline with these gains, on the newest observation (as a scripted agent).
+    Scripted(&'a BaselineGains),
+    /// Actors (one shared, or one per robot) of `shape`, on the window they read.
+    Actors(&'a mut [FrozenActor], &'a ActorShape),
+}
+
+/// The `episodes.csv` rows of `episodes` of `n` robots driven by `team`, played in-process by
+/// the sim's rules: the rows a lockstep eval with the same seed, config and team writes, but
+/// for wall time and the transport's counts (nothing is missed or late in-process).
+pub fn episode_records(env: &EnvConfig, n: usize, episodes: &Played, team: Team) -> Result<Vec<EpisodeRecord>> {
+    let env = &EnvConfig {
+        history: match &team {
+            Team::Scripted(_) => env.history,
+            Team::Actors(_, shape) => shape.history,
+        },
+        ..env.clone()
+    };
+    let mut games = episodes.games(env, n);
+    match team {
+        Team::Scripted(gains) => {
+            let baseline = ScriptedBaseline::new(env, *gains);
+            for game in &mut games {
+                while game.running() {
+                    game.step(|asked| Ok(baseline.command(asked.window.latest())))?;
+                }
+            }
+        }
+        Team::Actors(actors, shape) => {
+            ensure!(
+                actors.len() == 1 || actors.len() == n,
+                "{} independent actors cannot drive {n} robots",
+                actors.len()
+            );
+            ensure!(
+                shape.obs_dim == Layout::of(env.observation).dim(),
+                "an actor of shape {shape:?} reads another observation model"
+            );
+            for game in &mut games {
+                while game.running() {
+                    game.step(|asked| actors[asked.agent % actors.len()].command(asked.window.as_flat(), env))?;
+                }
+            }
+        }
+    }
+    Ok(games
+        .iter()
+        .zip(0u32..)
+        .map(|(game, episode)| game.record(episode))
+        .collect())
 }

@@ -15,7 +15,6 @@
 use std::time::{Duration, Instant};
 
 use anyhow::Result;
-use formation_core::reality::Reality;
 use formation_ipc::services::{self, FileDescriptorBased};
 use formation_ipc::tick_gate::TickGate;
 use formation_protocol::wire::{CommandMsg, FLAG_HELLO, Header, PROTOCOL_VERSION};
@@ -255,13 +254,14 @@ impl CommandRound {
     /// the gate answers without an event of its own, so an on-time answer that went out
     /// quietly would otherwise be lost with a tick that one late robot never completed.
     ///
-    /// Each command read passes `reality`'s radio ([`Reality::command_lost`]) first.
+    /// Each command read passes the radio first: `arrives(agent)` draws whether it arrives
+    /// ([`formation_core::stepper::EpisodeStepper::command_arrives`] in the sim).
     pub fn collect<S: Service>(
         &mut self,
         ports: &SimPorts<S>,
         header: Header,
         deadline: Instant,
-        reality: &mut Reality,
+        arrives: &mut impl FnMut(usize) -> bool,
     ) -> Result<()>
     where
         Listener<S>: FileDescriptorBased,
@@ -281,7 +281,7 @@ impl CommandRound {
                     services::wait_for_events(&ports.command_ready, Duration::ZERO, |_| {})?;
                     self.notified.clear();
                     self.notified.extend(0..n);
-                    self.drain(ports, header, reality);
+                    self.drain(ports, header, arrives);
                 }
                 return Ok(());
             }
@@ -299,7 +299,7 @@ impl CommandRound {
                 self.notified.clear();
                 self.notified.extend(0..n);
             }
-            self.drain(ports, header, reality);
+            self.drain(ports, header, arrives);
         }
     }
 
@@ -337,8 +337,8 @@ impl CommandRound {
 
     /// Takes every pending command of the notified robots: this tick's valid one is used, a
     /// newer answer to an earlier tick of the episode is kept for the accounting, and each
-    /// passes `reality`'s radio first.
-    fn drain<S: Service>(&mut self, ports: &SimPorts<S>, header: Header, reality: &mut Reality) {
+    /// passes the radio (`arrives`) first.
+    fn drain<S: Service>(&mut self, ports: &SimPorts<S>, header: Header, arrives: &mut impl FnMut(usize) -> bool) {
         let now = (header.episode, header.tick);
         for &agent in &self.notified {
             while let Ok(Some(sample)) = ports.agents[agent].command.receive() {
@@ -357,7 +357,7 @@ impl CommandRound {
                     }
                     continue;
                 }
-                if reality.command_lost(agent) {
+                if !arrives(agent) {
                     // Dropped as if never received; an answer to this tick is not waited for.
                     self.counters.lost_commands += 1;
                     if (cmd.header.episode, cmd.header.tick) == now {
@@ -434,11 +434,9 @@ mod tests {
         round.settle(tick)
     }
 
-    /// Every robot's reality off: no loss, no draw.
-    fn ideal() -> Reality {
-        use formation_core::config::EnvConfig;
-        use formation_core::reality::RealityConfig;
-        Reality::new(&RealityConfig::default(), &EnvConfig::default(), 0, 0, 8)
+    /// A radio that loses nothing.
+    fn ideal() -> impl FnMut(usize) -> bool {
+        |_| true
     }
 
     fn test_identity(run: &str) -> RunIdentity {
@@ -554,7 +552,7 @@ mod tests {
     #[test]
     fn lost_commands_are_not_waited_for_kept_out_of_the_misses_and_never_make_a_robot_absent() {
         use formation_core::config::EnvConfig;
-        use formation_core::reality::RealityConfig;
+        use formation_core::reality::{Reality, RealityConfig};
         let (_node, ports, robots) = sim_and_robots(3, "cmdlost");
         let mut round = CommandRound::new(3);
         let config = RealityConfig::from_toml_str("[reality]\ncommand_loss = 0.999999\n").expect("config");
@@ -570,7 +568,7 @@ mod tests {
                     &ports,
                     Header::new(0, tick, 0),
                     started + Duration::from_secs(5),
-                    &mut reality,
+                    &mut |agent| !reality.command_lost(agent),
                 )
                 .expect("collect");
             assert!(

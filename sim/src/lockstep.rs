@@ -33,20 +33,18 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use formation_core::config::RunConfig;
 use formation_core::formation::Episodes;
-use formation_core::mission::{self, Attendance, Away, Call, Heard, Mission, NO_SLOT};
+use formation_core::mission::{Attendance, Away, Heard};
 use formation_core::observation::Layout;
-use formation_core::reality::Reality;
 use formation_core::run_dir::write_atomically;
 use formation_core::shapes::observed_edges;
-use formation_core::task::{Conditions, Outcome};
-use formation_core::world::World;
+use formation_core::stepper::{EpisodeStepper, TransportCounts};
+use formation_core::task::Outcome;
 use formation_ipc::cli::Mode;
 use formation_ipc::services::{self, FileDescriptorBased, RunIdentity, Sizing};
 use formation_ipc::summary::Summary;
 use formation_ipc::switches::{ThreadSwitches, machine_switches};
 use formation_ipc::termination_requested;
 use formation_ipc::tick_gate::TickGate;
-use formation_protocol::MAX_OBS_DIM;
 use formation_protocol::wire::*;
 use hdrhistogram::Histogram;
 use iceoryx2::port::listener::Listener;
@@ -57,7 +55,7 @@ use crate::control::ControlServer;
 use crate::critic_link::{CriticLink, check_protocol};
 use crate::plots::{EpisodeTrace, episode_errors, learning_curve};
 use crate::ports::{SimPorts, Told, Transition};
-use crate::report::{EpisodeLog, EpisodeRecord, fill_episode_figures};
+use crate::report::{EpisodeLog, fill_episode_figures};
 
 /// How the sim runs.
 #[derive(Debug, Clone)]
@@ -91,52 +89,43 @@ pub struct SimOptions {
 /// Where the view gets its states: the sim offers each logged state without ever waiting.
 pub type StateTap = SyncSender<StateMsg>;
 
-/// What one episode has added up so far.
+/// What the transport has added up in one episode.
 struct EpisodeTally {
-    episode_return: f64,
-    formation_ticks: u32,
-    missed_ticks: u64,
     /// The run's command counters when the episode began.
     counters_at_start: CommandCounters,
-    /// C1-C3 at the latest state.
-    last: Conditions,
+    /// Robot-ticks missed so far.
+    missed_ticks: u64,
+    /// Robots that missed the latest tick.
+    missed: u32,
 }
 
 impl EpisodeTally {
-    /// The `episodes.csv` row of an episode that ended with `outcome`, with the run's command
-    /// counters `now`.
-    fn record(
-        &self,
-        episode: u32,
-        outcome: Outcome,
-        steps: u32,
-        started: Instant,
-        now: CommandCounters,
-        mission: &Mission,
-    ) -> EpisodeRecord {
-        let from = self.counters_at_start;
-        let reform_ticks = mission.reform_ticks();
-        let reform_ticks_sum: u64 = reform_ticks.iter().map(|&t| u64::from(t)).sum();
-        EpisodeRecord {
-            episode,
-            outcome,
-            steps,
-            episode_return: self.episode_return,
-            final_edge_error_m: self.last.mean_edge_error,
-            final_goal_distance_m: self.last.goal_distance,
-            formation_hold_rate: f64::from(self.formation_ticks) / f64::from(steps.max(1)),
+    /// The transport's counts for the episode's record, with the run's counters `now`.
+    fn transport(&self, now: CommandCounters, run_started: Instant) -> TransportCounts {
+        TransportCounts {
             missed_ticks: self.missed_ticks,
-            late_commands: now.late - from.late,
-            lost_commands: now.lost_commands - from.lost_commands,
-            lost_observations: now.lost_observations - from.lost_observations,
-            reconfigurations: mission.reconfigurations(),
-            reforms: reform_ticks.len() as u32,
-            mean_reform_ticks: (!reform_ticks.is_empty()).then(|| reform_ticks_sum as f64 / reform_ticks.len() as f64),
-            reform_ticks_sum,
-            departures: mission.departures(),
-            returns: mission.returns(),
-            wall_s: started.elapsed().as_secs_f64(),
+            late_commands: now.late - self.counters_at_start.late,
+            wall_s: run_started.elapsed().as_secs_f64(),
         }
+    }
+}
+
+/// The header of tick `tick` of `episode`: its start, its end (the episode no longer
+/// `running`), and whether it is a noise-free evaluation episode of a training run.
+fn tick_header(episode: u32, tick: u32, running: bool, eval_episode: bool) -> Header {
+    let flags = if tick == 0 { FLAG_EPISODE_START } else { 0 }
+        | if running { 0 } else { FLAG_EPISODE_END }
+        | if eval_episode { FLAG_EVAL_EPISODE } else { 0 };
+    Header::new(episode, tick, flags)
+}
+
+/// What the stepper told the robots this tick, as the ports publish it.
+fn told(stepper: &EpisodeStepper) -> Told<'_> {
+    Told {
+        observations: stepper.told(),
+        lost: stepper.lost(),
+        applied: stepper.applied(),
+        reality: stepper.reality(),
     }
 }
 
@@ -178,11 +167,6 @@ where
         traced: traced_edges(options.n_agents),
         trace: EpisodeTrace::default(),
         showcase: None,
-        layout: Layout::of(options.config.env.observation),
-        told: vec![[0.0; MAX_OBS_DIM]; options.n_agents],
-        unasked: vec![false; options.n_agents],
-        applied: vec![(0.0, 0.0); options.n_agents],
-        acting: vec![(0.0, 0.0); options.n_agents],
         attendance: Attendance::new(options.n_agents),
     };
     sim.wait_for_peers()?;
@@ -196,16 +180,15 @@ where
     let episodes = Episodes::new(options.n_agents, &options.config.env, options.seed);
     let budget = options.minutes.map(|m| Duration::from_secs_f64(m * 60.0));
     let mut stop = Stop::Budget;
-    for (episode, mut init) in (0u32..).zip(episodes) {
+    for (episode, init) in (0u32..).zip(episodes) {
         if options.episodes.is_some_and(|e| u64::from(episode) >= e)
             || budget.is_some_and(|b| sim.started.elapsed() >= b)
         {
             break;
         }
-        let team_seed = mission::team_seed(options.seed, episode);
-        let mission = Mission::new(std::mem::take(&mut init.changes), &init.slots, init.spec, team_seed);
-        let world = World::new(&options.config.env, init);
-        if let Some(stopped) = sim.play_episode(episode, world, mission)? {
+        let config = &options.config;
+        let stepper = EpisodeStepper::new(&config.env, &config.reality, options.seed, episode, init);
+        if let Some(stopped) = sim.play_episode(episode, stepper)? {
             stop = stopped;
             break;
         }
@@ -239,16 +222,6 @@ struct Lockstep<'a, S: Service> {
     trace: EpisodeTrace,
     /// The episode `episode_errors.png` shows.
     showcase: Option<EpisodeTrace>,
-    /// The run's observation model.
-    layout: Layout,
-    /// What each robot is told this tick.
-    told: Vec<[f32; MAX_OBS_DIM]>,
-    /// Robots whose observation of this tick is lost.
-    unasked: Vec<bool>,
-    /// Each robot's command in use for the last transition, clamped (the replay's action).
-    applied: Vec<(f64, f64)>,
-    /// The velocities acting on the physics in the last transition.
-    acting: Vec<(f64, f64)>,
     /// Who is in the formation, and why not.
     attendance: Attendance,
 }
@@ -294,64 +267,33 @@ where
         }
     }
 
-    /// Plays one episode tick by tick, its mission planner changing the formation on schedule;
-    /// `Some(Stop::Signal)` when a termination signal cut it.
-    fn play_episode(&mut self, episode: u32, mut world: World, mut mission: Mission) -> Result<Option<Stop>> {
+    /// Plays one episode tick by tick by the stepper's rules, its mission planner changing the
+    /// formation on schedule; `Some(Stop::Signal)` when a termination signal cut it.
+    fn play_episode(&mut self, episode: u32, mut stepper: EpisodeStepper) -> Result<Option<Stop>> {
         let options = self.options;
         let log_world = self.tap.is_some()
             && (options.mode == Mode::Eval || episode.is_multiple_of(options.config.view.world_every_episodes));
         let eval_episode =
             options.mode == Mode::Train && episode.is_multiple_of(options.config.learn.eval_every_episodes);
         self.round.reset_episode();
-        let config = &options.config;
-        let mut reality = Reality::new(
-            &config.reality,
-            &config.env,
-            options.seed,
-            u64::from(episode),
-            options.n_agents,
-        );
-        self.applied.iter_mut().for_each(|c| *c = (0.0, 0.0));
-        self.start_team(&mut world, &mut mission);
+        stepper.start_team(&mut self.attendance);
         let mut tally = EpisodeTally {
-            episode_return: 0.0,
-            formation_ticks: 0,
-            missed_ticks: 0,
             counters_at_start: self.round.counters,
-            last: world.conditions(),
+            missed_ticks: 0,
+            missed: 0,
         };
-        let (mut outcome, mut reward, mut missed) = (Outcome::Running, 0.0, 0u32);
-        self.trace.episode = episode;
-        self.trace.edge_errors.clear();
-        self.trace.mean_edge_error.clear();
-        self.trace.goal_distance.clear();
-
+        self.trace.begin(episode);
         for tick in 0u32.. {
             let tick_started = Instant::now();
-            let ends = outcome != Outcome::Running;
-            let flags = if tick == 0 { FLAG_EPISODE_START } else { 0 }
-                | if ends { FLAG_EPISODE_END } else { 0 }
-                | if eval_episode { FLAG_EVAL_EPISODE } else { 0 };
-            let header = Header::new(episode, tick, flags);
-            let transition = Transition {
-                outcome,
-                reward,
-                missed,
-            };
-            self.tell(&world, &mut reality, ends);
-            if !ends {
-                self.round.open_round(header, &self.unasked);
+            let header = tick_header(episode, tick, stepper.running(), eval_episode);
+            stepper.tell();
+            if stepper.running() {
+                self.round.open_round(header, stepper.lost());
             }
-            self.publish_tick(&world, header, &transition, &tally, log_world, &reality)?;
-            if ends {
-                self.log.push(tally.record(
-                    episode,
-                    outcome,
-                    world.steps,
-                    self.started,
-                    self.round.counters,
-                    &mission,
-                ))?;
+            self.publish_tick(&stepper, header, tally.missed, log_world)?;
+            if !stepper.running() {
+                self.log
+                    .push(stepper.record(episode, tally.transport(self.round.counters, self.started)))?;
                 // The figure shows the first episode of an evaluation, or the latest noise-free
                 // episode of a training run.
                 if (options.mode == Mode::Eval && self.showcase.is_none()) || eval_episode {
@@ -359,196 +301,143 @@ where
                 }
                 return Ok(None);
             }
-
-            // This tick's commands, then the step.
-            let deadline = if options.realtime {
-                self.next_deadline.max(tick_started) + Duration::from_secs_f64(options.config.env.dt_s)
-            } else {
-                tick_started + Duration::from_millis(options.config.ticks.command_timeout_ms)
-            };
-            self.round.collect(&self.ports, header, deadline, &mut reality)?;
-            missed = self.round.settle(tick);
-            tally.missed_ticks += u64::from(missed);
-            for (agent, &(v, w)) in self.round.commands().iter().enumerate() {
-                let present = !self.round.presence.is_absent(agent);
-                // A robot out of the formation is commanded to stand still (a dead or silent
-                // one does what `dead_robot` says).
-                let (v, w) = if world.slot_of[agent] == NO_SLOT {
-                    (0.0, 0.0)
-                } else {
-                    (v, w)
-                };
-                self.applied[agent] = config.env.clamp_command(v, w);
-                self.acting[agent] = reality.actuate(agent, tick, (v, w), present);
-            }
-            let result = mission.judge(world.step(&self.acting), world.steps, &world.env);
-            self.env_steps += 1;
-            reward = result.reward;
-            tally.episode_return += result.reward;
-            outcome = result.outcome;
-            tally.last = result.conditions;
-            tally.formation_ticks += u32::from(tally.last.in_formation);
-            // A shape change due at this tick reaches its observations, told next.
-            mission.after_step(&mut world, tally.last.in_formation, outcome == Outcome::Running);
-            // So do the team's changes (a failed controller, a robot silent or back) and the
-            // live changes asked for meanwhile (never waiting for one).
-            if outcome == Outcome::Running {
-                self.call_the_roll(&mut world, &mut mission, &reality, tick);
-                self.control
-                    .serve(&mut world, &mut mission, &mut self.attendance, options.seed, episode)?;
-            }
-            let tick_time = tick_started.elapsed();
-            self.stepping_time += tick_time;
-            let _ = self.histogram.record((tick_time.as_micros() as u64).max(1));
-            self.pace(tick_started);
-            if options.expect_critic {
-                let give_up = Duration::from_millis(options.config.ticks.sim_silence_ms / 4);
-                let window = u64::from(options.config.ticks.critic_window);
-                self.critic.wait(&self.ports, self.published, window, give_up)?;
-            }
+            self.collect_commands(&mut stepper, header, tick, tick_started, &mut tally)?;
+            self.step(&mut stepper, episode)?;
+            self.end_tick(tick_started)?;
             if termination_requested() {
                 let header = Header::new(episode, tick + 1, FLAG_EPISODE_END);
-                let transition = Transition {
-                    outcome,
-                    reward,
-                    missed,
-                };
-                self.tell(&world, &mut reality, true);
-                self.close_on_signal(&world, header, transition, &tally, &reality, &mission)?;
+                stepper.tell_last();
+                self.close_on_signal(&stepper, header, &tally)?;
                 return Ok(Some(Stop::Signal));
             }
         }
         unreachable!("the tick counter is unbounded")
     }
 
-    /// At an episode's start: robots away for silence from an earlier episode stay out (the
-    /// others take the same formation for them), the failed and removed ones are in again.
-    fn start_team(&mut self, world: &mut World, mission: &mut Mission) {
-        self.attendance.new_episode();
-        let present: Vec<bool> = (0..world.n_agents())
-            .map(|r| self.attendance.away(r).is_none())
-            .collect();
-        if present.iter().filter(|&&p| p).count() < formation_protocol::MIN_AGENTS {
-            (0..world.n_agents()).for_each(|r| self.attendance.set_away(r, None));
-            return;
-        }
-        mission.start_with(world, &present);
+    /// This tick's commands (rule 2 of the stepper): waits for every robot's answer until the
+    /// deadline (the tick's slot in real time, the command timeout in lockstep), then settles
+    /// each robot's command in use by the accounting rule.
+    fn collect_commands(
+        &mut self,
+        stepper: &mut EpisodeStepper,
+        header: Header,
+        tick: u32,
+        tick_started: Instant,
+        tally: &mut EpisodeTally,
+    ) -> Result<()> {
+        let options = self.options;
+        let deadline = if options.realtime {
+            self.next_deadline.max(tick_started) + Duration::from_secs_f64(options.config.env.dt_s)
+        } else {
+            tick_started + Duration::from_millis(options.config.ticks.command_timeout_ms)
+        };
+        self.round.collect(&self.ports, header, deadline, &mut |agent| {
+            stepper.command_arrives(agent)
+        })?;
+        tally.missed = self.round.settle(tick);
+        tally.missed_ticks += u64::from(tally.missed);
+        Ok(())
     }
 
-    /// After the step of `tick`: a controller that failed at this tick leaves the formation;
-    /// each robot's round goes to the attendance, which sends a robot silent for 10 ticks
-    /// out and brings one away for silence back after 5 answers. A departure that would leave
-    /// fewer than 3 robots in is not made (it is asked again next tick).
-    fn call_the_roll(&mut self, world: &mut World, mission: &mut Mission, reality: &Reality, tick: u32) {
-        if let Some(failure) = reality.failure().filter(|f| f.tick == tick)
-            && self.attendance.away(failure.agent).is_none()
-            && mission.leave(world, failure.agent).is_ok()
-        {
-            self.attendance.set_away(failure.agent, Some(Away::Failed));
+    /// The step with the settled commands (rule 3), then, while the episode runs, the roll
+    /// call (rule 4) and the live changes asked for meanwhile (never waiting for one): each is
+    /// in force from the next tick's observations.
+    fn step(&mut self, stepper: &mut EpisodeStepper, episode: u32) -> Result<()> {
+        let presence = &self.round.presence;
+        stepper.step(self.round.commands(), |agent| !presence.is_absent(agent));
+        self.env_steps += 1;
+        if !stepper.running() {
+            return Ok(());
         }
-        for (agent, settled) in self.round.settled().iter().enumerate() {
-            let heard = match settled {
-                Settled::OnTime | Settled::Late => Heard::Answered,
-                Settled::Missed => Heard::Silent,
-                Settled::Lost => Heard::Lost,
-            };
-            match self.attendance.record(agent, heard) {
-                Some(Call::Leave) if mission.leave(world, agent).is_ok() => {
-                    eprintln!(
-                        "sim: robot {agent} silent for 10 ticks: out of the formation from tick {}",
-                        world.steps
-                    );
-                    self.attendance.set_away(agent, Some(Away::Silent));
-                }
-                Some(Call::Return) if mission.rejoin(world, agent).is_ok() => {
-                    eprintln!(
-                        "sim: robot {agent} answered 5 ticks in a row: back in the formation from tick {}",
-                        world.steps
-                    );
-                    self.attendance.set_away(agent, None);
-                }
-                _ => {}
+        let settled = self.round.settled();
+        let changes = stepper.call_the_roll(&mut self.attendance, |agent| match settled[agent] {
+            Settled::OnTime | Settled::Late => Heard::Answered,
+            Settled::Missed => Heard::Silent,
+            Settled::Lost => Heard::Lost,
+        });
+        for change in changes {
+            let tick = stepper.world().steps;
+            match change.away {
+                Some(Away::Silent) => eprintln!(
+                    "sim: robot {} silent for 10 ticks: out of the formation from tick {tick}",
+                    change.robot
+                ),
+                None => eprintln!(
+                    "sim: robot {} answered 5 ticks in a row: back in the formation from tick {tick}",
+                    change.robot
+                ),
+                Some(_) => {}
             }
         }
+        let (world, mission) = stepper.live();
+        self.control
+            .serve(world, mission, &mut self.attendance, self.options.seed, episode)
+    }
+
+    /// After a tick's step: its time in the histogram, the real-time pacing, and the critic's
+    /// flow control (never more than `critic_window` ticks ahead of it).
+    fn end_tick(&mut self, tick_started: Instant) -> Result<()> {
+        let tick_time = tick_started.elapsed();
+        self.stepping_time += tick_time;
+        let _ = self.histogram.record((tick_time.as_micros() as u64).max(1));
+        self.pace(tick_started);
+        let options = self.options;
+        if options.expect_critic {
+            let give_up = Duration::from_millis(options.config.ticks.sim_silence_ms / 4);
+            let window = u64::from(options.config.ticks.critic_window);
+            self.critic.wait(&self.ports, self.published, window, give_up)?;
+        }
+        Ok(())
     }
 
     /// Closes an episode stopped by a signal: an outcome reached on its last tick stands (a
     /// success or collision stays terminal for the critic); otherwise it is aborted, a
     /// truncation.
-    fn close_on_signal(
-        &mut self,
-        world: &World,
-        header: Header,
-        mut transition: Transition,
-        tally: &EpisodeTally,
-        reality: &Reality,
-        mission: &Mission,
-    ) -> Result<()> {
-        if transition.outcome == Outcome::Running {
-            transition.outcome = Outcome::Aborted;
-        }
-        let told = Told {
-            observations: &self.told,
-            lost: &self.unasked,
-            applied: &self.applied,
-            reality,
+    fn close_on_signal(&mut self, stepper: &EpisodeStepper, header: Header, tally: &EpisodeTally) -> Result<()> {
+        let last = stepper.last();
+        let transition = Transition {
+            outcome: if last.outcome == Outcome::Running {
+                Outcome::Aborted
+            } else {
+                last.outcome
+            },
+            reward: last.reward,
+            missed: tally.missed,
         };
+        let (world, told) = (stepper.world(), told(stepper));
         self.ports
             .publish_observations(world, header, &told, self.round.belled())?;
         self.published += 1;
         self.ports
             .publish_state(world, header, &transition, &told, self.published, false)?;
-        self.log.push(tally.record(
-            header.episode,
-            transition.outcome,
-            world.steps,
-            self.started,
-            self.round.counters,
-            mission,
-        ))?;
+        let mut record = stepper.record(header.episode, tally.transport(self.round.counters, self.started));
+        record.outcome = transition.outcome;
+        self.log.push(record)?;
         Ok(())
     }
 
-    /// What each robot is told of `world` this tick (through the sensor noise), and whose
-    /// observation is lost (never on a tick that `ends` the episode: it asks for no command).
-    fn tell(&mut self, world: &World, reality: &mut Reality, ends: bool) {
-        for (agent, (told, unasked)) in self.told.iter_mut().zip(&mut self.unasked).enumerate() {
-            *told = world.observation(agent);
-            reality.tell(agent, self.layout, told);
-            *unasked = !ends && reality.observation_lost(agent);
-        }
-    }
-
-    /// Publishes a tick (observations, then the state), traces it, offers it to the view and
-    /// wakes the critic every half window and at an episode's end.
-    fn publish_tick(
-        &mut self,
-        world: &World,
-        header: Header,
-        transition: &Transition,
-        tally: &EpisodeTally,
-        log_world: bool,
-        reality: &Reality,
-    ) -> Result<()> {
-        let told = Told {
-            observations: &self.told,
-            lost: &self.unasked,
-            applied: &self.applied,
-            reality,
-        };
+    /// Publishes a tick (observations, then the state with the transition into it), traces
+    /// it, offers it to the view and wakes the critic every half window and at an episode's end.
+    fn publish_tick(&mut self, stepper: &EpisodeStepper, header: Header, missed: u32, log_world: bool) -> Result<()> {
+        let (world, told, last) = (stepper.world(), told(stepper), stepper.last());
         self.ports
             .publish_observations(world, header, &told, self.round.belled())?;
         if !header.has(FLAG_EPISODE_END) {
             self.round.ring_bell()?;
         }
         self.published += 1;
+        let transition = Transition {
+            outcome: last.outcome,
+            reward: last.reward,
+            missed,
+        };
         let state = self
             .ports
-            .publish_state(world, header, transition, &told, self.published, log_world)?;
+            .publish_state(world, header, &transition, &told, self.published, log_world)?;
         self.trace
             .push_edges(&self.traced, &world.poses, &world.desired, &world.observed);
-        self.trace.mean_edge_error.push(tally.last.mean_edge_error);
-        self.trace.goal_distance.push(tally.last.goal_distance);
+        self.trace.mean_edge_error.push(last.conditions.mean_edge_error);
+        self.trace.goal_distance.push(last.conditions.goal_distance);
         if let (Some(tap), Some(state)) = (&self.tap, state) {
             let _dropped_when_view_is_behind = tap.try_send(state);
         }

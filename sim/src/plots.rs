@@ -49,6 +49,14 @@ pub struct EpisodeTrace {
 }
 
 impl EpisodeTrace {
+    /// Starts tracing episode `episode` (the buffers keep their room).
+    pub fn begin(&mut self, episode: u32) {
+        self.episode = episode;
+        self.edge_errors.clear();
+        self.mean_edge_error.clear();
+        self.goal_distance.clear();
+    }
+
     /// Appends one tick of the traced edges (`traced`: robot i's k-th observed edge, as `(i, k,
     /// _)`), naming each after the robots it joins: renamed at an episode's first tick (an
     /// empty trace) when the last episode changed it, extended when the robot's neighbour

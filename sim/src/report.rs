@@ -3,60 +3,9 @@
 use std::path::Path;
 
 use anyhow::{Context, Result};
-use formation_ipc::summary::Summary;
-use serde::Serialize;
-
+pub use formation_core::stepper::EpisodeRecord;
 use formation_core::task::Outcome;
-
-/// One row of `episodes.csv`.
-#[derive(Debug, Clone, Serialize, PartialEq)]
-pub struct EpisodeRecord {
-    /// Episode counter.
-    pub episode: u32,
-    /// How it ended: `success`, `collision`, `timeout` or `aborted` in the file.
-    #[serde(serialize_with = "outcome_name")]
-    pub outcome: Outcome,
-    /// Steps taken.
-    pub steps: u32,
-    /// Undiscounted sum of rewards.
-    pub episode_return: f64,
-    /// Mean edge error at the last tick, metres.
-    pub final_edge_error_m: f64,
-    /// Centroid-to-goal distance at the last tick, metres.
-    pub final_goal_distance_m: f64,
-    /// Fraction of ticks on which C1 held.
-    pub formation_hold_rate: f64,
-    /// Robot-ticks missed (nothing new arrived: the command in use stayed).
-    pub missed_ticks: u64,
-    /// Robot-ticks that took up a late answer to an earlier tick.
-    pub late_commands: u64,
-    /// Commands lost on the way (`[reality]`'s `command_loss`).
-    pub lost_commands: u64,
-    /// Observations not delivered (`[reality]`'s `observation_loss`).
-    pub lost_observations: u64,
-    /// The mission planner's slot reassignments in the episode: shape changes, goal moves and
-    /// team changes.
-    pub reconfigurations: u32,
-    /// Changes after which the swarm re-formed (every observed edge within eps_form for 5
-    /// consecutive ticks, or held to a success).
-    pub reforms: u32,
-    /// Mean ticks from a change to re-forming, over the changes that re-formed (empty if none).
-    pub mean_reform_ticks: Option<f64>,
-    /// Sum of those ticks (not written: the run's mean weighs every change alike).
-    #[serde(skip)]
-    pub reform_ticks_sum: u64,
-    /// Robots that left the formation in the episode.
-    pub departures: u32,
-    /// Robots that came back into the formation in the episode.
-    pub returns: u32,
-    /// Wall-clock seconds since the run started, at the episode's end.
-    pub wall_s: f64,
-}
-
-/// Writes an outcome by its name.
-fn outcome_name<S: serde::Serializer>(outcome: &Outcome, serializer: S) -> Result<S::Ok, S::Error> {
-    serializer.serialize_str(outcome.as_str())
-}
+use formation_ipc::summary::Summary;
 
 /// Appends records to `episodes.csv` as episodes end, so a killed run keeps what it did.
 pub struct EpisodeLog {
