@@ -17,7 +17,7 @@ pub fn layout_json() -> String {
 }
 
 /// The `"observation_models"` member: each model's name, dimension and blocks (name, first
-/// float, the names of its floats).
+/// float, the names of its floats and what each measures).
 fn observation_models_json() -> String {
     let quoted = |names: &[&str]| {
         let list: Vec<String> = names.iter().map(|name| format!("\"{name}\"")).collect();
@@ -35,12 +35,14 @@ fn observation_models_json() -> String {
         );
         for (j, block) in layout.blocks().iter().enumerate() {
             let sep = if j == 0 { "" } else { "," };
+            let kinds: Vec<&str> = block.kinds.iter().map(|kind| kind.as_str()).collect();
             let _ = write!(
                 out,
-                "{sep}\n      {{\"name\": \"{}\", \"offset\": {}, \"fields\": [{}]}}",
+                "{sep}\n      {{\"name\": \"{}\", \"offset\": {}, \"fields\": [{}], \"kinds\": [{}]}}",
                 block.name,
                 block.offset,
-                quoted(block.fields)
+                quoted(block.fields),
+                quoted(&kinds)
             );
         }
         out.push_str("\n    ]}");

@@ -33,6 +33,52 @@ pub const NEIGHBOUR_FIELDS: [&str; NEIGHBOUR_FEATURES] = ["x", "y", "cos", "sin"
 /// The floats of a point's block (the goal, the slot, the proximity term), in order.
 pub const POINT_FIELDS: [&str; 2] = ["x", "y"];
 
+/// What a float of an observation measures: the sensor noise of `[reality]` follows it
+/// ([`crate::reality::Reality::tell`]), so a new block gets the noise of its kind by declaring
+/// its kinds, with no change to the noise code.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Quantity {
+    /// A relative position's x or y, metres (`position_noise_m`, per coordinate).
+    Position,
+    /// The cos or sin of a relative heading (`heading_noise_rad` on the angle).
+    Heading,
+    /// A relative position seen as closeness, `(1 - d/R) * unit vector` (the position noise on
+    /// the position it stands for).
+    Closeness,
+    /// A range reading, metres.
+    Range,
+    /// Anything no sensor measures (a desired distance): no noise.
+    Other,
+}
+
+impl Quantity {
+    /// Its name in `layout.json`.
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            Self::Position => "position",
+            Self::Heading => "heading",
+            Self::Closeness => "closeness",
+            Self::Range => "range",
+            Self::Other => "other",
+        }
+    }
+}
+
+/// The kind of each float of a neighbour's block.
+pub const NEIGHBOUR_KINDS: [Quantity; NEIGHBOUR_FEATURES] = [
+    Quantity::Position,
+    Quantity::Position,
+    Quantity::Heading,
+    Quantity::Heading,
+    Quantity::Other,
+];
+
+/// The kinds of a point's block (the goal, the slot).
+pub const POINT_KINDS: [Quantity; 2] = [Quantity::Position; 2];
+
+/// The kinds of the proximity term's block.
+pub const CLOSENESS_KINDS: [Quantity; 2] = [Quantity::Closeness; 2];
+
 /// Every observation model, smallest first: what `layout.json` lists (a test keeps it
 /// exhaustive).
 pub const MODELS: [ObservationModel; 3] = [
@@ -50,6 +96,8 @@ pub struct Block {
     pub offset: usize,
     /// The names of its floats, in order (its length is theirs).
     pub fields: &'static [&'static str],
+    /// What each of its floats measures, in order.
+    pub kinds: &'static [Quantity],
 }
 
 /// Where each quantity sits in an observation of one model.
@@ -67,22 +115,36 @@ impl Layout {
 
     /// Every block of the model, in order (what `layout.json` gives other languages).
     pub fn blocks(self) -> Vec<Block> {
-        let point = |name: &str, offset: usize| Block {
-            name: name.to_string(),
-            offset,
-            fields: &POINT_FIELDS,
-        };
         let mut blocks: Vec<Block> = (0..NEIGHBOURS)
             .map(|k| Block {
                 name: format!("neighbour_{k}"),
                 offset: self.neighbour(k),
                 fields: &NEIGHBOUR_FIELDS,
+                kinds: &NEIGHBOUR_KINDS,
             })
             .collect();
-        blocks.push(point("goal", self.goal()));
-        blocks.extend(self.slot().map(|at| point("slot", at)));
-        blocks.extend(self.proximity().map(|at| point("proximity", at)));
+        let point = |name: &str, offset: usize, kinds: &'static [Quantity]| Block {
+            name: name.to_string(),
+            offset,
+            fields: &POINT_FIELDS,
+            kinds,
+        };
+        blocks.push(point("goal", self.goal(), &POINT_KINDS));
+        blocks.extend(self.slot().map(|at| point("slot", at, &POINT_KINDS)));
+        blocks.extend(self.proximity().map(|at| point("proximity", at, &CLOSENESS_KINDS)));
         blocks
+    }
+
+    /// Each block's first float and kinds, in order, without allocating (what the sensor noise
+    /// walks every tick).
+    pub fn kinds(self) -> impl Iterator<Item = (usize, &'static [Quantity])> {
+        let neighbours = (0..NEIGHBOURS).map(move |k| (self.neighbour(k), &NEIGHBOUR_KINDS[..]));
+        let points = [
+            Some((self.goal(), &POINT_KINDS[..])),
+            self.slot().map(|at| (at, &POINT_KINDS[..])),
+            self.proximity().map(|at| (at, &CLOSENESS_KINDS[..])),
+        ];
+        neighbours.chain(points.into_iter().flatten())
     }
 
     /// Floats in one observation.

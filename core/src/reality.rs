@@ -18,7 +18,6 @@ use std::collections::VecDeque;
 use std::fmt;
 
 use crate::config::{ConfigError, EnvConfig};
-use formation_protocol::NEIGHBOURS;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
@@ -26,7 +25,7 @@ use serde::de::{self, SeqAccess, Visitor};
 use serde::ser::SerializeSeq;
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
-use crate::observation::Layout;
+use crate::observation::{Layout, Quantity};
 
 /// The largest actuation delay accepted, ticks (the state message's room for queued commands).
 pub const MAX_DELAY_TICKS: u32 = formation_protocol::MAX_DELAY_TICKS as u32;
@@ -469,40 +468,41 @@ impl Reality {
         }
     }
 
-    /// Adds robot `agent`'s sensor noise to `obs` (an observation of `layout`, in its frame):
-    /// independent Gaussian noise on x and y of each neighbour's position, the goal and the
-    /// slot; noise on each neighbour's relative heading angle (cos/sin recomputed); and the
-    /// proximity term recomputed from a noisy relative position. Desired distances and the
-    /// floats past the layout are untouched. With both noises off, `obs` is left as it is.
+    /// Adds robot `agent`'s sensor noise to `obs` (an observation of `layout`, in its frame),
+    /// by what each float measures ([`Quantity`], declared by the layout's blocks): independent
+    /// Gaussian noise on x and y of every position; noise on every relative heading angle
+    /// (cos/sin recomputed); closeness terms recomputed from a noisy relative position. Other
+    /// floats and those past the layout are untouched. With both noises off, `obs` is left as it
+    /// is. Positions are drawn first, block by block, then headings, from one stream.
     ///
-    /// A zero proximity term (no untracked robot within range) stays zero: the true position
-    /// behind it is unknown here, so noise cannot bring a robot from beyond the range into it.
+    /// A zero closeness term (no robot within range) stays zero: the true position behind it is
+    /// unknown here, so noise cannot bring a robot from beyond the range into it.
     pub fn tell(&mut self, agent: usize, layout: Layout, obs: &mut [f32]) {
         let range = self.proximity_range_m;
         let robot = &mut self.robots[agent];
+        let pairs = |kind: Quantity| {
+            layout.kinds().flat_map(move |(offset, kinds)| {
+                (0..kinds.len().saturating_sub(1))
+                    .step_by(2)
+                    .filter(move |&i| kinds[i] == kind && kinds[i + 1] == kind)
+                    .map(move |i| offset + i)
+            })
+        };
         if let Some(noise) = robot.position_noise {
             let rng = &mut robot.sensing;
-            let mut jitter = |at: usize, obs: &mut [f32]| {
+            for at in pairs(Quantity::Position) {
                 for v in &mut obs[at..at + 2] {
                     *v = (f64::from(*v) + noise.sample(rng)) as f32;
                 }
-            };
-            for k in 0..NEIGHBOURS {
-                jitter(layout.neighbour(k), obs);
             }
-            jitter(layout.goal(), obs);
-            if let Some(at) = layout.slot() {
-                jitter(at, obs);
-            }
-            if let Some(at) = layout.proximity() {
+            for at in pairs(Quantity::Closeness) {
                 let near = [f64::from(obs[at]), f64::from(obs[at + 1])];
                 let noisy = noisy_proximity(near, range, [noise.sample(rng), noise.sample(rng)]);
                 obs[at..at + 2].copy_from_slice(&noisy.map(|v| v as f32));
             }
         }
         if let Some(noise) = robot.heading_noise {
-            for k in 0..NEIGHBOURS {
-                let at = layout.neighbour(k) + 2;
+            for at in pairs(Quantity::Heading) {
                 let angle = f64::from(obs[at + 1]).atan2(f64::from(obs[at])) + noise.sample(&mut robot.sensing);
                 let (s, c) = angle.sin_cos();
                 obs[at..at + 2].copy_from_slice(&[c as f32, s as f32]);
@@ -607,7 +607,7 @@ fn noisy_proximity(near: [f64; 2], range: f64, noise: [f64; 2]) -> [f64; 2] {
 mod tests {
     use super::*;
     use crate::config::ObservationModel;
-    use formation_protocol::MAX_OBS_DIM;
+    use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS};
 
     fn env() -> EnvConfig {
         EnvConfig::default()
@@ -814,6 +814,67 @@ mod tests {
         let true_distance = (1.0 - 0.5) * range;
         assert!((mean - true_distance).abs() < 0.01, "mean distance {mean}");
         assert!((sd / sigma - 1.0).abs() < 0.1, "distance sd {sd}");
+    }
+
+    /// The noise reaches a float by the kind its block declares: in every model, position
+    /// noise moves positions and closeness terms only, heading noise headings only; a desired
+    /// distance never moves.
+    #[test]
+    fn noise_follows_each_float_s_declared_kind_in_every_model() {
+        let position_only = RealityConfig {
+            position_noise_m: Spread::fixed(0.05),
+            ..RealityConfig::default()
+        };
+        let heading_only = RealityConfig {
+            heading_noise_rad: Spread::fixed(0.08),
+            ..RealityConfig::default()
+        };
+        for model in crate::observation::MODELS {
+            let layout = Layout::of(model);
+            let mut kind_of = vec![None; layout.dim()];
+            for (offset, kinds) in layout.kinds() {
+                for (i, &kind) in kinds.iter().enumerate() {
+                    assert!(
+                        kind_of[offset + i].is_none(),
+                        "{model:?}: float {} in two blocks",
+                        offset + i
+                    );
+                    kind_of[offset + i] = Some(kind);
+                }
+            }
+            assert!(
+                kind_of.iter().all(Option::is_some),
+                "{model:?}: the blocks cover every float"
+            );
+            for (config, moved) in [
+                (&position_only, [Quantity::Position, Quantity::Closeness]),
+                (&heading_only, [Quantity::Heading, Quantity::Heading]),
+            ] {
+                let mut reality = reality(config, 3);
+                let mut truth = observation();
+                truth[layout.dim()..].fill(0.0);
+                let mut changed = vec![false; layout.dim()];
+                for _ in 0..50 {
+                    let mut told = truth;
+                    reality.tell(1, layout, &mut told);
+                    for (i, flag) in changed.iter_mut().enumerate() {
+                        *flag |= told[i] != truth[i];
+                    }
+                    assert!(
+                        told[layout.dim()..].iter().all(|&v| v == 0.0),
+                        "nothing past the layout"
+                    );
+                }
+                for (i, kind) in kind_of.iter().enumerate() {
+                    let kind = kind.expect("covered");
+                    assert_eq!(
+                        changed[i],
+                        moved.contains(&kind),
+                        "{model:?}: float {i} ({kind:?}) under {config:?}"
+                    );
+                }
+            }
+        }
     }
 
     #[test]
