@@ -149,92 +149,18 @@ pub struct Plan {
 impl Plan {
     /// Checks every flag and the configuration; nothing is created yet.
     pub fn new(args: LaunchArgs) -> Result<Self> {
-        let n = args.n;
-        let RobotSets {
-            scripted,
-            external,
-            remote,
-            ros2,
-        } = RobotSets::new(&args)?;
+        let sets = RobotSets::new(&args)?;
         let ros2_link = Ros2Link::new(&args)?;
-        if !args.extra_swarms.is_empty() {
-            ensure!(
-                args.mode == Mode::Train,
-                "--extra-swarms is for training; evaluate each size on its own"
-            );
-            ensure!(
-                args.extra_swarms.len() <= MAX_EXTRA_SWARMS,
-                "--extra-swarms: at most {MAX_EXTRA_SWARMS} extra swarms"
-            );
-        }
-        if let Some(path) = &args.config {
-            ensure!(path.is_file(), "--config file {} does not exist", path.display());
-        }
-        if let Some(path) = &args.checkpoint {
-            ensure!(path.exists(), "--checkpoint {} does not exist", path.display());
-        }
-        let mut config = match &args.config {
-            Some(path) => RunConfig::from_toml_file(path)?,
-            None => RunConfig::default(),
-        };
-        if let Some(path) = &args.reality {
-            config.reality = read_reality(path)?;
-        }
-        if let Some(shape) = args.shape {
-            config.env.shape = shape;
-        }
-        if args.mode == Mode::Train {
-            config.learn.check_training_seeds(args.seed, args.extra_swarms.len())?;
-            config.check_training_critic()?;
-        }
-        let learned = n - scripted.len() - external.len() - ros2.len();
-        let checkpoint = match (&args.checkpoint, args.mode) {
-            (None, Mode::Eval) if learned > 0 => Some(shipped_model()?),
-            (given, _) => given.clone(),
-        };
+        check_extra_swarms_and_files(&args)?;
+        let config = read_config(&args)?;
+        let learned = args.n - sets.scripted.len() - sets.external.len() - sets.ros2.len();
+        let checkpoint = checkpoint_to_load(&args, learned)?;
         let run_dir = args.run_dir.clone().unwrap_or_else(default_run_dir);
-        let (config_path, launch_config) = match &args.reality {
-            Some(_) => (Some(run_dir.join(LAUNCH_CONFIG_FILE)), Some(config.to_toml())),
-            None => (args.config.clone(), None),
-        };
+        let (config_path, launch_config) = members_config(&args, &config, &run_dir);
         let run_id = new_run_id();
-        let remote = remote
-            .into_iter()
-            .map(|robot| {
-                Ok(RemoteHost {
-                    robot,
-                    identity: RunIdentity::new(&format!("{run_id}h{robot}"))?,
-                    run_dir: run_dir.join(format!("host-{robot}")),
-                })
-            })
-            .collect::<Result<Vec<_>>>()?;
-        let bridge_endpoint = if remote.is_empty() {
-            None
-        } else {
-            Some(format!("tcp/127.0.0.1:{}", free_local_port()?))
-        };
-        let mut swarms = vec![Swarm {
-            n,
-            identity: RunIdentity::new(&run_id)?,
-            run_dir: run_dir.clone(),
-            seed: args.seed,
-            scripted,
-            external,
-            remote,
-            ros2,
-        }];
-        for (k, &size) in (1..).zip(&args.extra_swarms) {
-            swarms.push(Swarm {
-                n: size,
-                identity: RunIdentity::new(&format!("{run_id}x{k}"))?,
-                run_dir: run_dir.join(format!("swarm-{k}-n{size}")),
-                seed: extra_swarm_seed(args.seed, k),
-                scripted: Vec::new(),
-                external: Vec::new(),
-                remote: Vec::new(),
-                ros2: Vec::new(),
-            });
-        }
+        let remote = remote_hosts(&sets.remote, &run_id, &run_dir)?;
+        let bridge_endpoint = bridge_endpoint(&remote)?;
+        let swarms = swarms(&args, sets, remote, &run_id, &run_dir)?;
         Ok(Self {
             mode: args.mode,
             episodes: args.episodes,
@@ -638,6 +564,124 @@ impl Plan {
             "launcher_pid": std::process::id(),
         })
     }
+}
+
+/// Refuses `--extra-swarms` outside training or past [`MAX_EXTRA_SWARMS`], and a `--config` or
+/// `--checkpoint` that does not exist.
+fn check_extra_swarms_and_files(args: &LaunchArgs) -> Result<()> {
+    if !args.extra_swarms.is_empty() {
+        ensure!(
+            args.mode == Mode::Train,
+            "--extra-swarms is for training; evaluate each size on its own"
+        );
+        ensure!(
+            args.extra_swarms.len() <= MAX_EXTRA_SWARMS,
+            "--extra-swarms: at most {MAX_EXTRA_SWARMS} extra swarms"
+        );
+    }
+    if let Some(path) = &args.config {
+        ensure!(path.is_file(), "--config file {} does not exist", path.display());
+    }
+    if let Some(path) = &args.checkpoint {
+        ensure!(path.exists(), "--checkpoint {} does not exist", path.display());
+    }
+    Ok(())
+}
+
+/// The configuration every member reads: `--config` (or the defaults) with `--reality`'s
+/// `[reality]` and the `--shape`; in training, checked for the seeds and the critic.
+fn read_config(args: &LaunchArgs) -> Result<RunConfig> {
+    let mut config = match &args.config {
+        Some(path) => RunConfig::from_toml_file(path)?,
+        None => RunConfig::default(),
+    };
+    if let Some(path) = &args.reality {
+        config.reality = read_reality(path)?;
+    }
+    if let Some(shape) = args.shape {
+        config.env.shape = shape;
+    }
+    if args.mode == Mode::Train {
+        config.learn.check_training_seeds(args.seed, args.extra_swarms.len())?;
+        config.check_training_critic()?;
+    }
+    Ok(config)
+}
+
+/// `--checkpoint`; without it, an eval with `learned` robots loads the shipped model.
+fn checkpoint_to_load(args: &LaunchArgs, learned: usize) -> Result<Option<PathBuf>> {
+    Ok(match (&args.checkpoint, args.mode) {
+        (None, Mode::Eval) if learned > 0 => Some(shipped_model()?),
+        (given, _) => given.clone(),
+    })
+}
+
+/// The `--config` every member is given and, with `--reality`, the text to write there first
+/// (LAUNCH_CONFIG_FILE in the run directory, by [`Plan::write_launch_config`]).
+fn members_config(args: &LaunchArgs, config: &RunConfig, run_dir: &Path) -> (Option<PathBuf>, Option<String>) {
+    match &args.reality {
+        Some(_) => (Some(run_dir.join(LAUNCH_CONFIG_FILE)), Some(config.to_toml())),
+        None => (args.config.clone(), None),
+    }
+}
+
+/// The primary swarm's `--remote` robots, each on a host of its own (run id `<run_id>h<robot>`,
+/// directory `host-<robot>`).
+fn remote_hosts(remote: &[usize], run_id: &str, run_dir: &Path) -> Result<Vec<RemoteHost>> {
+    remote
+        .iter()
+        .map(|&robot| {
+            Ok(RemoteHost {
+                robot,
+                identity: RunIdentity::new(&format!("{run_id}h{robot}"))?,
+                run_dir: run_dir.join(format!("host-{robot}")),
+            })
+        })
+        .collect()
+}
+
+/// With remote robots: the endpoint the sim host's bridge listens on, a free local port.
+fn bridge_endpoint(remote: &[RemoteHost]) -> Result<Option<String>> {
+    if remote.is_empty() {
+        Ok(None)
+    } else {
+        Ok(Some(format!("tcp/127.0.0.1:{}", free_local_port()?)))
+    }
+}
+
+/// The primary swarm (every robot set, run id `run_id`, the run directory, `--seed`), then one
+/// learned swarm per `--extra-swarms` size (run id `<run_id>x<k>`, directory `swarm-<k>-n<size>`,
+/// its own seed).
+fn swarms(
+    args: &LaunchArgs,
+    sets: RobotSets,
+    remote: Vec<RemoteHost>,
+    run_id: &str,
+    run_dir: &Path,
+) -> Result<Vec<Swarm>> {
+    let mut swarms = vec![Swarm {
+        n: args.n,
+        identity: RunIdentity::new(run_id)?,
+        run_dir: run_dir.to_path_buf(),
+        seed: args.seed,
+        scripted: sets.scripted,
+        external: sets.external,
+        remote,
+        ros2: sets.ros2,
+    }];
+    for (k, &size) in (1..).zip(&args.extra_swarms) {
+        swarms.push(Swarm {
+            n: size,
+            identity: RunIdentity::new(&format!("{run_id}x{k}"))?,
+            run_dir: run_dir.join(format!("swarm-{k}-n{size}")),
+            seed: extra_swarm_seed(args.seed, k),
+            scripted: Vec::new(),
+            external: Vec::new(),
+            remote: Vec::new(),
+            ros2: Vec::new(),
+        });
+    }
+    Ok(swarms)
 }
 
 /// The `[reality]` section of `path`, validated; the file's other sections are not read.

@@ -100,8 +100,20 @@ fn write_constants(out: &mut String) {
     out.push_str("\n  }");
 }
 
-/// The entries of the `"payloads"` array.
+/// The entries of the `"payloads"` array, comma-separated: what sim and agents exchange every
+/// tick, the sim's state, the critic's messages, then the control service's.
 fn write_payloads(out: &mut String) {
+    write_tick_payloads(out);
+    out.push_str(",\n");
+    write_state_payload(out);
+    out.push_str(",\n");
+    write_critic_payloads(out);
+    out.push_str(",\n");
+    write_control_payloads(out);
+}
+
+/// The common header, then sim -> agent (the observation) and agent -> sim (the command).
+fn write_tick_payloads(out: &mut String) {
     payload::<Header>(
         out,
         "Header",
@@ -137,7 +149,10 @@ fn write_payloads(out: &mut String) {
             field!(CommandMsg, session, "u32"),
         ],
     );
-    out.push_str(",\n");
+}
+
+/// sim -> critic and the view: the true world at a tick.
+fn write_state_payload(out: &mut String) {
     payload::<StateMsg>(
         out,
         "StateMsg",
@@ -162,7 +177,11 @@ fn write_payloads(out: &mut String) {
             field!(StateMsg, present, "u64"),
         ],
     );
-    out.push_str(",\n");
+}
+
+/// critic -> sim (its progress, for train-mode flow control) and critic -> agents (the header
+/// in front of an actor's weights).
+fn write_critic_payloads(out: &mut String) {
     payload::<CriticProgressMsg>(
         out,
         "CriticProgressMsg",
@@ -185,7 +204,10 @@ fn write_payloads(out: &mut String) {
             field!(WeightsHeader, len, "u32"),
         ],
     );
-    out.push_str(",\n");
+}
+
+/// The control service's request (client -> sim) and reply (sim -> client).
+fn write_control_payloads(out: &mut String) {
     payload::<ControlRequest>(
         out,
         "ControlRequest",

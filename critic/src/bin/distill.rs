@@ -6,7 +6,7 @@ use std::collections::HashMap;
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use clap::Parser;
@@ -16,6 +16,7 @@ use formation_core::reality::RealityConfig;
 use formation_critic::distill::{DistillOptions, Distiller, RoundReport, gain_profile};
 use formation_critic::selection::Selector;
 use formation_model::actor::ActorHead;
+use formation_model::checkpoint::{SelectionScore, SizeScore};
 use indicatif::{ProgressBar, ProgressStyle};
 
 /// Distils the scripted baseline (the config's `[baseline]` gains) into the shared actor:
@@ -119,6 +120,22 @@ fn try_main(cli: Cli) -> Result<()> {
         Some(path) => RunConfig::from_toml_file(path)?,
         None => RunConfig::default(),
     };
+    check_sizes_and_out(&cli)?;
+    let mut distiller = Distiller::new(&config, distill_options(&cli)?, cli.checkpoint.as_deref())?;
+    let began = Instant::now();
+    play_rounds(&cli, &mut distiller)?;
+    let took = began.elapsed();
+    let selector = Selector::new(&config.env, &config.learn, &config.reality, &cli.sizes);
+    let score = selector.score(&[distiller.actor_weights()?], distiller.shape())?;
+    let extra = student_metadata(&cli, &config, &distiller, &score, took)?;
+    distiller.save(&cli.out, extra)?;
+    print_summary(&cli, &score, took);
+    Ok(())
+}
+
+/// Refuses a swarm size the wire cannot carry and an existing `--out` (unless `--force`);
+/// creates `--out`'s directory.
+fn check_sizes_and_out(cli: &Cli) -> Result<()> {
     for &n in &cli.sizes {
         validate_agent_count(n).context("--sizes")?;
     }
@@ -128,7 +145,12 @@ fn try_main(cli: Cli) -> Result<()> {
     if let Some(parent) = cli.out.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent).with_context(|| format!("cannot create {}", parent.display()))?;
     }
-    let options = DistillOptions {
+    Ok(())
+}
+
+/// The distiller's options from the flags (reading `--quiet-teacher`'s `[baseline]`).
+fn distill_options(cli: &Cli) -> Result<DistillOptions> {
+    Ok(DistillOptions {
         sizes: cli.sizes.clone(),
         robots_per_round: cli.robots_per_round,
         updates_per_round: cli.updates,
@@ -147,9 +169,12 @@ fn try_main(cli: Cli) -> Result<()> {
         soft_from_delay_ticks: cli.soft_from_delay_ticks,
         head: ActorHead::from_name(&cli.head).context("--head")?,
         ..DistillOptions::default()
-    };
-    let mut distiller = Distiller::new(&config, options, cli.checkpoint.as_deref())?;
-    let began = Instant::now();
+    })
+}
+
+/// Plays the `--rounds` rounds, writing the unfinished student every `--save-every` rounds and
+/// showing progress: a bar on a terminal, else a line every 20 rounds and at the last.
+fn play_rounds(cli: &Cli, distiller: &mut Distiller) -> Result<()> {
     let bar = progress_bar(cli.rounds as u64);
     for _ in 0..cli.rounds {
         let report = distiller.round()?;
@@ -176,9 +201,19 @@ fn try_main(cli: Cli) -> Result<()> {
     if let Some(bar) = bar {
         bar.finish_and_clear();
     }
-    let took = began.elapsed();
-    let selector = Selector::new(&config.env, &config.learn, &config.reality, &cli.sizes);
-    let score = selector.score(&[distiller.actor_weights()?], distiller.shape())?;
+    Ok(())
+}
+
+/// The finished student's metadata: its selection score, the wall time, the checkpoint it
+/// started from, a reality other than the ideal world and, for a gain schedule, its gain
+/// profiles.
+fn student_metadata(
+    cli: &Cli,
+    config: &RunConfig,
+    distiller: &Distiller,
+    score: &SelectionScore,
+    took: Duration,
+) -> Result<HashMap<String, String>> {
     let mut extra = HashMap::new();
     score.to_metadata(&mut extra);
     extra.insert("distill_seconds".into(), format!("{:.0}", took.as_secs_f64()));
@@ -189,36 +224,45 @@ fn try_main(cli: Cli) -> Result<()> {
         extra.insert("reality".into(), config.reality.one_line());
     }
     if distiller.shape().head == ActorHead::Gains {
-        // What the schedule picks, in the ideal world and under the reality, on the selection's
-        // episodes of the largest size.
-        let n = *cli.sizes.iter().max().expect("sizes checked non-empty");
-        let episodes = (n, config.learn.selection_seed, config.learn.selection_episodes);
-        for (world, reality) in [("ideal", RealityConfig::default()), ("reality", config.reality.clone())] {
-            let profile = gain_profile(
-                &config.env,
-                &reality,
-                distiller.shape(),
-                &distiller.actor_weights()?,
-                episodes,
-            )?;
-            let line = BaselineGains::NAMES
-                .iter()
-                .zip(profile)
-                .map(|(name, (mean, std))| format!("{name} {mean:.3} +- {std:.3}"))
-                .collect::<Vec<_>>()
-                .join(", ");
-            println!("formation-distill: gains picked at N = {n}, {world}: {line}");
-            extra.insert(format!("gain_profile_{world}"), line);
-        }
+        record_gain_profiles(cli, config, distiller, &mut extra)?;
     }
-    distiller.save(&cli.out, extra)?;
-    let by_size = |sizes: &[formation_model::checkpoint::SizeScore]| {
-        sizes
+    Ok(extra)
+}
+
+/// What the schedule picks, in the ideal world and under the reality, on the selection's
+/// episodes of the largest size: printed, and recorded as `gain_profile_ideal` and
+/// `gain_profile_reality`.
+fn record_gain_profiles(
+    cli: &Cli,
+    config: &RunConfig,
+    distiller: &Distiller,
+    extra: &mut HashMap<String, String>,
+) -> Result<()> {
+    let n = *cli.sizes.iter().max().expect("sizes checked non-empty");
+    let episodes = (n, config.learn.selection_seed, config.learn.selection_episodes);
+    for (world, reality) in [("ideal", RealityConfig::default()), ("reality", config.reality.clone())] {
+        let profile = gain_profile(
+            &config.env,
+            &reality,
+            distiller.shape(),
+            &distiller.actor_weights()?,
+            episodes,
+        )?;
+        let line = BaselineGains::NAMES
             .iter()
-            .map(|s| format!("N={} {:.2} in {:.1} steps", s.n_agents, s.success, s.mean_steps))
+            .zip(profile)
+            .map(|(name, (mean, std))| format!("{name} {mean:.3} +- {std:.3}"))
             .collect::<Vec<_>>()
-            .join(", ")
-    };
+            .join(", ");
+        println!("formation-distill: gains picked at N = {n}, {world}: {line}");
+        extra.insert(format!("gain_profile_{world}"), line);
+    }
+    Ok(())
+}
+
+/// The closing line: rounds, wall time, the selection score by size (and in the ideal world,
+/// when the score has it) and where the student was saved.
+fn print_summary(cli: &Cli, score: &SelectionScore, took: Duration) {
     println!(
         "formation-distill: {} rounds in {:.0} s; selection {}{}; saved {}",
         cli.rounds,
@@ -230,7 +274,15 @@ fn try_main(cli: Cli) -> Result<()> {
             .map_or(String::new(), |ideal| format!(" (ideal world {})", by_size(ideal))),
         cli.out.display()
     );
-    Ok(())
+}
+
+/// Each size's success and mean steps, in a line.
+fn by_size(sizes: &[SizeScore]) -> String {
+    sizes
+        .iter()
+        .map(|s| format!("N={} {:.2} in {:.1} steps", s.n_agents, s.success, s.mean_steps))
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 /// A bar over the rounds on a terminal; `None` elsewhere (a line every 20 rounds instead).
