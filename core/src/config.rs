@@ -250,21 +250,7 @@ impl EnvConfig {
     /// The farthest a robot of a formation of `n_agents` (of the configured shape) can start
     /// from its centroid.
     pub fn formation_reach_m(&self, n_agents: usize) -> f64 {
-        let n = n_agents as f64;
-        // The named shapes' largest lattice spacing, and room for what the relaxation moves.
-        let spacing = (0.95 * 0.5 * self.edge_max_m).max(1.05 * self.edge_min_m);
-        let relax = self.edge_min_m;
-        let reach_of = |shape: FormationShape| EnvConfig { shape, ..self.clone() }.formation_reach_m(n_agents);
-        match self.shape {
-            FormationShape::Mixed => FormationShape::KINDS.map(reach_of).into_iter().fold(0.0, f64::max),
-            FormationShape::Random if n_agents < LARGE_SWARM => self.edge_max_m,
-            // A ring whose second-neighbour chord is at most 1.3 edge_min, plus room for the
-            // zig-zag and what the relaxation moves.
-            FormationShape::Random => 1.3 * self.edge_min_m / (2.0 * (std::f64::consts::TAU / n).sin()) + relax,
-            FormationShape::Ring => spacing / (2.0 * (std::f64::consts::PI / n).sin()) + relax,
-            FormationShape::Line | FormationShape::Wedge => (0.25 * n * spacing).hypot(spacing) + relax,
-            FormationShape::Grid => 0.75 * spacing * (n + 4.0).sqrt() + spacing + relax,
-        }
+        crate::shapes::reach_m(self.shape, n_agents, self)
     }
 }
 

@@ -1,6 +1,12 @@
 //! `grid`: a lattice block toured by a boustrophedon that returns along its first column
 //! (below five robots, a ring).
 
+/// How far a block of `n` robots at lattice spacing `spacing` reaches from its centre, with
+/// `relax` of room for the relaxation.
+pub(super) fn reach_m(n: f64, spacing: f64, relax: f64) -> f64 {
+    0.75 * spacing * (n + 4.0).sqrt() + spacing + relax
+}
+
 /// A block of `rows` (even) by `columns` lattice points `spacing` apart, toured by a
 /// boustrophedon over columns 1.. that returns along column 0; odd `n` gets a nose robot ahead
 /// of the block's first row.

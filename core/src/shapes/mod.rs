@@ -100,6 +100,25 @@ fn centred(mut points: Vec<[f64; 2]>) -> Vec<[f64; 2]> {
     points
 }
 
+/// How far from its centre a formation of `n` robots of kind `shape` reaches at most, metres
+/// (`mixed`: the farthest of its kinds): each shape's own formula, in its file, from the
+/// largest lattice spacing a draw picks and room for what the relaxation moves.
+pub fn reach_m(shape: FormationShape, n: usize, env: &EnvConfig) -> f64 {
+    let spacing = (SPACING_RANGE.end * 0.5 * env.edge_max_m).max(1.05 * env.edge_min_m);
+    let relax = env.edge_min_m;
+    let count = n as f64;
+    match shape {
+        FormationShape::Mixed => FormationShape::KINDS
+            .map(|kind| reach_m(kind, n, env))
+            .into_iter()
+            .fold(0.0, f64::max),
+        FormationShape::Random => random::reach_m(n, env),
+        FormationShape::Ring => ring::reach_m(count, spacing, relax),
+        FormationShape::Line | FormationShape::Wedge => line::reach_m(count, spacing, relax),
+        FormationShape::Grid => grid::reach_m(count, spacing, relax),
+    }
+}
+
 /// A shape of `n` robots of kind `shape`, centred on the origin, numbered along its tour, with
 /// every observed edge in [edge_min, edge_max] and no two robots closer than a safe margin.
 /// The x axis is the shape's forward direction (a wedge points along +x).

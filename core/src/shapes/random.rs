@@ -9,6 +9,16 @@ use rand::Rng;
 /// Robots start on a perturbed ring (any N closes the triangle strip), then alternate
 /// projections move each edge into range and push close pairs apart; a shape that does not
 /// settle is discarded and drawn again.
+/// How far a random formation of `n` robots reaches from its centre: edge_max below
+/// [`LARGE_SWARM`]; from there a ring whose second-neighbour chord is at most 1.3 edge_min,
+/// plus room for the zig-zag and what the relaxation moves.
+pub(super) fn reach_m(n: usize, env: &EnvConfig) -> f64 {
+    if n < LARGE_SWARM {
+        return env.edge_max_m;
+    }
+    1.3 * env.edge_min_m / (2.0 * (std::f64::consts::TAU / n as f64).sin()) + env.edge_min_m
+}
+
 pub fn points<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> Vec<[f64; 2]> {
     let mid_edge = 0.5 * (env.edge_min_m + env.edge_max_m);
     loop {
