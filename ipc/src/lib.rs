@@ -17,6 +17,14 @@ pub mod summary;
 pub mod switches;
 pub mod tick_gate;
 
+/// Catches SIGINT and SIGTERM from now on (iceoryx2's handler records them for
+/// [`termination_requested`]); call it first thing in `main`. Without it the handler is installed
+/// only at the first [`termination_requested`], and a signal that comes before (a sim asked to
+/// stop while its first tick waits for commands) kills the process without ending the run.
+pub fn catch_termination_signals() {
+    termination_requested();
+}
+
 /// True once a termination signal (SIGINT, SIGTERM) has reached this process.
 ///
 /// iceoryx2's signal handler records the signal; its flag is consumed on reading, so the answer

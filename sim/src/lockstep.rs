@@ -253,6 +253,8 @@ where
                 return Ok(());
             }
             if termination_requested() {
+                // Robots and the critic that did connect learn that the run is over.
+                self.ports.announce_run_end()?;
                 bail!("sim: stopped by signal while waiting for the swarm to connect");
             }
             if Instant::now() >= deadline {

@@ -47,6 +47,9 @@ struct Cli {
 }
 
 fn main() -> ExitCode {
+    // The launcher's Ctrl-C may come at any tick, the first included: the sim then closes the
+    // run (its end announced to every robot) instead of dying of the signal.
+    formation_ipc::catch_termination_signals();
     let cli = Cli::parse();
     match try_main(cli) {
         Ok(()) => ExitCode::SUCCESS,
