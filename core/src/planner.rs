@@ -217,14 +217,8 @@ impl Polyline {
                 break;
             }
             let (a, b) = (self.points[k - 1], self.points[k]);
-            let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
-            let span2 = dx * dx + dy * dy;
-            let t = if span2 > 0.0 {
-                (((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / span2).clamp(0.0, 1.0)
-            } else {
-                0.0
-            };
-            let s = (start + t * span2.sqrt()).min(up_to);
+            let t = crate::obstacles::nearest_on_segment(p, a, b);
+            let s = (start + t * (b[0] - a[0]).hypot(b[1] - a[1])).min(up_to);
             let q = self.at(s);
             let distance = (p[0] - q[0]).hypot(p[1] - q[1]);
             if distance < best.0 {
@@ -730,10 +724,9 @@ mod tests {
         }
     }
 
-    #[test]
-    fn the_targets_wait_for_the_robots_they_drive_only() {
-        let env = EnvConfig::default();
-        let poses: Vec<Pose> = [[2.0, 2.0], [2.5, 2.0], [2.25, 2.5]]
+    /// Three robots facing +x in a small triangle, and the slots of that triangle.
+    fn three_robots() -> (Vec<Pose>, [[f64; 2]; 3]) {
+        let poses = [[2.0, 2.0], [2.5, 2.0], [2.25, 2.5]]
             .iter()
             .map(|p| Pose {
                 x: p[0],
@@ -741,7 +734,13 @@ mod tests {
                 theta: 0.0,
             })
             .collect();
-        let slots = [[-0.25, -1.0 / 6.0], [0.25, -1.0 / 6.0], [0.0, 1.0 / 3.0]];
+        (poses, [[-0.25, -1.0 / 6.0], [0.25, -1.0 / 6.0], [0.0, 1.0 / 3.0]])
+    }
+
+    #[test]
+    fn the_targets_wait_for_the_robots_they_drive_only() {
+        let env = EnvConfig::default();
+        let (poses, slots) = three_robots();
         // Robots 0 and 1 sit on their targets, robot 2 stays put: 30 ticks later its target
         // waited near it (within the keep-up and a step), unless the planner drives only 0 and 1.
         let run = |planner: &mut Planner| {
@@ -777,15 +776,7 @@ mod tests {
     #[test]
     fn an_open_arena_gives_a_straight_formation_path() {
         let env = EnvConfig::default();
-        let poses: Vec<Pose> = [[2.0, 2.0], [2.5, 2.0], [2.25, 2.5]]
-            .iter()
-            .map(|p| Pose {
-                x: p[0],
-                y: p[1],
-                theta: 0.0,
-            })
-            .collect();
-        let slots = [[-0.25, -1.0 / 6.0], [0.25, -1.0 / 6.0], [0.0, 1.0 / 3.0]];
+        let (poses, slots) = three_robots();
         let planner = Planner::new(
             &poses,
             [6.0, 6.0],

@@ -445,16 +445,22 @@ impl Obstacles {
     }
 }
 
-/// Distance from `p` to the segment a-b.
-fn point_segment_distance(p: [f64; 2], a: [f64; 2], b: [f64; 2]) -> f64 {
+/// Where the point of the segment a-b nearest to `p` lies, as a fraction of the way from a to b
+/// (0 for a zero-length segment).
+pub(crate) fn nearest_on_segment(p: [f64; 2], a: [f64; 2], b: [f64; 2]) -> f64 {
     let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
     let span2 = dx * dx + dy * dy;
-    let t = if span2 > 0.0 {
+    if span2 > 0.0 {
         (((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / span2).clamp(0.0, 1.0)
     } else {
         0.0
-    };
-    (p[0] - a[0] - t * dx).hypot(p[1] - a[1] - t * dy)
+    }
+}
+
+/// Distance from `p` to the segment a-b.
+fn point_segment_distance(p: [f64; 2], a: [f64; 2], b: [f64; 2]) -> f64 {
+    let t = nearest_on_segment(p, a, b);
+    (p[0] - a[0] - t * (b[0] - a[0])).hypot(p[1] - a[1] - t * (b[1] - a[1]))
 }
 
 /// The radius of a robot: half the collision distance (two robots collide when their discs
