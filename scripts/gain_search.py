@@ -19,6 +19,20 @@ at a time, each the best set so far (most successful, then fewest steps) with ev
 multiplied by exp(N(0, 0.25)) and kept in RANGES: a (1+1) local search that finds the fast end
 of the front, which a hypercube of a few dozen points in five dimensions misses. (Hand-written:
 a dozen lines, seeded and deterministic; the cost is the runs, not the optimiser.)
+
+Among obstacles (--obstacles forest|passage|trap): the potential field. The same sets and local
+search over SEVEN gains, the five plus k_obstacle and obstacle_range_m (OBSTACLE_RANGES), each set
+played by `formation-play --team scripted --obstacles KIND --config SET.toml --n ... --episodes ...
+--seed ...` (in-process, seconds a set; binary from FORMATION_BIN_DIR, default target/debug; no
+reality unless --config has one, no learned point, no pace floor). Ranked by success averaged over
+N, ties by fewer collisions (obstacle + robot), then fewer steps. Writes OUT/tuned-KIND.toml (the
+winner's `[baseline]`, all seven gains, under a header with the command, seeds and score),
+OUT/front.png, OUT/search.csv and OUT/search.json; the shipped tuned potential fields are copies:
+
+  scripts/gain_search.py --obstacles forest --n 4,8,16 --episodes 20 --seed 2000 --sets 64 --refine 64 \\
+      --out runs/gain-search-forest
+  cp runs/gain-search-forest/tuned-forest.toml configs/potential-field-forest.toml
+  cp runs/gain-search-forest/front.png docs/potential_field_forest.png
 """
 
 from __future__ import annotations
@@ -27,7 +41,10 @@ import argparse
 import csv
 import json
 import math
+import os
 import random
+import shlex
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -43,34 +60,38 @@ RANGES = {
     "repulsion_range": (0.3, 0.9),
     "k_repulsion": (1.0, 6.0),
 }
+#: Among obstacles: the five and the potential field's two, with the defaults of the latter
+#: (core/src/baseline.rs).
+OBSTACLE_RANGES = {**RANGES, "k_obstacle": (0.3, 10.0), "obstacle_range_m": (0.2, 1.2)}
+OBSTACLE_GAINS = {**rr.DEFAULT_GAINS, "k_obstacle": 1.0, "obstacle_range_m": 0.5}
 #: The defaults' k_form, k_goal and k_turn multiplied together by these.
 SCALES = (0.35, 0.5, 0.6, 0.75, 0.9, 1.25)
 
 
-def gain_sets(count: int, seed: int) -> list[dict]:
+def gain_sets(count: int, seed: int, ranges: dict = RANGES, defaults: dict = rr.DEFAULT_GAINS) -> list[dict]:
     """count gain sets: defaults, the issue's softer set, the scaled family, then a hypercube."""
-    sets = [dict(rr.DEFAULT_GAINS), {**rr.DEFAULT_GAINS, "k_form": 0.75, "k_goal": 0.3, "k_turn": 1.25}]
+    sets = [dict(defaults), {**defaults, "k_form": 0.75, "k_goal": 0.3, "k_turn": 1.25}]
     for s in SCALES:
         if s != 0.5:  # 0.5 is the issue's set
-            sets.append({**rr.DEFAULT_GAINS, **{k: round(rr.DEFAULT_GAINS[k] * s, 4) for k in ("k_form", "k_goal", "k_turn")}})
+            sets.append({**defaults, **{k: round(defaults[k] * s, 4) for k in ("k_form", "k_goal", "k_turn")}})
     rng = random.Random(seed)
     rest = max(0, count - len(sets))
-    strata = {name: rng.sample(range(rest), rest) for name in rr.GAIN_NAMES}
+    strata = {name: rng.sample(range(rest), rest) for name in ranges}
     for i in range(rest):
         gains = {}
-        for name in rr.GAIN_NAMES:
-            lo, hi = RANGES[name]
+        for name in ranges:
+            lo, hi = ranges[name]
             u = (strata[name][i] + rng.random()) / rest
             gains[name] = round(math.exp(math.log(lo) + u * (math.log(hi) - math.log(lo))), 4)
         sets.append(gains)
     return sets[:count]
 
 
-def perturbed(gains: dict, rng: random.Random, sigma: float = 0.25) -> dict:
-    """gains with each multiplied by exp(N(0, sigma)), kept in RANGES."""
+def perturbed(gains: dict, rng: random.Random, sigma: float = 0.25, ranges: dict = RANGES) -> dict:
+    """gains with each multiplied by exp(N(0, sigma)), kept in the ranges."""
     out = {}
-    for name in rr.GAIN_NAMES:
-        lo, hi = RANGES[name]
+    for name in ranges:
+        lo, hi = ranges[name]
         out[name] = round(min(max(gains[name] * math.exp(rng.gauss(0.0, sigma)), lo), hi), 4)
     return out
 
@@ -83,6 +104,30 @@ def fmt_ratio(ratio) -> str:
 def rank_key(result: dict):
     """Most successful first, then fewer steps."""
     return (-round(result["success"], 9), result["steps"])
+
+
+def obstacle_rank_key(result: dict):
+    """Most successful first, then fewer collisions (obstacle + robot), then fewer steps."""
+    return (-round(result["success"], 9), round(result["collisions"], 9), result["steps"])
+
+
+def play(kind: str, config: Path, ns: list[int], episodes: int, seed: int) -> list[dict]:
+    """formation-play's scripted team among `kind` obstacles: a summary per N (the keys pooled()
+    and plot() read, plus obstacle_collisions)."""
+    binary = Path(os.environ.get("FORMATION_BIN_DIR") or rr.ROOT / "target" / "debug") / "formation-play"
+    if not binary.is_file():
+        raise SystemExit(f"error: no {binary}: cargo build -p formation-critic --bin formation-play, "
+                         "or set FORMATION_BIN_DIR")
+    cmd = [str(binary), "--team", "scripted", "--obstacles", kind, "--config", str(config),
+           "--n", ",".join(map(str, ns)), "--episodes", str(episodes), "--seed", str(seed)]
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"error: {shlex.join(cmd)} failed:\n{done.stderr}")
+    by_n = {d["n"]: d for d in map(json.loads, done.stdout.splitlines())}
+    return [{"episodes": d["episodes"], "success_rate": d["success"],
+             "collision_rate": d["robot_collisions"] + d["obstacle_collisions"],
+             "obstacle_collisions": d["obstacle_collisions"], "mean_steps_to_goal": d["steps_to_goal"]}
+            for d in (by_n[n] for n in ns)]
 
 
 def pooled(summaries: list[dict | None]) -> dict:
@@ -159,16 +204,65 @@ def plot(results: list[dict], learned: dict | None, tuned: dict, ns: list[int], 
         ax.set_ylim(-0.03, 1.03)
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("success rate")
-    axes[0][0].legend(fontsize=8, loc="lower right")
+    if axes[0][0].get_legend_handles_labels()[0]:
+        axes[0][0].legend(fontsize=8, loc="lower right")
+    else:
+        axes[0][0].text(0.5, 0.5, "no gain set reached the goal", ha="center", transform=axes[0][0].transAxes)
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
+def obstacle_report(args, kind: str, ns: list[int], results: list[dict], out: Path) -> int:
+    """The --obstacles search's tuned config, files, front plot and table."""
+    for r in results:
+        r["obstacle_collisions"] = sum(s["obstacle_collisions"] for s in r["per_n"]) / len(ns)
+    ranked = sorted(results, key=obstacle_rank_key)
+    tuned = ranked[0]
+    score = (f"success {tuned['success']:.3f}, collisions {tuned['collisions']:.3f} (obstacle {tuned['obstacle_collisions']:.3f}), "
+             f"mean steps to goal {rr.fmt_steps(None if math.isinf(tuned['steps']) else tuned['steps'])}")
+    (out / f"tuned-{kind}.toml").write_text(
+        f"# Tuned potential field for '{kind}' obstacles: the scripted baseline's seven gains that scored best in\n"
+        f"# scripts/gain_search.py's search (set {tuned['set']} of {len(results)}; most successful over the N list, ties\n"
+        "# by fewer obstacle + robot collisions, then fewer steps). Searched with\n"
+        f"#   {shlex.join(['scripts/gain_search.py', *sys.argv[1:]])}\n"
+        f"# on episodes from seed {args.seed} (search seeds; the held-out ones are 1000-1999), N = {args.n}, {args.episodes} each:\n"
+        f"# {score}.\n"
+        f"# Play: formation-play --team scripted --obstacles {kind} --config THIS_FILE --n 4,8,16 --seed 1000\n"
+        + rr.to_toml({"baseline": tuned["gains"]})
+    )
+    names = list(OBSTACLE_RANGES)
+    with open(out / "search.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["set", *names, "n", "success", "collisions", "obstacle_collisions", "steps_to_goal"])
+        for r in results:
+            for n, s in zip(ns, r["per_n"]):
+                w.writerow([r["set"], *(r["gains"][g] for g in names), n, s["success_rate"], s["collision_rate"],
+                            s["obstacle_collisions"], s["mean_steps_to_goal"]])
+    json.dump({"obstacles": kind, "ns": ns, "episodes": args.episodes, "seed": args.seed, "results": results,
+               "tuned": tuned["set"]}, open(out / "search.json", "w"), indent=1, default=str)
+    plot(results, None, tuned, ns, f"potential field among {kind} obstacles: {len(results)} gain sets, "
+         f"{args.episodes} episodes/N from seed {args.seed}", out / "front.png")
+
+    print(f"### Potential field search: {kind} (N = {args.n}, {args.episodes} episodes each from seed {args.seed})\n")
+    print("| rank | set | " + " | ".join(names) + " | success | collisions | obstacle collisions | steps to goal |")
+    print("|---" * (len(names) + 6) + "|")
+    for i, r in enumerate(ranked):
+        note = " (defaults)" if r["set"] == 0 else (" (local)" if r["local"] else "")
+        print(f"| {i + 1} | {r['set']}{note} | " + " | ".join(str(r["gains"][g]) for g in names)
+              + f" | {r['success']:.2f} | {r['collisions']:.2f} | {r['obstacle_collisions']:.2f} | "
+              f"{rr.fmt_steps(None if math.isinf(r['steps']) else r['steps'])} |")
+    print(f"\ntuned: {out}/tuned-{kind}.toml (set {tuned['set']}: {score}); front: {out}/front.png")
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--row", default="field", choices=rr.ROW_NAMES, help="grid condition to search (default field)")
+    ap.add_argument("--row", choices=rr.ROW_NAMES, help="grid condition to search (default field)")
+    ap.add_argument("--obstacles", choices=("forest", "passage", "trap"),
+                    help="search the potential field's seven gains among these obstacles with formation-play "
+                         "instead (no --row)")
     ap.add_argument("--n", default="3,12,32", help="swarm sizes, comma-separated (default 3,12,32)")
     ap.add_argument("--episodes", type=int, default=20, help="episodes per gain set and N (default 20)")
     ap.add_argument("--seed", type=int, default=2000, help="episode seed (default 2000; the held-out seeds are 1000 and up, below 2000)")
@@ -185,40 +279,57 @@ def main() -> int:
     args = ap.parse_args()
     if args.episodes < 1 or args.sets < 1 or args.refine < 0:
         ap.error("--episodes and --sets must be at least 1, --refine at least 0")
+    if args.obstacles and args.row:
+        ap.error("--row is the open arena's; --obstacles searches without a reality row")
+    if args.obstacles and args.shape:
+        ap.error("--shape is the open arena's; put the shape in --config among obstacles")
+    args.row = args.row or "field"
     if 1000 <= args.seed < 2000:
         print("gain_search.py: warning: seeds 1000-1999 are the grid's held-out episodes", file=sys.stderr)
 
     ns = rr.parse_list(args.n)
-    out = args.out or rr.ROOT / "runs" / f"gain-search-{args.row}-{time.strftime('%Y%m%d-%H%M%S')}"
+    kind = args.obstacles
+    name = kind or args.row
+    ranges, defaults, key = (OBSTACLE_RANGES, OBSTACLE_GAINS, obstacle_rank_key) if kind else (RANGES, rr.DEFAULT_GAINS, rank_key)
+    out = args.out or rr.ROOT / "runs" / f"gain-search-{name}-{time.strftime('%Y%m%d-%H%M%S')}"
     (out / "sets").mkdir(parents=True, exist_ok=True)
-    reality = rr.rows(args.field or rr.preset_path("field"), args.lab or rr.preset_path("lab"))[args.row]
+    reality = {} if kind else rr.rows(args.field or rr.preset_path("field"), args.lab or rr.preset_path("lab"))[args.row]
     base = rr.load_base(args.config)
     if args.sets_from:
         earlier = json.load(open(args.sets_from / "search.json"))
         played = sorted(earlier["results"], key=lambda r: r["set"])
-        sets, local_sets = [r["gains"] for r in played], {r["set"] for r in played if r.get("local")}
+        sets, local_sets = [{**defaults, **r["gains"]} for r in played], {r["set"] for r in played if r.get("local")}
         args.refine = 0
     else:
-        sets = gain_sets(args.sets, args.search_seed)
+        sets = gain_sets(args.sets, args.search_seed, ranges, defaults)
         local_sets = set()
 
-    progress = rr.Progress((len(sets) + args.refine) * len(ns) + (0 if args.no_learned else len(ns)))
-    print(f"gain search: {args.row}, {len(sets)} gain sets and {args.refine} of local search, N = {ns}, {args.episodes} episodes from seed {args.seed}, "
+    progress = rr.Progress((len(sets) + args.refine) * (1 if kind else len(ns)) + (0 if args.no_learned or kind else len(ns)))
+    print(f"gain search: {name}, {len(sets)} gain sets and {args.refine} of local search, N = {ns}, {args.episodes} episodes from seed {args.seed}, "
           f"binaries: {rr.bin_dir_note()}, into {out}", file=sys.stderr)
     results = []
     local = random.Random(args.search_seed + 1)
     for k in range(len(sets) + args.refine):
-        gains = sets[k] if k < len(sets) else perturbed(min(results, key=rank_key)["gains"], local)
+        gains = sets[k] if k < len(sets) else perturbed(min(results, key=key)["gains"], local, ranges=ranges)
         config = out / "sets" / f"set-{k:02d}.toml"
-        config.write_text(f"# gain set {k} of the {args.row} search (scripts/gain_search.py)\n"
+        config.write_text(f"# gain set {k} of the {name} search (scripts/gain_search.py)\n"
                           + rr.to_toml(rr.cell_config(base, reality, gains)))
-        per_n = [
-            rr.timed_run(rr.Cell(n, "scripted", config, out / "runs" / f"set-{k:02d}-n{n}", args.episodes, args.seed, shape=args.shape),
-                         progress, f"set {k:02d} N={n}")
-            for n in ns
-        ]
+        if kind:
+            start = time.monotonic()
+            per_n = play(kind, config, ns, args.episodes, args.seed)
+            p = pooled(per_n)
+            progress.step(f"set {k:02d}", {"success_rate": p["success"], "mean_steps_to_goal": None if math.isinf(p["steps"]) else p["steps"]},
+                          time.monotonic() - start)
+        else:
+            per_n = [
+                rr.timed_run(rr.Cell(n, "scripted", config, out / "runs" / f"set-{k:02d}-n{n}", args.episodes, args.seed, shape=args.shape),
+                             progress, f"set {k:02d} N={n}")
+                for n in ns
+            ]
         results.append({"set": k, "gains": gains, "per_n": per_n, "local": k >= len(sets) or k in local_sets,
                         **pooled(per_n)})
+    if kind:
+        return obstacle_report(args, kind, ns, results, out)
     floors = rr.pace_floors(out / "sets" / "set-00.toml", ns, args.episodes, args.seed, args.shape)
     results = [with_pace(r, [out / "runs" / f"set-{r['set']:02d}-n{n}" for n in ns], floors, ns) for r in results]
     learned = None
