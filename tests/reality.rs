@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 use formation_agent::run::{AgentOptions, AgentPolicy, run as run_agent};
 use formation_core::baseline::ScriptedBaseline;
 use formation_core::config::{LearnConfig, RunConfig};
+use formation_core::formation::Episodes;
 use formation_core::mission::observed_robots;
 use formation_core::observation::{Layout, Observer};
 use formation_core::physics::{Pose, integrate};
@@ -38,10 +39,15 @@ struct Streamed {
 /// Runs `N` robots in eval mode, all scripted, robot 0 played here, under the `[reality]`
 /// section `reality`; returns the launcher's outcome and the streams.
 fn run_with_reality(name: &str, reality: &str, seed: u64, episodes: u32) -> (RunOutcome, Streamed) {
+    run_with_config(name, &format!("[reality]\n{reality}"), seed, episodes)
+}
+
+/// [`run_with_reality`] with a whole config file's text.
+fn run_with_config(name: &str, config_text: &str, seed: u64, episodes: u32) -> (RunOutcome, Streamed) {
     let dir = scratch_dir(name);
     std::fs::create_dir_all(&dir).expect("scratch dir");
     let config_path = dir.join("reality.toml");
-    std::fs::write(&config_path, format!("[reality]\n{reality}")).expect("config");
+    std::fs::write(&config_path, config_text).expect("config");
     let config = RunConfig::from_toml_file(&config_path).expect("valid config");
     let run_dir = dir.join("run");
     let log = run_dir.with_extension("log");
@@ -264,6 +270,8 @@ fn position_noise_reaches_what_robots_are_told_with_the_configured_spread_and_le
         let slots: Vec<[f64; 2]> = state.slots[..N].iter().map(|s| s.map(f64::from)).collect();
         let slot_of: Vec<usize> = state.slot[..N].iter().map(|&s| s as usize).collect();
         let scene = Scene {
+            obstacles: &formation_core::obstacles::NO_OBSTACLES,
+            arena_m: 10.0,
             poses: &poses,
             commands: &commands,
             desired: &desired,
@@ -320,6 +328,72 @@ fn position_noise_reaches_what_robots_are_told_with_the_configured_spread_and_le
         "spread {spread} for sigma {sigma}"
     );
     assert_eq!(summary["lost_observations"], 0);
+    remove_scratch(&run);
+}
+
+#[test]
+fn range_noise_and_dropout_reach_the_told_scan_with_the_configured_spread_and_rate() {
+    let (sigma, dropout) = (0.05, 0.05);
+    let text = format!(
+        "[env]\nobservation = \"slot_proximity_scan\"\n[obstacles]\nkind = \"forest\"\n\
+         [reality]\nrange_noise_m = {sigma}\nrange_dropout = {dropout}\n"
+    );
+    let (run, streamed) = run_with_config("reality-ranging", &text, 7, 4);
+    assert_finished(&run);
+    let config = &streamed.config;
+    let env = &config.env;
+    let at = Layout::of(env.observation).scan().expect("a scan");
+    let range = env.scan_range_m;
+    let observer = Observer::new(env);
+    // The episodes' obstacles, drawn as the sim draws them from the run's seed.
+    let episodes: Vec<_> = Episodes::new(N, env, 7).take(4).collect();
+    let (mut errors, mut near_rays, mut dropped, mut compared) = (Vec::new(), 0usize, 0usize, 0usize);
+    for (&(episode, _), state) in &streamed.states {
+        let poses: Vec<Pose> = state.poses[..N].iter().map(|&p| Pose::from(p)).collect();
+        let slot_of: Vec<usize> = state.slot[..N].iter().map(|&s| s as usize).collect();
+        let desired: Vec<[f64; NEIGHBOURS]> = state.desired[..N].iter().map(|d| d.map(f64::from)).collect();
+        let slots: Vec<[f64; 2]> = state.slots[..N].iter().map(|s| s.map(f64::from)).collect();
+        let scene = Scene {
+            obstacles: &episodes[episode as usize].obstacles,
+            arena_m: env.effective_arena_m(N),
+            poses: &poses,
+            commands: &[(0.0, 0.0); N],
+            desired: &desired,
+            observed: &observed_robots(&slot_of),
+            goal: state.goal.map(f64::from),
+            slots: &slots,
+        };
+        for agent in 0..N {
+            let truth = observer.observation(agent, &scene);
+            let told = state.observations[agent];
+            for k in at..at + 16 {
+                let (truth_m, told_m) = (f64::from(truth[k]) * range, f64::from(told[k]) * range);
+                // Six sigmas from both ends: the clamp to [0, range] never acts.
+                if (6.0 * sigma..range - 6.0 * sigma).contains(&truth_m) {
+                    near_rays += 1;
+                    if told[k] == 1.0 {
+                        dropped += 1;
+                    } else {
+                        errors.push(told_m - truth_m);
+                    }
+                }
+            }
+        }
+        compared += 1;
+    }
+    assert!(
+        compared > 100 && near_rays > 2000,
+        "{compared} states, {near_rays} rays in range"
+    );
+    let rate = dropped as f64 / near_rays as f64;
+    assert!((rate - dropout).abs() < 0.015, "dropout rate {rate} for {dropout}");
+    let mean = errors.iter().sum::<f64>() / errors.len() as f64;
+    let spread = (errors.iter().map(|e| (e - mean).powi(2)).sum::<f64>() / errors.len() as f64).sqrt();
+    assert!(mean.abs() < 0.005, "mean {mean}");
+    assert!(
+        (spread - sigma).abs() < 0.1 * sigma,
+        "spread {spread} for sigma {sigma}"
+    );
     remove_scratch(&run);
 }
 

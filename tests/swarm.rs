@@ -219,6 +219,7 @@ fn a_gain_schedule_drives_as_the_baseline_s_law_with_the_gains_it_outputs() {
         k_turn: 1.3,
         repulsion_range: 0.51,
         k_repulsion: 1.58,
+        ..BaselineGains::default()
     }
     .to_unit()
     .map(f32::atanh);

@@ -5,6 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::{Result, bail};
 use clap::{Parser, ValueEnum};
+use formation_agent::oracle::Oracle;
 use formation_agent::policy::{Exploration, LearnedPolicy};
 use formation_agent::run::{AgentOptions, AgentPolicy, run};
 use formation_core::baseline::ScriptedBaseline;
@@ -24,6 +25,9 @@ enum PolicyKind {
     Scripted,
     /// The learned actor (weights from the critic in train mode, from --checkpoint in eval).
     Learned,
+    /// The privileged planner that knows the map: reads the sim's true poses and the episode's
+    /// obstacles, not its observation (a rival to measure against, not a robot's controller).
+    Oracle,
 }
 
 /// One robot: reads only its own observations over iceoryx2, keeps the last H, and publishes
@@ -77,6 +81,10 @@ fn try_main(cli: Cli) -> Result<()> {
     let (policy, weights_from) = match cli.policy {
         PolicyKind::Scripted => (
             AgentPolicy::Fixed(Box::new(ScriptedBaseline::new(&config.env, config.baseline))),
+            None,
+        ),
+        PolicyKind::Oracle => (
+            AgentPolicy::Oracle(Box::new(Oracle::new(cli.agent, &config.env, config.baseline))),
             None,
         ),
         PolicyKind::Learned => {

@@ -8,7 +8,7 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use formation_ipc::services::{self, FileDescriptorBased, RunIdentity, Sizing};
 use formation_ipc::tick_gate::{ALL_ANSWERED_EVENT_ID, Answer, TickGate};
-use formation_protocol::wire::{CommandMsg, FLAG_HELLO, Header, ObservationMsg, WeightsHeader};
+use formation_protocol::wire::{CommandMsg, FLAG_HELLO, Header, ObservationMsg, ObstaclesMsg, TruthMsg, WeightsHeader};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
@@ -24,6 +24,8 @@ pub struct AgentPorts<S: Service> {
     commands: Publisher<S, CommandMsg, ()>,
     command_ready: Notifier<S>,
     weights: Option<Subscriber<S, [f32], WeightsHeader>>,
+    /// The true poses and the episode's obstacles, for the privileged planner.
+    truth: Option<TruthPorts<S>>,
     identity: RunIdentity,
     /// The sim's tick gate, once it is found (a sim on another host has none here).
     gate: Option<TickGate>,
@@ -34,6 +36,14 @@ pub struct AgentPorts<S: Service> {
     bell_seen: u32,
     /// Random per process start, so the sim tells a restarted robot from its predecessor.
     pub session: u32,
+}
+
+/// What the privileged planner reads beyond its robot's observation.
+struct TruthPorts<S: Service> {
+    truth: Subscriber<S, TruthMsg, ()>,
+    obstacles: Subscriber<S, ObstaclesMsg, ()>,
+    latest_truth: TruthMsg,
+    latest_obstacles: ObstaclesMsg,
 }
 
 impl<S: Service> AgentPorts<S>
@@ -59,6 +69,7 @@ where
         };
         Ok(Self {
             agent,
+            truth: None,
             observations: services::observation_stream(node, sizing, agent)?
                 .subscriber_builder()
                 .buffer_size(16)
@@ -84,6 +95,40 @@ where
             bell_seen: 0,
             session: rand::random_range(1..u32::MAX),
         })
+    }
+
+    /// Also subscribes to the true poses and the episodes' obstacles (a privileged planner).
+    pub fn read_truth(&mut self, node: &Node<S>, sizing: &Sizing) -> Result<()> {
+        let agent = self.agent;
+        self.truth = Some(TruthPorts {
+            truth: services::truth_stream(node, sizing)?
+                .subscriber_builder()
+                .create()
+                .with_context(|| format!("agent {agent}: truth subscriber"))?,
+            obstacles: services::obstacles_stream(node, sizing)?
+                .subscriber_builder()
+                .create()
+                .with_context(|| format!("agent {agent}: obstacles subscriber"))?,
+            latest_truth: TruthMsg::default(),
+            latest_obstacles: ObstaclesMsg::default(),
+        });
+        Ok(())
+    }
+
+    /// The newest true poses and obstacles received (the sim publishes a tick's truth before
+    /// its observations, and an episode's obstacles before its first tick); `None` unless
+    /// [`AgentPorts::read_truth`] subscribed.
+    pub fn latest_truth(&mut self) -> Result<Option<(&TruthMsg, &ObstaclesMsg)>> {
+        let Some(ports) = &mut self.truth else {
+            return Ok(None);
+        };
+        while let Some(sample) = ports.truth.receive().context("receive truth")? {
+            ports.latest_truth = *sample.payload();
+        }
+        while let Some(sample) = ports.obstacles.receive().context("receive obstacles")? {
+            ports.latest_obstacles = *sample.payload();
+        }
+        Ok(Some((&ports.latest_truth, &ports.latest_obstacles)))
     }
 
     /// Sleeps until the sim signals an observation (on the bell once this robot joined it, on

@@ -11,6 +11,7 @@ use formation_protocol::wire::*;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::prelude::*;
 
+use crate::oracle::Oracle;
 use crate::policy::{LearnedPolicy, Policy};
 use crate::ports::AgentPorts;
 use formation_core::observation::Layout;
@@ -40,19 +41,48 @@ pub struct AgentStats {
     pub policy_version: u32,
 }
 
-/// Either kind of policy; only the learned one takes weights.
+/// What drives the robot; only the learned actor takes weights, only the oracle reads the
+/// true state.
 pub enum AgentPolicy {
     /// The scripted baseline (or any fixed controller).
     Fixed(Box<dyn Policy>),
     /// The learned actor.
     Learned(Box<LearnedPolicy>),
+    /// The privileged planner that knows the map.
+    Oracle(Box<Oracle>),
 }
 
 impl AgentPolicy {
-    fn policy(&mut self) -> &mut dyn Policy {
+    /// The command for the tick `header` names.
+    fn command(
+        &mut self,
+        history: &ObservationHistory,
+        header: &Header,
+        truth: Option<(&TruthMsg, &ObstaclesMsg)>,
+    ) -> Result<(f64, f64)> {
         match self {
-            AgentPolicy::Fixed(policy) => policy.as_mut(),
-            AgentPolicy::Learned(policy) => policy.as_mut(),
+            AgentPolicy::Fixed(policy) => policy.command(history),
+            AgentPolicy::Learned(policy) => policy.command(history),
+            // Without the tick's truth (not arrived), the robot waits still for the next tick.
+            AgentPolicy::Oracle(oracle) => Ok(truth
+                .and_then(|(truth, obstacles)| oracle.command(header, truth, obstacles))
+                .unwrap_or((0.0, 0.0))),
+        }
+    }
+
+    fn version(&self) -> u32 {
+        match self {
+            AgentPolicy::Fixed(policy) => policy.version(),
+            AgentPolicy::Learned(policy) => policy.version(),
+            AgentPolicy::Oracle(_) => 0,
+        }
+    }
+
+    fn begin_episode(&mut self, episode: u32, explore: bool) {
+        match self {
+            AgentPolicy::Fixed(policy) => policy.begin_episode(episode, explore),
+            AgentPolicy::Learned(policy) => policy.begin_episode(episode, explore),
+            AgentPolicy::Oracle(_) => {}
         }
     }
 }
@@ -67,6 +97,9 @@ where
     let obs_dim = Layout::of(options.config.env.observation).dim();
     let sizing = Sizing::new(options.n_agents, options.config.ticks.critic_window, obs_dim);
     let mut ports = AgentPorts::open(&node, identity, &sizing, agent, options.weights_from)?;
+    if matches!(policy, AgentPolicy::Oracle(_)) {
+        ports.read_truth(&node, &sizing)?;
+    }
     ports.greet()?;
 
     let mut history = ObservationHistory::new(options.config.env.history, obs_dim);
@@ -109,9 +142,7 @@ where
             if msg.header.has(FLAG_EPISODE_START) || episode != Some(msg.header.episode) {
                 episode = Some(msg.header.episode);
                 history.reset(&msg.obs);
-                policy
-                    .policy()
-                    .begin_episode(msg.header.episode, !msg.header.has(FLAG_EVAL_EPISODE));
+                policy.begin_episode(msg.header.episode, !msg.header.has(FLAG_EVAL_EPISODE));
             } else {
                 history.push(&msg.obs);
             }
@@ -144,8 +175,8 @@ where
                 }
             }
         }
-        let (v, w) = policy.policy().command(&history)?;
-        let version = policy.policy().version();
+        let (v, w) = policy.command(&history, &header, ports.latest_truth()?)?;
+        let version = policy.version();
         ports.send(CommandMsg {
             header: Header::new(header.episode, header.tick, 0),
             policy_version: version,

@@ -8,7 +8,11 @@
 //!   the observation model has one (exact at any N), else k_goal (g - c) with c = (q_1 + q_2) / 3
 //!   the centroid of the robot's triangle (exact for N = 3 only);
 //! * repulsion from any neighbour closer than `repulsion_range`, and from the nearest robot it
-//!   does not track when the observation model reports one.
+//!   does not track when the observation model reports one;
+//! * among obstacles (a model with a range sensor, `slot_proximity_scan`): a potential field,
+//!   each ray that reads r < `obstacle_range_m` pushing back along the ray by
+//!   k_obstacle (`obstacle_range_m` - r), except rays whose hit is explained by a robot the
+//!   robot tracks (its neighbours, the nearest other robot).
 //!
 //! The desired velocity u is then tracked by a unicycle: turn towards u, drive forward with
 //! the component of u along the heading (never backwards).
@@ -33,6 +37,11 @@ pub struct BaselineGains {
     pub repulsion_range: f64,
     /// Repulsion gain, 1/s.
     pub k_repulsion: f64,
+    /// Obstacle repulsion gain of the potential field, 1/s (per ray; not one of the five gains a
+    /// gain schedule outputs).
+    pub k_obstacle: f64,
+    /// Rays that read less than this push the robot away, metres.
+    pub obstacle_range_m: f64,
 }
 
 impl Default for BaselineGains {
@@ -43,9 +52,15 @@ impl Default for BaselineGains {
             k_turn: 2.5,
             repulsion_range: 0.5,
             k_repulsion: 3.0,
+            k_obstacle: 1.0,
+            obstacle_range_m: 0.5,
         }
     }
 }
+
+/// How far from a tracked robot's centre a ray's hit still counts as that robot, beyond its
+/// radius, metres (the robot moved within the tick; a hit on it is not an obstacle).
+const TRACKED_HIT_SLACK_M: f64 = 0.1;
 
 /// The range of each gain (in the order of [`BaselineGains::to_unit`]) that a gain-scheduling
 /// actor's output spans, log-uniformly from -1 to 1: the default gains, the searched sets' and
@@ -73,7 +88,8 @@ impl BaselineGains {
         ]
     }
 
-    /// The gains of five values in the order of [`BaselineGains::values`].
+    /// The gains of five values in the order of [`BaselineGains::values`], with the default
+    /// obstacle gains.
     pub fn from_values(values: [f64; 5]) -> Self {
         let [k_form, k_goal, k_turn, repulsion_range, k_repulsion] = values;
         Self {
@@ -82,6 +98,7 @@ impl BaselineGains {
             k_turn,
             repulsion_range,
             k_repulsion,
+            ..Self::default()
         }
     }
 
@@ -136,6 +153,18 @@ impl BaselineGains {
                 self.k_repulsion >= 0.0,
                 "must be >= 0",
             ),
+            (
+                "baseline.k_obstacle",
+                self.k_obstacle,
+                self.k_obstacle >= 0.0,
+                "must be >= 0",
+            ),
+            (
+                "baseline.obstacle_range_m",
+                self.obstacle_range_m,
+                self.obstacle_range_m >= 0.0,
+                "must be >= 0",
+            ),
         ] {
             if !(value.is_finite() && ok) {
                 return Err(ConfigError::Invalid {
@@ -157,6 +186,8 @@ pub struct ScriptedBaseline {
     proximity_range: f64,
     v_max: f64,
     w_max: f64,
+    scan_range: f64,
+    robot_radius: f64,
 }
 
 impl ScriptedBaseline {
@@ -168,6 +199,8 @@ impl ScriptedBaseline {
             proximity_range: env.proximity_range_m,
             v_max: env.v_max,
             w_max: env.w_max,
+            scan_range: env.scan_range_m,
+            robot_radius: crate::obstacles::robot_radius_m(env),
         }
     }
 
@@ -193,6 +226,7 @@ impl ScriptedBaseline {
             centroid[0] += q[0] / (NEIGHBOURS + 1) as f64;
             centroid[1] += q[1] / (NEIGHBOURS + 1) as f64;
         }
+        let mut nearest_other = None;
         if let Some(near) = view.proximity() {
             // `near` is (1 - d/R) along the unit vector to the robot: push away inside R's
             // share that is also inside the repulsion range.
@@ -202,7 +236,14 @@ impl ScriptedBaseline {
                 let push = g.k_repulsion * (g.repulsion_range - dist).max(0.0);
                 u[0] -= push * near[0] / closeness;
                 u[1] -= push * near[1] / closeness;
+                nearest_other = Some([near[0] / closeness * dist, near[1] / closeness * dist]);
             }
+        }
+        if let Some(scan) = view.scan() {
+            let tracked = [view.neighbour(0).position, view.neighbour(1).position];
+            let push = self.obstacle_push(scan, tracked.iter().chain(nearest_other.iter()));
+            u[0] += push[0];
+            u[1] += push[1];
         }
         let goal = view.goal();
         let target = match view.slot() {
@@ -215,6 +256,32 @@ impl ScriptedBaseline {
             to_goal = [to_goal[0] * self.v_max / speed, to_goal[1] * self.v_max / speed];
         }
         [u[0] + to_goal[0], u[1] + to_goal[1]]
+    }
+
+    /// The potential field's push from the rays of `scan` (normalised ranges) that read less
+    /// than `obstacle_range_m`, leaving out hits within a robot's radius (and some slack) of
+    /// a `tracked` robot's centre.
+    fn obstacle_push<'a>(&self, scan: &[f32], tracked: impl Iterator<Item = &'a [f64; 2]> + Clone) -> [f64; 2] {
+        let g = self.gains;
+        let mut push = [0.0f64; 2];
+        let rays = scan.len();
+        for (k, &reading) in scan.iter().enumerate() {
+            let range = f64::from(reading) * self.scan_range;
+            if range >= g.obstacle_range_m {
+                continue;
+            }
+            let (s, c) = (std::f64::consts::TAU * k as f64 / rays as f64).sin_cos();
+            let hit = [range * c, range * s];
+            let explained = tracked
+                .clone()
+                .any(|q| (hit[0] - q[0]).hypot(hit[1] - q[1]) < self.robot_radius + TRACKED_HIT_SLACK_M);
+            if !explained {
+                let strength = g.k_obstacle * (g.obstacle_range_m - range);
+                push[0] -= strength * c;
+                push[1] -= strength * s;
+            }
+        }
+        push
     }
 
     /// The (v, w) command for the newest observation, clamped to the robot's limits.
@@ -296,6 +363,7 @@ mod tests {
                 k_turn: 1.3015,
                 repulsion_range: 0.5084,
                 k_repulsion: 1.58,
+                ..BaselineGains::default()
             },
         ] {
             gains.check_schedulable().expect("inside the ranges");

@@ -11,11 +11,16 @@ use serde::{Deserialize, Serialize};
 use formation_protocol::{MAX_AGENTS, MIN_AGENTS};
 
 use crate::baseline::BaselineGains;
+use crate::obstacles::{ObstacleConfig, ObstacleKind, min_goal_distance_m};
 use crate::reality::RealityConfig;
 
 /// Everything a run is configured by. Unknown keys are rejected.
+///
+/// In a file the obstacles are a section of their own, `[obstacles]`; in memory they are
+/// `env.obstacles`, since every function that draws or plays an episode reads them with the rest
+/// of the task.
 #[derive(Serialize, Deserialize, Clone, Debug, Default, PartialEq)]
-#[serde(deny_unknown_fields, default)]
+#[serde(from = "RunConfigFile", into = "RunConfigFile")]
 pub struct RunConfig {
     /// Physics, task and reward.
     pub env: EnvConfig,
@@ -30,6 +35,49 @@ pub struct RunConfig {
     pub reality: RealityConfig,
     /// Gains of the scripted baseline.
     pub baseline: BaselineGains,
+}
+
+/// [`RunConfig`] as a file spells it: `[obstacles]` beside `[env]`.
+#[derive(Serialize, Deserialize, Clone, Debug, Default)]
+#[serde(deny_unknown_fields, default)]
+struct RunConfigFile {
+    env: EnvConfig,
+    obstacles: ObstacleConfig,
+    ticks: TickConfig,
+    learn: LearnConfig,
+    view: ViewConfig,
+    reality: RealityConfig,
+    baseline: BaselineGains,
+}
+
+impl From<RunConfigFile> for RunConfig {
+    fn from(file: RunConfigFile) -> Self {
+        Self {
+            env: EnvConfig {
+                obstacles: file.obstacles,
+                ..file.env
+            },
+            ticks: file.ticks,
+            learn: file.learn,
+            view: file.view,
+            reality: file.reality,
+            baseline: file.baseline,
+        }
+    }
+}
+
+impl From<RunConfig> for RunConfigFile {
+    fn from(config: RunConfig) -> Self {
+        Self {
+            obstacles: config.env.obstacles.clone(),
+            env: config.env,
+            ticks: config.ticks,
+            learn: config.learn,
+            view: config.view,
+            reality: config.reality,
+            baseline: config.baseline,
+        }
+    }
 }
 
 /// The environment: unicycle robots, formation, goal and the paper's reward table (Table I).
@@ -96,6 +144,13 @@ pub struct EnvConfig {
     /// default 0.35). Larger re-forms sooner with robots moving more at once; a very large value
     /// (1000) gives the step change of old: every target jumps in one tick.
     pub morph_speed: f64,
+    /// Longest range of the `slot_proximity_scan` model's range sensor, metres (> 0; default
+    /// 2): a ray that meets nothing nearer reads this.
+    pub scan_range_m: f64,
+    /// The episodes' obstacles: the `[obstacles]` section of a run's file (never written under
+    /// `[env]`).
+    #[serde(skip)]
+    pub obstacles: ObstacleConfig,
 }
 
 impl Default for EnvConfig {
@@ -125,6 +180,8 @@ impl Default for EnvConfig {
             shape_changes: 0,
             change_shapes: FormationShape::KINDS.to_vec(),
             morph_speed: 0.35,
+            scan_range_m: 2.0,
+            obstacles: ObstacleConfig::default(),
         }
     }
 }
@@ -145,6 +202,9 @@ pub enum ObservationModel {
     /// since it is what lets one policy drive any number of robots.
     #[default]
     SlotProximity,
+    /// The `slot_proximity` floats and a range sensor's 16 rays (32 floats): what a robot needs
+    /// among obstacles.
+    SlotProximityScan,
 }
 
 impl ObservationModel {
@@ -154,12 +214,13 @@ impl ObservationModel {
             Self::Paper => "paper",
             Self::Slot => "slot",
             Self::SlotProximity => "slot_proximity",
+            Self::SlotProximityScan => "slot_proximity_scan",
         }
     }
 
     /// Reads a name written by [`ObservationModel::as_str`].
     pub fn from_name(name: &str) -> Option<Self> {
-        [Self::Paper, Self::Slot, Self::SlotProximity]
+        [Self::Paper, Self::Slot, Self::SlotProximity, Self::SlotProximityScan]
             .into_iter()
             .find(|model| model.as_str() == name)
     }
@@ -226,8 +287,25 @@ impl EnvConfig {
     /// The arena side actually used for `n_agents`: large swarms need room for their closed
     /// strip of robots plus the goal distance, so the arena grows to fit them.
     pub fn effective_arena_m(&self, n_agents: usize) -> f64 {
-        let needed = 2.0 * (self.formation_reach_m(n_agents) + self.goal_max_m + 1.0);
+        let needed = 2.0 * (self.formation_reach_m(n_agents) + self.goal_range_m(n_agents).1 + 1.0);
         self.arena_m.max(needed)
+    }
+
+    /// The nearest and farthest goal from the start centroid for `n_agents`, metres:
+    /// [`goal_min_m`, `goal_max_m`], moved out to the obstacles' own minimum
+    /// ([`min_goal_distance_m`]) when that is farther, keeping its width.
+    ///
+    /// [`goal_min_m`]: EnvConfig::goal_min_m
+    /// [`goal_max_m`]: EnvConfig::goal_max_m
+    pub fn goal_range_m(&self, n_agents: usize) -> (f64, f64) {
+        let needed = min_goal_distance_m(&self.obstacles, self.obstacles.kind, n_agents, self);
+        let shift = (needed - self.goal_min_m).max(0.0);
+        (self.goal_min_m + shift, self.goal_max_m + shift)
+    }
+
+    /// Whether the episodes have obstacles.
+    pub fn has_obstacles(&self) -> bool {
+        self.obstacles.kind != ObstacleKind::None
     }
 
     /// The time limit of an episode of `n_agents`, steps: `max_steps`, plus for each shape
@@ -681,7 +759,13 @@ impl EnvConfig {
             e.morph_speed,
             "must be > 0 (a fraction of v_max)",
         )?;
-        Ok(())
+        check(
+            positive(e.scan_range_m),
+            "env.scan_range_m",
+            e.scan_range_m,
+            "must be > 0",
+        )?;
+        e.obstacles.validate()
     }
 }
 

@@ -172,6 +172,8 @@ mod tests {
     /// Robot 0 faces +y; the centroid is (1, 1); the goal is 2 m along +y from it.
     fn three_robots() -> Scene<'static> {
         Scene {
+            obstacles: &crate::obstacles::NO_OBSTACLES,
+            arena_m: 10.0,
             poses: &POSES,
             commands: &COMMANDS,
             desired: &DESIRED,
@@ -226,6 +228,8 @@ mod tests {
         // with a fourth robot out, far away, the three members' tokens are the same floats.
         let poses = [POSES[0], POSES[1], POSES[2], pose(9.0, -7.0, 1.0)];
         let four = Scene {
+            obstacles: &crate::obstacles::NO_OBSTACLES,
+            arena_m: 10.0,
             poses: &poses,
             commands: &[(0.0, 0.0); 4],
             desired: &[DESIRED[0], DESIRED[1], DESIRED[2], [0.0; NEIGHBOURS]],

@@ -7,6 +7,10 @@ use formation_protocol::{NEIGHBOURS, neighbours};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
+use crate::obstacles::{
+    ObstacleKind, Obstacles, clearance_m, draw as draw_obstacles, drawn_kind, episode_steps_with_obstacles,
+    obstacle_seed,
+};
 use crate::physics::{Pose, wrap_angle};
 use crate::shapes::draw_shape;
 
@@ -26,6 +30,13 @@ pub struct EpisodeInit {
     pub changes: Vec<ShapeChange>,
     /// What the start formation is: its kind (`mixed` resolved), turn and size.
     pub spec: FormationSpec,
+    /// The episode's obstacles (none unless `env.obstacles.kind` says otherwise).
+    pub obstacles: Obstacles,
+    /// The kind of obstacles drawn (`mixed` resolved; `none` without obstacles).
+    pub obstacle_kind: ObstacleKind,
+    /// The episode's time limit, steps ([`EnvConfig::episode_steps`] in the open arena,
+    /// [`episode_steps_with_obstacles`] among obstacles).
+    pub time_limit: u32,
 }
 
 /// What a formation is, beyond its slots: the mission planner draws the same formation again
@@ -63,8 +74,9 @@ const WALL_MARGIN_M: f64 = 0.3;
 /// The shape changes of an episode of `n` robots starting as `init`: `env.shape_changes`
 /// distinct ticks in [20, max_steps - 50], each with a shape drawn uniformly from
 /// `env.change_shapes` at a random size (the shape's own) and orientation. A draw whose slots
-/// around the goal leave the arena (a long line of a large swarm) is drawn again, up to 64
-/// times, and then the change keeps the episode's first shape (its slots at the goal).
+/// around the goal leave the arena (a long line of a large swarm) or come within the clearance
+/// of an obstacle is drawn again, up to 64 times, and then the change keeps the episode's first
+/// shape (its slots at the goal, clear by construction).
 pub fn shape_changes<R: Rng>(n: usize, init: &EpisodeInit, env: &EnvConfig, rng: &mut R) -> Vec<ShapeChange> {
     if env.shape_changes == 0 {
         return Vec::new();
@@ -76,11 +88,12 @@ pub fn shape_changes<R: Rng>(n: usize, init: &EpisodeInit, env: &EnvConfig, rng:
         .map(|k| 20 + k as u32)
         .collect();
     ticks.sort_unstable();
+    let clearance = clearance_m(env);
     let fits = |offsets: &[[f64; 2]]| {
         offsets.iter().all(|o| {
-            [init.goal[0] + o[0], init.goal[1] + o[1]]
-                .iter()
-                .all(|v| (WALL_MARGIN_M..=arena - WALL_MARGIN_M).contains(v))
+            let slot = [init.goal[0] + o[0], init.goal[1] + o[1]];
+            slot.iter().all(|v| (WALL_MARGIN_M..=arena - WALL_MARGIN_M).contains(v))
+                && init.obstacles.is_clear(slot, clearance)
         })
     };
     ticks
@@ -109,7 +122,8 @@ pub fn shape_changes<R: Rng>(n: usize, init: &EpisodeInit, env: &EnvConfig, rng:
 }
 
 /// A random episode: a shape of the configured kind, rotated to a common random heading, placed
-/// at a random centroid, with each robot's heading jittered, and a goal in the arena.
+/// at a random centroid, with each robot's heading jittered, and a goal in the arena
+/// ([`EnvConfig::goal_range_m`] away). No obstacles yet: [`add_obstacles`] draws them.
 pub fn random_episode<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> EpisodeInit {
     let arena = env.effective_arena_m(n);
     // `mixed` drawn here, as `draw_shape` would, so the episode knows its kind.
@@ -123,13 +137,14 @@ pub fn random_episode<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> Episode
     let margin = (reach + 0.5).min(0.5 * arena - 0.01);
     let heading = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
     let (s, c) = heading.sin_cos();
+    let (goal_min, goal_max) = env.goal_range_m(n);
     for attempt in 0u32.. {
         let centre = [
             rng.random_range(margin..arena - margin),
             rng.random_range(margin..arena - margin),
         ];
         let goal_angle = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
-        let goal_dist = rng.random_range(env.goal_min_m..=env.goal_max_m);
+        let goal_dist = rng.random_range(goal_min..=goal_max);
         let goal = [
             centre[0] + goal_dist * goal_angle.cos(),
             centre[1] + goal_dist * goal_angle.sin(),
@@ -171,20 +186,54 @@ pub fn random_episode<R: Rng>(n: usize, env: &EnvConfig, rng: &mut R) -> Episode
                 orientation: heading,
                 scale: 1.0,
             },
+            obstacles: Obstacles::none(),
+            obstacle_kind: ObstacleKind::None,
+            time_limit: env.episode_steps(n),
         };
     }
     unreachable!("the attempt counter is unbounded")
 }
 
+/// Draws episode `episode`'s obstacles into `init` (a run seeded `seed`), from their own stream
+/// ([`obstacle_seed`]), and sets its time limit for them; nothing changes with kind `none`.
+pub fn add_obstacles(init: &mut EpisodeInit, env: &EnvConfig, seed: u64, episode: u64) {
+    let kind = env.obstacles.kind;
+    if kind == ObstacleKind::None {
+        return;
+    }
+    let n = init.poses.len();
+    let obstacle_seed = obstacle_seed(seed, episode);
+    let starts: Vec<[f64; 2]> = init.poses.iter().map(|p| [p.x, p.y]).collect();
+    init.obstacles = draw_obstacles(
+        &env.obstacles,
+        kind,
+        &starts,
+        init.goal,
+        &init.slots,
+        env,
+        obstacle_seed,
+    );
+    init.obstacle_kind = drawn_kind(kind, obstacle_seed);
+    let n_f = n as f64;
+    let centroid = starts
+        .iter()
+        .fold([0.0, 0.0], |c, p| [c[0] + p[0] / n_f, c[1] + p[1] / n_f]);
+    let distance = (init.goal[0] - centroid[0]).hypot(init.goal[1] - centroid[1]);
+    init.time_limit = episode_steps_with_obstacles(init.obstacle_kind, distance, n, env);
+}
+
 /// The episodes of a run, in order: episode k is the k-th [`random_episode`] drawn from one
-/// generator seeded with the run's seed, with its [`shape_changes`] drawn from a second
-/// generator (seeded with the run's seed mixed with a constant). The sim plays these, and the
+/// generator seeded with the run's seed, its obstacles ([`add_obstacles`]) from a stream of
+/// their own, and its [`shape_changes`] drawn from a second generator (seeded with the run's
+/// seed mixed with a constant). The sim plays these, and the
 /// critic's model selection plays the first K of its own seed, so both start every episode
 /// from the same function.
 #[derive(Debug, Clone)]
 pub struct Episodes {
     n: usize,
     env: EnvConfig,
+    seed: u64,
+    episode: u64,
     rng: StdRng,
     changes_rng: StdRng,
 }
@@ -195,6 +244,8 @@ impl Episodes {
         Self {
             n,
             env: env.clone(),
+            seed,
+            episode: 0,
             rng: StdRng::seed_from_u64(seed),
             changes_rng: StdRng::seed_from_u64(seed ^ CHANGES_STREAM),
         }
@@ -207,6 +258,8 @@ impl Iterator for Episodes {
     /// Never `None`: a run may play as many episodes as it likes.
     fn next(&mut self) -> Option<EpisodeInit> {
         let mut init = random_episode(self.n, &self.env, &mut self.rng);
+        add_obstacles(&mut init, &self.env, self.seed, self.episode);
+        self.episode += 1;
         init.changes = shape_changes(self.n, &init, &self.env, &mut self.changes_rng);
         Some(init)
     }
@@ -248,7 +301,14 @@ mod tests {
                 for (pose, slot) in init.poses.iter().zip(&init.slots) {
                     assert!((pose.x - start[0] - slot[0]).hypot(pose.y - start[1] - slot[1]) < 1e-9);
                 }
-                let c = conditions(&init.poses, &init.desired, &index_neighbours(n), init.goal, &env);
+                let c = conditions(
+                    &init.poses,
+                    &init.desired,
+                    &index_neighbours(n),
+                    init.goal,
+                    &init.obstacles,
+                    &env,
+                );
                 assert!(c.in_formation && !c.collision, "{:?} n={n}: {c:?}", env.shape);
                 for row in &init.desired {
                     for &d in row {
@@ -313,6 +373,7 @@ mod tests {
                 assert_eq!(
                     &EpisodeInit {
                         changes: Vec::new(),
+                        time_limit: before.time_limit,
                         ..after.clone()
                     },
                     before,

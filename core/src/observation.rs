@@ -3,13 +3,14 @@
 //!
 //! Every model starts with the paper's 12 floats; the others append to them:
 //!
-//! | floats | `paper` | `slot` | `slot_proximity` |
-//! |---|---|---|---|
-//! | 0..5 | neighbour (i+1) mod N: x, y, cos and sin of its relative heading, desired distance | same | same |
-//! | 5..10 | neighbour (i+2) mod N, the same five | same | same |
-//! | 10..12 | the formation's goal (for its centroid) | same | same |
-//! | 12..14 | - | the robot's own slot: the goal plus its offset in the goal formation | same |
-//! | 14..16 | - | - | the nearest robot that is not a neighbour, as `(1 - d/R) * unit vector` within R, else 0 |
+//! | floats | `paper` | `slot` | `slot_proximity` | `slot_proximity_scan` |
+//! |---|---|---|---|---|
+//! | 0..5 | neighbour (i+1) mod N: x, y, cos and sin of its relative heading, desired distance | same | same | same |
+//! | 5..10 | neighbour (i+2) mod N, the same five | same | same | same |
+//! | 10..12 | the formation's goal (for its centroid) | same | same | same |
+//! | 12..14 | - | the robot's own slot: the goal plus its offset in the goal formation | same | same |
+//! | 14..16 | - | - | the nearest robot that is not a neighbour, as `(1 - d/R) * unit vector` within R, else 0 | same |
+//! | 16..32 | - | - | - | the range sensor's 16 rays ([`crate::range_sensor`]), each range / `env.scan_range_m` in [0, 1] |
 //!
 //! The slot is what displacement-based formation control gives each robot: with it a robot
 //! knows where the formation's centroid must end up relative to itself at any N, which its own
@@ -17,10 +18,14 @@
 //! robots they do not track. A robot never reads the true state: the sim computes these from
 //! it and sends each robot its own.
 
+use std::cell::RefCell;
+
 use crate::config::{EnvConfig, ObservationModel};
 use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS};
 
+use crate::obstacles::robot_radius_m;
 use crate::physics::Pose;
+use crate::range_sensor::RangeSensor;
 use crate::scene::Scene;
 
 /// Floats per observed neighbour.
@@ -79,12 +84,25 @@ pub const POINT_KINDS: [Quantity; 2] = [Quantity::Position; 2];
 /// The kinds of the proximity term's block.
 pub const CLOSENESS_KINDS: [Quantity; 2] = [Quantity::Closeness; 2];
 
+/// Rays of the `slot_proximity_scan` model's range sensor (ray k at 2 pi k / 16 counter-clockwise
+/// from straight ahead). Fixed by the model: a policy's input width is the ray count.
+pub const SCAN_RAYS: usize = 16;
+
+/// The names of the scan block's floats: ray k's normalised range.
+pub const SCAN_FIELDS: [&str; SCAN_RAYS] = [
+    "r0", "r1", "r2", "r3", "r4", "r5", "r6", "r7", "r8", "r9", "r10", "r11", "r12", "r13", "r14", "r15",
+];
+
+/// The kinds of the scan block.
+pub const SCAN_KINDS: [Quantity; SCAN_RAYS] = [Quantity::Range; SCAN_RAYS];
+
 /// Every observation model, smallest first: what `layout.json` lists (a test keeps it
 /// exhaustive).
-pub const MODELS: [ObservationModel; 3] = [
+pub const MODELS: [ObservationModel; 4] = [
     ObservationModel::Paper,
     ObservationModel::Slot,
     ObservationModel::SlotProximity,
+    ObservationModel::SlotProximityScan,
 ];
 
 /// One named run of floats in an observation.
@@ -132,6 +150,12 @@ impl Layout {
         blocks.push(point("goal", self.goal(), &POINT_KINDS));
         blocks.extend(self.slot().map(|at| point("slot", at, &POINT_KINDS)));
         blocks.extend(self.proximity().map(|at| point("proximity", at, &CLOSENESS_KINDS)));
+        blocks.extend(self.scan().map(|offset| Block {
+            name: "scan".to_string(),
+            offset,
+            fields: &SCAN_FIELDS,
+            kinds: &SCAN_KINDS,
+        }));
         blocks
     }
 
@@ -143,6 +167,7 @@ impl Layout {
             Some((self.goal(), &POINT_KINDS[..])),
             self.slot().map(|at| (at, &POINT_KINDS[..])),
             self.proximity().map(|at| (at, &CLOSENESS_KINDS[..])),
+            self.scan().map(|at| (at, &SCAN_KINDS[..])),
         ];
         neighbours.chain(points.into_iter().flatten())
     }
@@ -153,6 +178,7 @@ impl Layout {
             ObservationModel::Paper => 12,
             ObservationModel::Slot => 14,
             ObservationModel::SlotProximity => 16,
+            ObservationModel::SlotProximityScan => 16 + SCAN_RAYS,
         }
     }
 
@@ -170,15 +196,25 @@ impl Layout {
     pub const fn slot(self) -> Option<usize> {
         match self.model {
             ObservationModel::Paper => None,
-            ObservationModel::Slot | ObservationModel::SlotProximity => Some(self.goal() + 2),
+            ObservationModel::Slot | ObservationModel::SlotProximity | ObservationModel::SlotProximityScan => {
+                Some(self.goal() + 2)
+            }
         }
     }
 
     /// Start of the proximity term (x, y), if the model has one.
     pub const fn proximity(self) -> Option<usize> {
         match self.model {
-            ObservationModel::SlotProximity => Some(self.goal() + 4),
+            ObservationModel::SlotProximity | ObservationModel::SlotProximityScan => Some(self.goal() + 4),
             ObservationModel::Paper | ObservationModel::Slot => None,
+        }
+    }
+
+    /// Start of the range sensor's rays, if the model has them.
+    pub const fn scan(self) -> Option<usize> {
+        match self.model {
+            ObservationModel::SlotProximityScan => Some(self.goal() + 6),
+            _ => None,
         }
     }
 }
@@ -236,6 +272,11 @@ impl<'a> ObservationView<'a> {
     pub fn proximity(&self) -> Option<[f64; 2]> {
         self.layout.proximity().map(|at| self.pair(at))
     }
+
+    /// The range sensor's rays, each range / `env.scan_range_m`, if the model has them.
+    pub fn scan(&self) -> Option<&'a [f32]> {
+        self.layout.scan().map(|at| &self.values[at..at + SCAN_RAYS])
+    }
 }
 
 /// A world-frame point expressed in the frame of a robot at `pose` (x ahead, y to the left).
@@ -245,20 +286,29 @@ pub fn to_robot_frame(pose: &Pose, point: [f64; 2]) -> [f64; 2] {
     [c * dx + s * dy, -s * dx + c * dy]
 }
 
-/// Computes observations of one model; allocation-free.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// Computes observations of one model; allocation-free once its range sensor's buffers have
+/// grown.
+#[derive(Debug, Clone)]
 pub struct Observer {
     /// The layout written.
     pub layout: Layout,
     proximity_range_m: f64,
+    /// The range sensor, for a model with a scan (its buffers change under a shared borrow).
+    sensor: Option<RefCell<RangeSensor>>,
+    robot_radius_m: f64,
 }
 
 impl Observer {
     /// The observer the run's environment asks for.
     pub fn new(env: &EnvConfig) -> Self {
+        let layout = Layout::of(env.observation);
         Self {
-            layout: Layout::of(env.observation),
+            layout,
             proximity_range_m: env.proximity_range_m,
+            sensor: layout
+                .scan()
+                .map(|_| RefCell::new(RangeSensor::new(SCAN_RAYS, env.scan_range_m))),
+            robot_radius_m: robot_radius_m(env),
         }
     }
 
@@ -300,6 +350,20 @@ impl Observer {
                 let weight = (1.0 - d / range) / d.max(1e-9);
                 out[at..at + 2].copy_from_slice(&[(rel[0] * weight) as f32, (rel[1] * weight) as f32]);
             }
+        }
+        if let (Some(at), Some(sensor)) = (self.layout.scan(), &self.sensor) {
+            let mut sensor = sensor.borrow_mut();
+            let rays = &mut out[at..at + SCAN_RAYS];
+            sensor.scan(
+                scene.obstacles,
+                scene.poses,
+                agent,
+                self.robot_radius_m,
+                scene.arena_m,
+                rays,
+            );
+            let range = sensor.range_m() as f32;
+            rays.iter_mut().for_each(|r| *r /= range);
         }
     }
 
@@ -384,6 +448,8 @@ mod tests {
         let desired = [[1.0, 0.9], [1.1, 1.2], [1.3, 1.4]];
         let slots = [[0.0; 2]; 3];
         let scene = Scene {
+            obstacles: &crate::obstacles::NO_OBSTACLES,
+            arena_m: 10.0,
             poses: &poses,
             commands: &[(0.0, 0.0); 3],
             desired: &desired,
@@ -433,6 +499,8 @@ mod tests {
         let desired = [[1.0, 1.0]; 3];
         let slots = [[1.0, 0.0], [0.0, 0.0], [0.0, 0.0]];
         let scene = Scene {
+            obstacles: &crate::obstacles::NO_OBSTACLES,
+            arena_m: 10.0,
             poses: &poses,
             commands: &[(0.0, 0.0); 3],
             desired: &desired,
@@ -462,6 +530,8 @@ mod tests {
         let desired = [[1.0, 1.0]; 5];
         let slots = [[0.0; 2]; 5];
         let scene = Scene {
+            obstacles: &crate::obstacles::NO_OBSTACLES,
+            arena_m: 10.0,
             poses: &poses,
             commands: &[(0.0, 0.0); 5],
             desired: &desired,

@@ -154,6 +154,7 @@ mod tests {
             k_turn: 1.36,
             repulsion_range: 0.3,
             k_repulsion: 2.48,
+            ..BaselineGains::default()
         };
         for (config, gains) in [
             (RealityConfig::default(), BaselineGains::default()),

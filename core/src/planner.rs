@@ -646,7 +646,7 @@ mod tests {
         let radius = robot_radius_m(&env);
         let mut counts = [0usize; 4];
         let mut planning = std::time::Duration::ZERO;
-        for (episode, init) in Episodes::new(n, &env, seed).take(episodes).enumerate() {
+        for (episode, mut init) in Episodes::new(n, &env, seed).take(episodes).enumerate() {
             let starts: Vec<[f64; 2]> = init.poses.iter().map(|p| [p.x, p.y]).collect();
             let seed = obstacle_seed(seed, episode as u64);
             let obstacles = draw(
@@ -660,10 +660,8 @@ mod tests {
             );
             let centre = crate::task::centroid(&init.poses);
             let distance = (init.goal[0] - centre[0]).hypot(init.goal[1] - centre[1]);
-            let limited = EnvConfig {
-                max_steps: episode_steps_with_obstacles(kind, distance, n, &env),
-                ..env.clone()
-            };
+            init.time_limit = episode_steps_with_obstacles(kind, distance, n, &env);
+            init.obstacles = obstacles.clone();
             let started = std::time::Instant::now();
             let mut planner = Planner::new(
                 &init.poses,
@@ -675,7 +673,7 @@ mod tests {
             );
             planning += started.elapsed();
             counts[3] += usize::from(planner.mode() == PlanMode::Column);
-            let mut world = World::new(&limited, init);
+            let mut world = World::new(&env, init);
             loop {
                 let commands = planner.commands(&world.poses, world.steps).to_vec();
                 let outcome = world.step(&commands).outcome;

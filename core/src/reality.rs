@@ -201,6 +201,11 @@ pub struct RealityConfig {
     pub controller_failure: Spread,
     /// What a robot whose controller died, or that the sim found absent, does.
     pub dead_robot: DeadRobot,
+    /// Standard deviation of the white Gaussian noise on each ray of a range sensor
+    /// (`slot_proximity_scan`), metres; a noisy range stays in [0, `env.scan_range_m`].
+    pub range_noise_m: Spread,
+    /// Probability that one ray reads nothing (`env.scan_range_m`) at a tick, in [0, 1).
+    pub range_dropout: Spread,
 }
 
 /// A file holding only a `[reality]` table (the presets `configs/reality-lab.toml` and
@@ -234,6 +239,8 @@ impl RealityConfig {
             self.command_loss,
             self.observation_loss,
             self.controller_failure,
+            self.range_noise_m,
+            self.range_dropout,
         ]
         .iter()
         .all(Spread::is_off)
@@ -282,7 +289,11 @@ impl RealityConfig {
             "reality.controller_failure",
             |v| (0.0..=1.0).contains(&v),
             "must be a probability in [0, 1]",
-        )
+        )?;
+        self.range_noise_m
+            .check("reality.range_noise_m", non_negative, "must be >= 0")?;
+        self.range_dropout
+            .check("reality.range_dropout", loss, "must be a probability in [0, 1)")
     }
 }
 
@@ -300,6 +311,8 @@ enum Stream {
     CommandRadio = 4,
     /// The episode's controller failure (robot index unused).
     Failure = 5,
+    /// A robot's range sensor noise and dropouts.
+    Ranging = 6,
 }
 
 /// The splitmix64 finaliser: a bijective mix of 64 bits.
@@ -386,6 +399,11 @@ struct RobotReality {
     observation_loss: f64,
     /// Probability that one command is lost.
     command_loss: f64,
+    /// Range sensor noise, None when off.
+    range_noise: Option<Normal<f64>>,
+    /// Probability that one ray reads nothing.
+    range_dropout: f64,
+    ranging: StdRng,
     /// The drawn delay, ticks.
     delay: u32,
     actuator: Actuator,
@@ -416,6 +434,7 @@ pub struct Reality {
     failure: Option<ControllerFailure>,
     dead_robot: DeadRobot,
     proximity_range_m: f64,
+    scan_range_m: f64,
 }
 
 impl Reality {
@@ -437,7 +456,12 @@ impl Reality {
                 let angular_accel = config.max_angular_accel_radps2.draw(&mut draw);
                 let observation_loss = config.observation_loss.draw(&mut draw);
                 let command_loss = config.command_loss.draw(&mut draw);
+                let range_sigma = config.range_noise_m.draw(&mut draw);
+                let range_dropout = config.range_dropout.draw(&mut draw);
                 RobotReality {
+                    range_noise: gaussian(range_sigma),
+                    range_dropout,
+                    ranging: stream(seed, episode, robot, Stream::Ranging),
                     position_noise: gaussian(position_sigma),
                     heading_noise: gaussian(heading_sigma),
                     observation_loss,
@@ -465,6 +489,7 @@ impl Reality {
             failure,
             dead_robot: config.dead_robot,
             proximity_range_m: env.proximity_range_m,
+            scan_range_m: env.scan_range_m,
         }
     }
 
@@ -476,8 +501,11 @@ impl Reality {
     /// is. Positions are drawn first, block by block, then headings, from one stream.
     ///
     /// A zero closeness term (no robot within range) stays zero: the true position behind it is
-    /// unknown here, so noise cannot bring a robot from beyond the range into it.
+    /// unknown here, so noise cannot bring a robot from beyond the range into it. Range readings
+    /// (normalised by `env.scan_range_m`) drop out to the full range or take Gaussian noise in
+    /// metres, kept within [0, range], from a stream of their own.
     pub fn tell(&mut self, agent: usize, layout: Layout, obs: &mut [f32]) {
+        self.tell_ranges(agent, layout, obs);
         let range = self.proximity_range_m;
         let robot = &mut self.robots[agent];
         let pairs = |kind: Quantity| {
@@ -506,6 +534,29 @@ impl Reality {
                 let angle = f64::from(obs[at + 1]).atan2(f64::from(obs[at])) + noise.sample(&mut robot.sensing);
                 let (s, c) = angle.sin_cos();
                 obs[at..at + 2].copy_from_slice(&[c as f32, s as f32]);
+            }
+        }
+    }
+
+    /// Robot `agent`'s range sensor effects on the `Range` floats of `obs`.
+    fn tell_ranges(&mut self, agent: usize, layout: Layout, obs: &mut [f32]) {
+        let robot = &mut self.robots[agent];
+        if robot.range_noise.is_none() && robot.range_dropout <= 0.0 {
+            return;
+        }
+        let scale = self.scan_range_m;
+        for (offset, kinds) in layout.kinds() {
+            for (value, _) in obs[offset..offset + kinds.len()]
+                .iter_mut()
+                .zip(kinds)
+                .filter(|(_, kind)| **kind == Quantity::Range)
+            {
+                if robot.range_dropout > 0.0 && robot.ranging.random::<f64>() < robot.range_dropout {
+                    *value = 1.0;
+                } else if let Some(noise) = robot.range_noise {
+                    let metres = f64::from(*value) * scale + noise.sample(&mut robot.ranging);
+                    *value = (metres / scale).clamp(0.0, 1.0) as f32;
+                }
             }
         }
     }
@@ -992,6 +1043,8 @@ mod tests {
             observation_loss: Spread::range(0.1, 0.3),
             controller_failure: Spread::fixed(1.0),
             dead_robot: DeadRobot::Stop,
+            range_noise_m: Spread::fixed(0.05),
+            range_dropout: Spread::fixed(0.05),
         };
         config.validate().expect("valid");
         let env = env();

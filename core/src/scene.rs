@@ -16,6 +16,7 @@
 
 use formation_protocol::{NEIGHBOURS, neighbours};
 
+use crate::obstacles::Obstacles;
 use crate::physics::Pose;
 use crate::task::present_centroid;
 
@@ -37,6 +38,11 @@ pub struct Scene<'a> {
     pub goal: [f64; 2],
     /// Each robot's offset from the goal in the goal formation, world frame.
     pub slots: &'a [[f64; 2]],
+    /// The episode's obstacles (none in the open arena).
+    pub obstacles: &'a Obstacles,
+    /// Side of the square arena the robots are kept in, metres (what a range sensor sees as
+    /// walls).
+    pub arena_m: f64,
 }
 
 /// The robots each of `n` robots observes when robot i holds slot i: (i+1) and (i+2) mod N.

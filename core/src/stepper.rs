@@ -302,6 +302,7 @@ impl EpisodeStepper {
             departures: mission.departures(),
             returns: mission.returns(),
             wall_s: transport.wall_s,
+            obstacle_collisions: u32::from(last.obstacle_collision),
         }
     }
 }
@@ -349,6 +350,9 @@ pub struct EpisodeRecord {
     pub returns: u32,
     /// Wall-clock seconds since the run started, at the episode's end.
     pub wall_s: f64,
+    /// 1 when the episode ended because a robot touched an obstacle (its outcome is then
+    /// `collision`), else 0.
+    pub obstacle_collisions: u32,
 }
 
 /// Writes an outcome by its name.

@@ -9,6 +9,7 @@ use crate::config::EnvConfig;
 use formation_protocol::NEIGHBOURS;
 use formation_protocol::wire::{OUTCOME_ABORTED, OUTCOME_COLLISION, OUTCOME_RUNNING, OUTCOME_SUCCESS, OUTCOME_TIMEOUT};
 
+use crate::obstacles::{Obstacles, robot_radius_m};
 use crate::physics::Pose;
 use crate::scene::Scene;
 
@@ -45,8 +46,11 @@ pub fn present_centroid(poses: &[Pose], observed: &[[usize; NEIGHBOURS]]) -> [f6
 pub struct Conditions {
     /// C1: every observed edge within eps_form of its desired length.
     pub in_formation: bool,
-    /// C2: two robots closer than eps_coll.
+    /// C2: two robots closer than eps_coll, or a robot's centre within eps_coll / 2 of an
+    /// obstacle's surface.
     pub collision: bool,
+    /// The part of C2 an obstacle caused: a robot touched one.
+    pub obstacle_collision: bool,
     /// C3: C1 and the centroid within eps_goal of the goal.
     pub success: bool,
     /// Mean |d_ij - dbar_ij| over the observed edges, metres.
@@ -73,12 +77,14 @@ pub fn edge_error(
 /// Evaluates C1, C2 and C3 on the robots in the formation; `observed` names each robot's two
 /// observed robots (only itself for a robot out of the formation, [`is_present`]). The edges
 /// and the centroid are the present robots'; a collision counts between two robots of which at
-/// least one is present (a robot that left and stands still is an obstacle).
+/// least one is present (a robot that left and stands still is an obstacle). Any robot whose
+/// disc (radius eps_coll / 2) touches one of `obstacles` has collided.
 pub fn conditions(
     poses: &[Pose],
     desired: &[[f64; NEIGHBOURS]],
     observed: &[[usize; NEIGHBOURS]],
     goal: [f64; 2],
+    obstacles: &Obstacles,
     env: &EnvConfig,
 ) -> Conditions {
     let n = poses.len();
@@ -101,12 +107,15 @@ pub fn conditions(
             }
         }
     }
+    let radius = robot_radius_m(env);
+    let obstacle_collision = !obstacles.is_empty() && poses.iter().any(|p| obstacles.hits_robot([p.x, p.y], radius));
     let c = present_centroid(poses, observed);
     let goal_distance = (c[0] - goal[0]).hypot(c[1] - goal[1]);
     let in_formation = max <= env.eps_form_m;
     Conditions {
         in_formation,
-        collision,
+        collision: collision || obstacle_collision,
+        obstacle_collision,
         success: in_formation && goal_distance <= env.eps_goal_m,
         mean_edge_error: sum / edges.max(1) as f64,
         max_edge_error: max,
@@ -210,7 +219,14 @@ pub struct StepResult {
 /// Scores the transition into `scene`, the `steps`-th of its episode: C1-C3 at its poses, the
 /// reward and the outcome. The sim's step and HER's relabelling both call this.
 pub fn score(scene: &Scene, steps: u32, env: &EnvConfig) -> StepResult {
-    let conditions = conditions(scene.poses, scene.desired, scene.observed, scene.goal, env);
+    let conditions = conditions(
+        scene.poses,
+        scene.desired,
+        scene.observed,
+        scene.goal,
+        scene.obstacles,
+        env,
+    );
     let (reward, outcome) = reward(&conditions, steps, env);
     StepResult {
         reward,
@@ -260,24 +276,52 @@ mod tests {
         let observed = index_neighbours(3);
         let c = centroid(&poses);
         // In formation at the goal: success.
-        let at_goal = conditions(&poses, &desired, &observed, c, &env);
+        let at_goal = conditions(&poses, &desired, &observed, c, &Obstacles::none(), &env);
         assert_eq!(reward(&at_goal, 5, &env), (env.r_goal, Outcome::Success));
         // In formation far from the goal: r_edge.
-        let far = conditions(&poses, &desired, &observed, [c[0] + 1.0, c[1]], &env);
+        let far = conditions(
+            &poses,
+            &desired,
+            &observed,
+            [c[0] + 1.0, c[1]],
+            &Obstacles::none(),
+            &env,
+        );
         assert_eq!(reward(&far, 5, &env), (env.r_edge, Outcome::Running));
         // Formation broken: penalty; at the time limit: timeout.
         let mut broken = poses.clone();
         broken[2].y += 0.5;
-        let off = conditions(&broken, &desired, &observed, [c[0] + 1.0, c[1]], &env);
+        let off = conditions(
+            &broken,
+            &desired,
+            &observed,
+            [c[0] + 1.0, c[1]],
+            &Obstacles::none(),
+            &env,
+        );
         assert_eq!(reward(&off, 5, &env), (env.r_penalty, Outcome::Running));
         assert_eq!(reward(&off, env.max_steps, &env), (env.r_penalty, Outcome::Timeout));
         // At the goal but out of formation is not success.
-        let off_goal = conditions(&broken, &desired, &observed, centroid(&broken), &env);
+        let off_goal = conditions(
+            &broken,
+            &desired,
+            &observed,
+            centroid(&broken),
+            &Obstacles::none(),
+            &env,
+        );
         assert_eq!(reward(&off_goal, 5, &env).1, Outcome::Running);
         // Collision beats everything, even at the goal and at the time limit.
         let mut crashed = poses.clone();
         crashed[1].x = 0.1;
-        let col = conditions(&crashed, &desired, &observed, centroid(&crashed), &env);
+        let col = conditions(
+            &crashed,
+            &desired,
+            &observed,
+            centroid(&crashed),
+            &Obstacles::none(),
+            &env,
+        );
         assert_eq!(reward(&col, env.max_steps, &env), (env.r_collision, Outcome::Collision));
         assert!(Outcome::Collision.is_terminal() && Outcome::Success.is_terminal() && !Outcome::Timeout.is_terminal());
         assert!(!Outcome::Aborted.is_terminal());

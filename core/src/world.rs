@@ -5,6 +5,7 @@ use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS};
 
 use crate::formation::EpisodeInit;
 use crate::observation::Observer;
+use crate::obstacles::{ObstacleKind, Obstacles};
 use crate::physics::{Pose, integrate};
 use crate::scene::{Scene, index_neighbours};
 use crate::task::{Conditions, StepResult, conditions, score};
@@ -31,6 +32,10 @@ pub struct World {
     pub slot_of: Vec<usize>,
     /// The robots each robot observes: those in the next two slots.
     pub observed: Vec<[usize; NEIGHBOURS]>,
+    /// The episode's obstacles.
+    pub obstacles: Obstacles,
+    /// The kind of obstacles the episode drew (`none` in the open arena).
+    pub obstacle_kind: ObstacleKind,
     /// The run's observation model.
     pub observer: Observer,
     /// Steps taken in this episode.
@@ -39,12 +44,12 @@ pub struct World {
 
 impl World {
     /// A world at the start of `init` (its shape changes are the mission planner's), with the
-    /// episode's time limit ([`EnvConfig::episode_steps`]) as `env.max_steps`.
+    /// episode's time limit (`init.time_limit`) as `env.max_steps`.
     pub fn new(env: &EnvConfig, init: EpisodeInit) -> Self {
         let n = init.poses.len();
         let arena_m = env.effective_arena_m(n);
         let mut env = env.clone();
-        env.max_steps = env.episode_steps(n);
+        env.max_steps = init.time_limit;
         Self {
             observer: Observer::new(&env),
             env,
@@ -56,7 +61,8 @@ impl World {
             desired: init.desired,
             goal: init.goal,
             slots: init.slots,
-
+            obstacles: init.obstacles,
+            obstacle_kind: init.obstacle_kind,
             steps: 0,
         }
     }
@@ -76,6 +82,8 @@ impl World {
             observed: &self.observed,
             goal: self.goal,
             slots: &self.slots,
+            obstacles: &self.obstacles,
+            arena_m: self.arena_m,
         }
     }
 
@@ -86,7 +94,14 @@ impl World {
 
     /// C1-C3 now.
     pub fn conditions(&self) -> Conditions {
-        conditions(&self.poses, &self.desired, &self.observed, self.goal, &self.env)
+        conditions(
+            &self.poses,
+            &self.desired,
+            &self.observed,
+            self.goal,
+            &self.obstacles,
+            &self.env,
+        )
     }
 
     /// Applies one (v, w) per robot (clamped to the limits, and kept in the scene),

@@ -12,7 +12,9 @@
 //! into it.
 
 use anyhow::{Context, Result};
+use formation_core::config::EnvConfig;
 use formation_core::mission::observed_robots;
+use formation_core::obstacles::Obstacles;
 use formation_core::physics::Pose;
 use formation_core::task::Outcome;
 use formation_ipc::services::{self, FileDescriptorBased, Sizing};
@@ -71,7 +73,12 @@ struct EpisodeBuilder {
 /// The critic's subscriptions.
 pub struct Collector<S: Service> {
     state: Subscriber<S, StateMsg, ()>,
+    obstacles: Subscriber<S, ObstaclesMsg, ()>,
     wake: Listener<S>,
+    /// The run's task (an episode's arena and, without obstacles, its time limit).
+    env: EnvConfig,
+    /// The latest episode's obstacles: its number, the obstacles and its time limit.
+    latest_obstacles: Option<(u32, Obstacles, u32)>,
     current: Option<EpisodeBuilder>,
     /// Counters so far.
     pub stats: CollectorStats,
@@ -81,14 +88,20 @@ impl<S: Service> Collector<S>
 where
     Listener<S>: FileDescriptorBased,
 {
-    /// Subscribes to the state stream.
-    pub fn new(node: &Node<S>, sizing: &Sizing) -> Result<Self> {
+    /// Subscribes to the state stream and the episodes' obstacles of a run of `env`.
+    pub fn new(node: &Node<S>, sizing: &Sizing, env: &EnvConfig) -> Result<Self> {
         Ok(Self {
             state: services::state_stream(node, sizing)?
                 .subscriber_builder()
                 .buffer_size(sizing.stream_buffer)
                 .create()
                 .context("critic: state subscriber")?,
+            obstacles: services::obstacles_stream(node, sizing)?
+                .subscriber_builder()
+                .create()
+                .context("critic: obstacles subscriber")?,
+            env: env.clone(),
+            latest_obstacles: None,
             wake: services::critic_wake_event(node, sizing)?
                 .listener_builder()
                 .create()
@@ -128,6 +141,20 @@ where
         Ok(finished)
     }
 
+    /// Episode `episode`'s obstacles and time limit: from the obstacles stream (the sim sends
+    /// them before the episode's first state), or in an open-arena run the open episode's.
+    fn obstacles_of(&mut self, episode: u32, n: usize) -> Option<(Obstacles, u32)> {
+        while let Ok(Some(sample)) = self.obstacles.receive() {
+            let msg = sample.payload();
+            self.latest_obstacles = Some((msg.header.episode, Obstacles::from_wire(msg), msg.time_limit));
+        }
+        match &self.latest_obstacles {
+            Some((number, obstacles, time_limit)) if *number == episode => Some((obstacles.clone(), *time_limit)),
+            _ if !self.env.has_obstacles() => Some((Obstacles::none(), self.env.episode_steps(n))),
+            _ => None,
+        }
+    }
+
     fn take_tick(&mut self, state: &StateMsg) -> Option<FinishedEpisode> {
         let n = state.n_agents as usize;
         let poses: Vec<Pose> = state.poses[..n].iter().map(|&p| Pose::from(p)).collect();
@@ -157,6 +184,12 @@ where
             if let Some(cut) = self.current.take() {
                 self.stats.lost_transitions += cut.episode.ticks.len() as u64;
             }
+            let Some((obstacles, time_limit)) = self.obstacles_of(state.header.episode, n) else {
+                // Published before the episode's first state; without them its collisions
+                // and time limit are unknown.
+                self.stats.lost_transitions += 1;
+                return None;
+            };
             self.current = Some(EpisodeBuilder {
                 episode: Episode {
                     number: state.header.episode,
@@ -164,6 +197,9 @@ where
                     formations: vec![formation],
                     ticks: vec![tick],
                     terminal: false,
+                    obstacles,
+                    arena_m: self.env.effective_arena_m(n),
+                    time_limit,
                 },
                 last_tick: 0,
                 episode_return: 0.0,
@@ -282,7 +318,7 @@ mod tests {
         let node = services::create_node::<local::Service>(&identity, "critic").expect("node");
         let sizing = Sizing::new(3, 8, 12);
         let env = EnvConfig::default();
-        let collector = Collector::new(&node, &sizing).expect("collector");
+        let collector = Collector::new(&node, &sizing, &env).expect("collector");
         let sim = FakeSim {
             state: services::state_stream(&node, &sizing)
                 .expect("stream")

@@ -83,7 +83,7 @@ where
         );
         Ok(Self {
             identity: identity.clone(),
-            collector: Collector::new(&node, &sizing)?,
+            collector: Collector::new(&node, &sizing, &config.env)?,
             progress: ProgressLink::new(&node, &sizing)?,
             sim_watch: services::SimWatch::new(
                 Duration::from_millis(config.ticks.sim_silence_ms),

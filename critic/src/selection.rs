@@ -24,9 +24,12 @@ use formation_core::config::{EnvConfig, LearnConfig};
 use formation_core::formation::Episodes;
 use formation_core::mission::{Attendance, Heard, NO_SLOT};
 use formation_core::observation::Layout;
+use formation_core::physics::Pose;
+use formation_core::planner::Planner;
 use formation_core::reality::{Command, Reality, RealityConfig};
 use formation_core::stepper::{EpisodeRecord, EpisodeStepper, TransportCounts};
 use formation_core::task::Outcome;
+use formation_core::world::World;
 use formation_model::actor::{ActorShape, FrozenActor};
 use formation_model::checkpoint::{SelectionScore, SizeScore};
 use formation_model::history::ObservationHistory;
@@ -170,6 +173,11 @@ impl Game {
         self.stepper.reality()
     }
 
+    /// The episode's true world (what a privileged planner reads).
+    pub(crate) fn world(&self) -> &World {
+        self.stepper.world()
+    }
+
     /// Whether the episode goes on.
     pub(crate) fn running(&self) -> bool {
         self.stepper.running()
@@ -229,6 +237,32 @@ impl Game {
     /// late, no wall time).
     pub(crate) fn record(&self, episode: u32) -> EpisodeRecord {
         self.stepper.record(episode, TransportCounts::default())
+    }
+}
+
+/// The privileged planner on the truth as the sim's truth stream carries it: planned at the
+/// episode's first tick and again when the formation changes, as each oracle agent plans.
+#[derive(Default)]
+struct TruthPlanner {
+    plan: Option<(Vec<[f64; 2]>, Planner)>,
+}
+
+impl TruthPlanner {
+    /// Every robot's command at the world's tick.
+    fn commands(&mut self, world: &World, env: &EnvConfig, gains: BaselineGains) -> Vec<Command> {
+        let wire = |v: f64| f64::from(v as f32);
+        let poses: Vec<Pose> = world
+            .poses
+            .iter()
+            .map(|p| Pose::from([p.x as f32, p.y as f32, p.theta as f32]))
+            .collect();
+        let slots: Vec<[f64; 2]> = world.slots.iter().map(|s| s.map(wire)).collect();
+        if !matches!(&self.plan, Some((planned, _)) if *planned == slots) {
+            let planner = Planner::new(&poses, world.goal.map(wire), &slots, &world.obstacles, env, gains);
+            self.plan = Some((slots, planner));
+        }
+        let (_, planner) = self.plan.as_mut().expect("planned above");
+        planner.commands(&poses, world.steps).to_vec()
     }
 }
 
@@ -320,44 +354,69 @@ pub enum Team<'a> {
     Scripted(&'a BaselineGains),
     /// Actors (one shared, or one per robot) of `shape`, on the window they read.
     Actors(&'a mut [FrozenActor], &'a ActorShape),
+    /// The privileged planner that knows the map, tracking with these gains, on the true state
+    /// as the sim's truth stream carries it (f32), as `formation-agent --policy oracle` reads it.
+    Oracle(&'a BaselineGains),
 }
 
 /// The `episodes.csv` rows of `episodes` of `n` robots driven by `team`, played in-process by
 /// the sim's rules: the rows a lockstep eval with the same seed, config and team writes, but
 /// for wall time and the transport's counts (nothing is missed or late in-process).
 pub fn episode_records(env: &EnvConfig, n: usize, episodes: &Played, team: Team) -> Result<Vec<EpisodeRecord>> {
+    episode_records_watched(env, n, episodes, team, |_, _| {})
+}
+
+/// [`episode_records`], calling `watch(episode, world)` at every tick of every episode (its
+/// first included): what draws an episode's trajectories.
+pub fn episode_records_watched(
+    env: &EnvConfig,
+    n: usize,
+    episodes: &Played,
+    team: Team,
+    mut watch: impl FnMut(usize, &World),
+) -> Result<Vec<EpisodeRecord>> {
     let env = &EnvConfig {
         history: match &team {
-            Team::Scripted(_) => env.history,
+            Team::Scripted(_) | Team::Oracle(_) => env.history,
             Team::Actors(_, shape) => shape.history,
         },
         ..env.clone()
     };
+    if let Team::Actors(actors, shape) = &team {
+        ensure!(
+            actors.len() == 1 || actors.len() == n,
+            "{} independent actors cannot drive {n} robots",
+            actors.len()
+        );
+        ensure!(
+            shape.obs_dim == Layout::of(env.observation).dim(),
+            "an actor of shape {shape:?} reads another observation model"
+        );
+    }
+    let baseline = match &team {
+        Team::Scripted(gains) => Some(ScriptedBaseline::new(env, **gains)),
+        _ => None,
+    };
+    let mut team = team;
     let mut games = episodes.games(env, n);
-    match team {
-        Team::Scripted(gains) => {
-            let baseline = ScriptedBaseline::new(env, *gains);
-            for game in &mut games {
-                while game.running() {
+    for (episode, game) in games.iter_mut().enumerate() {
+        let mut oracle = TruthPlanner::default();
+        watch(episode, game.world());
+        while game.running() {
+            match &mut team {
+                Team::Scripted(_) => {
+                    let baseline = baseline.as_ref().expect("made for the scripted team");
                     game.step(|asked| Ok(baseline.command(asked.window.latest())))?;
                 }
-            }
-        }
-        Team::Actors(actors, shape) => {
-            ensure!(
-                actors.len() == 1 || actors.len() == n,
-                "{} independent actors cannot drive {n} robots",
-                actors.len()
-            );
-            ensure!(
-                shape.obs_dim == Layout::of(env.observation).dim(),
-                "an actor of shape {shape:?} reads another observation model"
-            );
-            for game in &mut games {
-                while game.running() {
+                Team::Actors(actors, _) => {
                     game.step(|asked| actors[asked.agent % actors.len()].command(asked.window.as_flat(), env))?;
                 }
+                Team::Oracle(gains) => {
+                    let commands = oracle.commands(game.world(), env, **gains);
+                    game.step(|asked| Ok(commands[asked.agent]))?;
+                }
             }
+            watch(episode, game.world());
         }
     }
     Ok(games

@@ -62,6 +62,7 @@ fn a_gain_schedule_student_is_taught_its_teacher_s_gains() {
         k_turn: 1.3,
         repulsion_range: 0.51,
         k_repulsion: 1.58,
+        ..BaselineGains::default()
     };
     config.baseline = fast;
     let options = DistillOptions {
@@ -119,6 +120,7 @@ fn the_gain_profile_reports_the_gains_a_schedule_picks() {
         k_turn: 2.0,
         repulsion_range: 0.5,
         k_repulsion: 2.0,
+        ..BaselineGains::default()
     };
     let mut weights = vec![0.0f32; shape.parameter_count()];
     let tail = weights.len() - 5;

@@ -22,8 +22,8 @@ pub use iceoryx2_bb_posix::file_descriptor::FileDescriptorBased;
 
 use formation_protocol::MAX_AGENTS;
 use formation_protocol::wire::{
-    CommandMsg, ControlReply, ControlRequest, CriticProgressMsg, Header, ObservationMsg, PROTOCOL_VERSION, StateMsg,
-    WeightsHeader,
+    CommandMsg, ControlReply, ControlRequest, CriticProgressMsg, Header, ObservationMsg, ObstaclesMsg,
+    PROTOCOL_VERSION, StateMsg, TruthMsg, WeightsHeader,
 };
 
 pub use formation_protocol::SPARE_PORTS;
@@ -336,6 +336,16 @@ pub fn state_service_name() -> String {
     "formation/state".into()
 }
 
+/// Name of the true-pose service the privileged planners read.
+pub fn truth_service_name() -> String {
+    "formation/truth".into()
+}
+
+/// Name of the episode's obstacles service.
+pub fn obstacles_service_name() -> String {
+    "formation/obstacles".into()
+}
+
 /// Name of the event that wakes the critic to drain its subscribers.
 pub fn critic_wake_event_name() -> String {
     "formation/critic/wake".into()
@@ -479,6 +489,23 @@ fn stream<S: Service, T>(
 where
     T: std::fmt::Debug + ZeroCopySend + Copy + 'static,
 {
+    let buffer = sizing.stream_buffer.max(history);
+    stream_for(node, name, sizing, (history, buffer), 2, max_nodes)
+}
+
+/// A stream with `readers` subscribers besides the spares, a history of `history.0` samples
+/// and subscribers that hold at most `history.1`.
+fn stream_for<S: Service, T>(
+    node: &Node<S>,
+    name: &str,
+    sizing: &Sizing,
+    (history, buffer): (usize, usize),
+    readers: usize,
+    max_nodes: usize,
+) -> Result<Stream<S, T>>
+where
+    T: std::fmt::Debug + ZeroCopySend + Copy + 'static,
+{
     let service = service_name(name)?;
     let contract = sizing.contract()?;
     open_patiently(
@@ -486,10 +513,10 @@ where
             node.service_builder(&service)
                 .publish_subscribe::<T>()
                 .max_publishers(1 + SPARE_PORTS)
-                .max_subscribers(2 + SPARE_PORTS)
+                .max_subscribers(readers + SPARE_PORTS)
                 .max_nodes(max_nodes)
                 .history_size(history)
-                .subscriber_max_buffer_size(sizing.stream_buffer.max(history))
+                .subscriber_max_buffer_size(buffer)
                 .open_or_create_with_attributes(&contract)
         },
         publish_subscribe_in_creation,
@@ -549,6 +576,34 @@ pub fn command_event<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Even
 /// True-state stream.
 pub fn state_stream<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Stream<S, StateMsg>> {
     stream(node, &state_service_name(), sizing, 0, sizing.shared_nodes())
+}
+
+/// The true poses every tick, for privileged planners (one subscriber per robot at most, the
+/// view and spares; history 1: a restarted planner sees the tick at once).
+pub fn truth_stream<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Stream<S, TruthMsg>> {
+    let readers = sizing.n_agents + 2 + SPARE_PORTS;
+    stream_for(
+        node,
+        &truth_service_name(),
+        sizing,
+        (1, 2),
+        readers,
+        sizing.shared_nodes(),
+    )
+}
+
+/// The episode's obstacles, once per episode (history 1: a process that joins mid-episode gets
+/// them at once; every robot, the critic, the view and spares may read).
+pub fn obstacles_stream<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Stream<S, ObstaclesMsg>> {
+    let readers = sizing.n_agents + 2 + SPARE_PORTS;
+    stream_for(
+        node,
+        &obstacles_service_name(),
+        sizing,
+        (1, 2),
+        readers,
+        sizing.shared_nodes(),
+    )
 }
 
 /// Event that wakes the critic.

@@ -21,8 +21,16 @@ pub struct Summary {
     pub episodes: u64,
     /// Fraction of episodes that reached C3.
     pub success_rate: f64,
-    /// Fraction of episodes that ended in a collision.
+    /// Fraction of episodes that ended in a collision (between robots, or of a robot with an
+    /// obstacle).
     pub collision_rate: f64,
+    /// Episodes that ended because a robot touched an obstacle (counted in `collision_rate`
+    /// too).
+    #[serde(default)]
+    pub obstacle_collisions: u64,
+    /// The episodes' obstacles (`[obstacles]` kind: `none` in the open arena).
+    #[serde(default)]
+    pub obstacles: String,
     /// Fraction of episodes that hit the time limit.
     pub timeout_rate: f64,
     /// Mean over episodes of the mean |d_ij - dbar_ij| at the last tick, metres.
@@ -147,6 +155,7 @@ impl Summary {
             ("episodes", self.episodes.to_string()),
             ("success rate", format!("{:.3}", self.success_rate)),
             ("collision rate", format!("{:.3}", self.collision_rate)),
+            ("obstacle collisions", self.obstacle_collisions.to_string()),
             ("timeout rate", format!("{:.3}", self.timeout_rate)),
             ("final edge error (m)", format!("{:.4}", self.mean_final_edge_error_m)),
             (

@@ -11,6 +11,7 @@ use std::process::ExitCode;
 use clap::error::ErrorKind;
 use clap::{CommandFactory, Parser, ValueEnum};
 use formation_core::config::{FormationShape, validate_agent_count};
+use formation_core::obstacles::ObstacleKind;
 use formation_ipc::cli::{Mode, ViewerMode};
 use formation_ipc::placement::Placement;
 use formation_protocol::{MAX_AGENTS, MIN_AGENTS};
@@ -32,7 +33,9 @@ Examples:
   scripts/run_swarm.sh 3 --mode eval --scripted 0,1 --external 2 --run-dir runs/py
   scripts/run_swarm.sh 3 --mode eval --scripted 0,1 --ros2 2   (then: python3 -m formation_swarm ros2-node 2)
   scripts/run_swarm.sh 4 --extra-swarms 3,8,16 --config configs/any-n.toml --minutes 30
-  scripts/run_swarm.sh 12 --mode eval --reality configs/reality-field.toml --episodes 100 --seed 1000";
+  scripts/run_swarm.sh 12 --mode eval --reality configs/reality-field.toml --episodes 100 --seed 1000
+  scripts/run_swarm.sh 8 --mode eval --obstacles passage --oracle all --episodes 100 --seed 1000
+  scripts/run_swarm.sh 8 --mode eval --obstacles passage --scripted all --episodes 100 --seed 1000";
 
 /// Starts the physics process, N robot processes and the central critic, lockstep over
 /// iceoryx2 shared memory, and leaves results in a run directory. Ctrl-C ends the run cleanly:
@@ -55,6 +58,19 @@ pub struct LaunchArgs {
     /// Robots that run the scripted baseline instead of the learned actor: all, or i,j,...
     #[arg(long, value_name = "all|i,j")]
     pub scripted: Option<String>,
+    /// Robots driven by the privileged planner that knows the map (a rival to measure against:
+    /// it reads the sim's true poses and the obstacles, not its observation): all, or i,j,...
+    /// Not with --remote, --ros2 or --external on the same robot; with --scripted, each flag
+    /// takes its own robots ("all" for one of them leaves the other's robots out).
+    #[arg(long, value_name = "all|i,j")]
+    pub oracle: Option<String>,
+    /// Obstacles between the start and the goal of every episode (overrides the config's
+    /// [obstacles] kind): forest, passage (a wall with one narrow gap), trap (a U opening
+    /// towards the start), mixed (one of the three per episode) or none. Without learned
+    /// robots the robots observe slot_proximity_scan (their range sensor) unless the config
+    /// names another model.
+    #[arg(long, value_enum)]
+    pub obstacles: Option<ObstacleKind>,
     /// Robots this launcher does not start: you attach them yourself, e.g. from Python
     /// (pip install ./python; python3 -m formation_swarm robot RUN_DIR i); the sim waits
     /// ticks.startup_timeout_s (60 s) for them to greet. See README.md, "From Python".

@@ -7,7 +7,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 use anyhow::{Context, Result, anyhow, bail, ensure};
 use clap::ValueEnum;
-use formation_core::config::{FormationShape, RunConfig, extra_swarm_seed};
+use formation_core::config::{FormationShape, ObservationModel, RunConfig, extra_swarm_seed};
 use formation_core::observation::Layout;
 use formation_core::reality::RealityConfig;
 use formation_ipc::cli::{Mode, ViewerMode, parse_robot_set, robot_set_arg};
@@ -37,6 +37,8 @@ pub struct Swarm {
     pub seed: u64,
     /// Robots that run the scripted baseline.
     pub scripted: Vec<usize>,
+    /// Robots driven by the privileged planner (`formation-agent --policy oracle`).
+    pub oracle: Vec<usize>,
     /// Robots started by someone else (not members of the process set).
     pub external: Vec<usize>,
     /// Robots on a host of their own, joined over Zenoh (see [`RemoteHost`]).
@@ -152,8 +154,8 @@ impl Plan {
         let sets = RobotSets::new(&args)?;
         let ros2_link = Ros2Link::new(&args)?;
         check_extra_swarms_and_files(&args)?;
-        let config = read_config(&args)?;
-        let learned = args.n - sets.scripted.len() - sets.external.len() - sets.ros2.len();
+        let learned = args.n - sets.scripted.len() - sets.oracle.len() - sets.external.len() - sets.ros2.len();
+        let config = read_config(&args, learned)?;
         let checkpoint = checkpoint_to_load(&args, learned)?;
         let run_dir = args.run_dir.clone().unwrap_or_else(default_run_dir);
         let (config_path, launch_config) = members_config(&args, &config, &run_dir);
@@ -326,7 +328,8 @@ impl Plan {
 
     /// Whether robot `index` of swarm `swarm` runs the learned actor (if this launcher starts it).
     fn learned(&self, swarm: usize, index: usize) -> bool {
-        !self.swarms[swarm].scripted.contains(&index)
+        let s = &self.swarms[swarm];
+        !s.scripted.contains(&index) && !s.oracle.contains(&index)
     }
 
     /// Flags every member of swarm `swarm` takes.
@@ -461,6 +464,8 @@ impl Plan {
             if let (Mode::Eval, Some(path)) = (self.mode, &self.checkpoint) {
                 args.extend(["--checkpoint".into(), path.into()]);
             }
+        } else if self.swarms[swarm].oracle.contains(&index) {
+            args.extend(["--policy".into(), "oracle".into()]);
         } else {
             args.extend(["--policy".into(), "scripted".into()]);
         }
@@ -589,8 +594,10 @@ fn check_extra_swarms_and_files(args: &LaunchArgs) -> Result<()> {
 }
 
 /// The configuration every member reads: `--config` (or the defaults) with `--reality`'s
-/// `[reality]` and the `--shape`; in training, checked for the seeds and the critic.
-fn read_config(args: &LaunchArgs) -> Result<RunConfig> {
+/// `[reality]`, the `--shape` and the `--obstacles`; in training, checked for the seeds and the
+/// critic. Among obstacles a swarm without `learned` robots observes its range sensor
+/// (`slot_proximity_scan`) when the config leaves the default model.
+fn read_config(args: &LaunchArgs, learned: usize) -> Result<RunConfig> {
     let mut config = match &args.config {
         Some(path) => RunConfig::from_toml_file(path)?,
         None => RunConfig::default(),
@@ -600,6 +607,12 @@ fn read_config(args: &LaunchArgs) -> Result<RunConfig> {
     }
     if let Some(shape) = args.shape {
         config.env.shape = shape;
+    }
+    if let Some(kind) = args.obstacles {
+        config.env.obstacles.kind = kind;
+    }
+    if config.env.has_obstacles() && learned == 0 && config.env.observation == ObservationModel::default() {
+        config.env.observation = ObservationModel::SlotProximityScan;
     }
     if args.mode == Mode::Train {
         config.learn.check_training_seeds(args.seed, args.extra_swarms.len())?;
@@ -616,12 +629,14 @@ fn checkpoint_to_load(args: &LaunchArgs, learned: usize) -> Result<Option<PathBu
     })
 }
 
-/// The `--config` every member is given and, with `--reality`, the text to write there first
-/// (LAUNCH_CONFIG_FILE in the run directory, by [`Plan::write_launch_config`]).
+/// The `--config` every member is given and, with `--reality` or `--obstacles`, the text to
+/// write there first (LAUNCH_CONFIG_FILE in the run directory, by
+/// [`Plan::write_launch_config`]).
 fn members_config(args: &LaunchArgs, config: &RunConfig, run_dir: &Path) -> (Option<PathBuf>, Option<String>) {
-    match &args.reality {
-        Some(_) => (Some(run_dir.join(LAUNCH_CONFIG_FILE)), Some(config.to_toml())),
-        None => (args.config.clone(), None),
+    if args.reality.is_some() || args.obstacles.is_some() {
+        (Some(run_dir.join(LAUNCH_CONFIG_FILE)), Some(config.to_toml()))
+    } else {
+        (args.config.clone(), None)
     }
 }
 
@@ -665,6 +680,7 @@ fn swarms(
         run_dir: run_dir.to_path_buf(),
         seed: args.seed,
         scripted: sets.scripted,
+        oracle: sets.oracle,
         external: sets.external,
         remote,
         ros2: sets.ros2,
@@ -676,6 +692,7 @@ fn swarms(
             run_dir: run_dir.join(format!("swarm-{k}-n{size}")),
             seed: extra_swarm_seed(args.seed, k),
             scripted: Vec::new(),
+            oracle: Vec::new(),
             external: Vec::new(),
             remote: Vec::new(),
             ros2: Vec::new(),
@@ -753,9 +770,10 @@ impl Ros2Link {
     }
 }
 
-/// Which robots are scripted, external, remote and ROS 2, checked against each other.
+/// Which robots are scripted, oracle, external, remote and ROS 2, checked against each other.
 struct RobotSets {
     scripted: Vec<usize>,
+    oracle: Vec<usize>,
     external: Vec<usize>,
     remote: Vec<usize>,
     ros2: Vec<usize>,
@@ -784,6 +802,39 @@ impl RobotSets {
         if let Some(both) = ros2.iter().find(|robot| external.contains(robot)) {
             bail!("robot {both} cannot be both --ros2 and --external");
         }
+        let oracle_flag = args.oracle.as_deref().unwrap_or("");
+        let mut oracle = parse_robot_set("--oracle", oracle_flag, n)?;
+        let remote_robots = parse_robot_set("--remote", args.remote.as_deref().unwrap_or(""), n)?;
+        if oracle_flag.trim() == "all" {
+            // `--oracle all --scripted 1`: the planner drives every other robot this launcher starts.
+            ensure!(
+                scripted_flag.trim() != "all",
+                "--oracle all and --scripted all name the same robots"
+            );
+            oracle.retain(|robot| {
+                !external.contains(robot)
+                    && !ros2.contains(robot)
+                    && !scripted.contains(robot)
+                    && !remote_robots.contains(robot)
+            });
+        } else {
+            for (flag, set) in [
+                ("--external", &external),
+                ("--ros2", &ros2),
+                ("--remote", &remote_robots),
+            ] {
+                if let Some(both) = oracle.iter().find(|robot| set.contains(robot)) {
+                    bail!(
+                        "robot {both} cannot be both --oracle and {flag} (the planner reads the sim's true state on the sim's host)"
+                    );
+                }
+            }
+            if scripted_flag.trim() == "all" {
+                scripted.retain(|robot| !oracle.contains(robot));
+            } else if let Some(both) = oracle.iter().find(|robot| scripted.contains(robot)) {
+                bail!("robot {both} cannot be both --oracle and --scripted");
+            }
+        }
         let remote_flag = args.remote.as_deref().unwrap_or("");
         let remote = parse_robot_set("--remote", remote_flag, n)?;
         if let Some(both) = remote.iter().find(|robot| external.contains(robot)) {
@@ -802,6 +853,7 @@ impl RobotSets {
         );
         Ok(Self {
             scripted,
+            oracle,
             external,
             remote,
             ros2,

@@ -390,6 +390,7 @@ mod tests {
             k_turn: 1.3,
             repulsion_range: 0.51,
             k_repulsion: 1.58,
+            ..BaselineGains::default()
         };
         // Zero weights and a last bias of atanh(unit gains): the actor outputs the gains whatever
         // it reads.

@@ -13,7 +13,7 @@ use std::mem::{align_of, offset_of, size_of};
 use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 
 use crate::wire::*;
-use crate::{ACTION_DIM, MAX_AGENTS, MAX_DELAY_TICKS, MAX_OBS_DIM, MIN_AGENTS, NEIGHBOURS};
+use crate::{ACTION_DIM, MAX_AGENTS, MAX_DELAY_TICKS, MAX_OBS_DIM, MAX_OBSTACLES, MIN_AGENTS, NEIGHBOURS};
 
 /// One field: name, byte offset, byte size and element type (`u32`, `f32[16]`, `f32[64][3]`, or
 /// another payload's type name).
@@ -72,7 +72,7 @@ pub fn layout_json_with(more: &str) -> String {
 
 /// The `"constants"` object.
 fn write_constants(out: &mut String) {
-    let constants: [(&str, u64); 18] = [
+    let constants: [(&str, u64); 21] = [
         ("PROTOCOL_VERSION", u64::from(PROTOCOL_VERSION)),
         ("FLAG_EPISODE_START", u64::from(FLAG_EPISODE_START)),
         ("FLAG_EPISODE_END", u64::from(FLAG_EPISODE_END)),
@@ -91,6 +91,9 @@ fn write_constants(out: &mut String) {
         ("ACTION_DIM", ACTION_DIM as u64),
         ("MAX_DELAY_TICKS", MAX_DELAY_TICKS as u64),
         ("SPARE_PORTS", crate::SPARE_PORTS as u64),
+        ("MAX_OBSTACLES", MAX_OBSTACLES as u64),
+        ("OBSTACLE_DISC", u64::from(OBSTACLE_DISC)),
+        ("OBSTACLE_WALL", u64::from(OBSTACLE_WALL)),
     ];
     out.push_str("  \"constants\": {");
     for (i, (name, value)) in constants.iter().enumerate() {
@@ -133,7 +136,7 @@ fn write_tick_payloads(out: &mut String) {
             field!(ObservationMsg, agent, "u32"),
             field!(ObservationMsg, n_agents, "u32"),
             field!(ObservationMsg, dim, "u32"),
-            field!(ObservationMsg, obs, "f32[16]"),
+            field!(ObservationMsg, obs, "f32[32]"),
         ],
     );
     out.push_str(",\n");
@@ -169,12 +172,38 @@ fn write_state_payload(out: &mut String) {
             field!(StateMsg, acting, "f32[64][2]"),
             field!(StateMsg, queued, "f32[64][10][2]"),
             field!(StateMsg, queued_len, "u32[64]"),
-            field!(StateMsg, observations, "f32[64][16]"),
+            field!(StateMsg, observations, "f32[64][32]"),
             field!(StateMsg, desired, "f32[64][2]"),
             field!(StateMsg, slots, "f32[64][2]"),
             field!(StateMsg, goal, "f32[2]"),
             field!(StateMsg, slot, "u32[64]"),
             field!(StateMsg, present, "u64"),
+        ],
+    );
+    out.push_str(",\n");
+    payload::<ObstaclesMsg>(
+        out,
+        "ObstaclesMsg",
+        &[
+            field!(ObstaclesMsg, header, "formation::Header"),
+            field!(ObstaclesMsg, count, "u32"),
+            field!(ObstaclesMsg, kind, "u32"),
+            field!(ObstaclesMsg, time_limit, "u32"),
+            field!(ObstaclesMsg, shapes, "u32[128]"),
+            field!(ObstaclesMsg, values, "f64[128][5]"),
+        ],
+    );
+    out.push_str(",\n");
+    payload::<TruthMsg>(
+        out,
+        "TruthMsg",
+        &[
+            field!(TruthMsg, header, "formation::Header"),
+            field!(TruthMsg, n_agents, "u32"),
+            field!(TruthMsg, present, "u64"),
+            field!(TruthMsg, poses, "f32[64][3]"),
+            field!(TruthMsg, slots, "f32[64][2]"),
+            field!(TruthMsg, goal, "f32[2]"),
         ],
     );
 }
@@ -242,7 +271,7 @@ mod tests {
     /// The array dimensions the field types spell out are the build's constants.
     #[test]
     fn spelled_dimensions_match_the_constants() {
-        assert_eq!(MAX_OBS_DIM, 16);
+        assert_eq!((MAX_OBS_DIM, MAX_OBSTACLES), (32, 128));
         assert_eq!(MAX_AGENTS, 64);
         assert_eq!((NEIGHBOURS, ACTION_DIM, MAX_DELAY_TICKS), (2, 2, 10));
     }

@@ -18,7 +18,9 @@ pub const MIN_AGENTS: usize = 3;
 /// Neighbours each robot observes: (i+1) mod N and (i+2) mod N.
 pub const NEIGHBOURS: usize = 2;
 /// Room for the largest observation model's floats (layouts in `formation_core::observation`).
-pub const MAX_OBS_DIM: usize = 16;
+pub const MAX_OBS_DIM: usize = 32;
+/// Room for one episode's obstacles (`formation_core::obstacles`; a draw never makes more).
+pub const MAX_OBSTACLES: usize = 128;
 /// Actions are (v, w).
 pub const ACTION_DIM: usize = 2;
 /// Largest actuation delay, ticks: room for the commands queued at a robot's motors.

@@ -4,10 +4,10 @@
 use iceoryx2_bb_derive_macros::ZeroCopySend;
 use iceoryx2_bb_elementary_traits::zero_copy_send::ZeroCopySend;
 
-use crate::{ACTION_DIM, MAX_AGENTS, MAX_DELAY_TICKS, MAX_OBS_DIM, NEIGHBOURS};
+use crate::{ACTION_DIM, MAX_AGENTS, MAX_DELAY_TICKS, MAX_OBS_DIM, MAX_OBSTACLES, NEIGHBOURS};
 
 /// Bumped whenever a payload's layout or meaning changes.
-pub const PROTOCOL_VERSION: u32 = 5;
+pub const PROTOCOL_VERSION: u32 = 6;
 
 /// `Header::flags`: first tick of an episode (agents reset their history).
 pub const FLAG_EPISODE_START: u32 = 1;
@@ -158,6 +158,79 @@ pub struct StateMsg {
     /// row, and comes back after 5 answers in a row or when restored; the slots, edges,
     /// success and formation error are the present robots'.
     pub present: u64,
+}
+
+/// `ObstaclesMsg::shapes`: a disc, `values` = centre x, centre y, radius, 0, 0.
+pub const OBSTACLE_DISC: u32 = 1;
+/// `ObstaclesMsg::shapes`: a wall, `values` = a.x, a.y, b.x, b.y, thickness (a rectangle whose
+/// centre line runs from a to b, flat ends).
+pub const OBSTACLE_WALL: u32 = 2;
+
+/// sim -> agents, critic and observers, once per episode before its first tick: the episode's
+/// obstacles, world frame, metres (none in an open episode: `count` = 0).
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("formation::Obstacles")]
+pub struct ObstaclesMsg {
+    /// The episode (tick 0, the flags of its first state).
+    pub header: Header,
+    /// Obstacles in use; entries past it are zero.
+    pub count: u32,
+    /// The kind the episode drew: 0 none, 1 forest, 2 passage, 3 trap.
+    pub kind: u32,
+    /// The episode's time limit, steps (it depends on the obstacles and the goal distance).
+    pub time_limit: u32,
+    /// `OBSTACLE_DISC` or `OBSTACLE_WALL`, per obstacle.
+    pub shapes: [u32; MAX_OBSTACLES],
+    /// Each obstacle's five numbers (see the shape constants).
+    pub values: [[f64; 5]; MAX_OBSTACLES],
+}
+
+impl Default for ObstaclesMsg {
+    fn default() -> Self {
+        Self {
+            header: Header::default(),
+            count: 0,
+            kind: 0,
+            time_limit: 0,
+            shapes: [0; MAX_OBSTACLES],
+            values: [[0.0; 5]; MAX_OBSTACLES],
+        }
+    }
+}
+
+/// sim -> privileged planners (`formation-agent --policy oracle`) and observers, every tick
+/// before the observations: the true poses and the formation in force, without the state's
+/// training payload.
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("formation::Truth")]
+pub struct TruthMsg {
+    /// Episode, tick and flags (as the tick's observations).
+    pub header: Header,
+    /// Number of robots; entries past it are zero.
+    pub n_agents: u32,
+    /// Bit i set: robot i is in the formation (as `StateMsg::present`).
+    pub present: u64,
+    /// World poses (x, y, theta).
+    pub poses: [[f32; 3]; MAX_AGENTS],
+    /// Each robot's offset from the goal in the formation in force, world frame.
+    pub slots: [[f32; 2]; MAX_AGENTS],
+    /// Goal of the formation's centroid, world frame.
+    pub goal: [f32; 2],
+}
+
+impl Default for TruthMsg {
+    fn default() -> Self {
+        Self {
+            header: Header::default(),
+            n_agents: 0,
+            present: 0,
+            poses: [[0.0; 3]; MAX_AGENTS],
+            slots: [[0.0; 2]; MAX_AGENTS],
+            goal: [0.0; 2],
+        }
+    }
 }
 
 /// `StateMsg::slot` of a robot out of the formation.

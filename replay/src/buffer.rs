@@ -3,6 +3,7 @@
 use std::collections::VecDeque;
 
 use formation_core::config::EnvConfig;
+use formation_core::obstacles::Obstacles;
 use formation_core::physics::Pose;
 use formation_core::scene::Scene;
 use formation_protocol::{ACTION_DIM, MAX_OBS_DIM, NEIGHBOURS};
@@ -57,6 +58,13 @@ pub struct Episode {
     pub ticks: Vec<Tick>,
     /// The last tick is terminal (success or collision): no bootstrapping from it.
     pub terminal: bool,
+    /// The episode's obstacles (none in the open arena): a relabelled transition that hit one
+    /// still collided.
+    pub obstacles: Obstacles,
+    /// Side of the arena the episode was played in, metres.
+    pub arena_m: f64,
+    /// The episode's time limit, steps (HER's relabelled successes end before it).
+    pub time_limit: u32,
 }
 
 impl Episode {
@@ -100,6 +108,8 @@ impl Episode {
             observed: &formation.observed,
             goal,
             slots: &formation.slots,
+            obstacles: &self.obstacles,
+            arena_m: self.arena_m,
         }
     }
 
@@ -199,6 +209,9 @@ mod tests {
             ],
             ticks: vec![tick; 8],
             terminal: false,
+            obstacles: Obstacles::none(),
+            arena_m: 10.0,
+            time_limit: 120,
         };
         let desired: Vec<f64> = (0..8).map(|t| episode.scene(t, episode.goal).desired[0][0]).collect();
         assert_eq!(desired, [1.0, 1.0, 1.0, 1.5, 1.5, 2.0, 2.0, 2.0]);

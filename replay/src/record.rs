@@ -99,5 +99,8 @@ fn record(
         formations,
         ticks,
         terminal,
+        arena_m: world.arena_m,
+        time_limit: world.env.max_steps,
+        obstacles: world.obstacles,
     }
 }

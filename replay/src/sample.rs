@@ -8,7 +8,7 @@
 //! HER recomputes the reward with the sim's own code ([`score`]) on the replay's
 //! [`formation_core::scene::Scene`]s, judged as the sim judges a step: under the formation in
 //! force when the transition was scored ([`Episode::scored_scene`]), with the episode's time
-//! limit ([`EnvConfig::episode_steps`]), and with success only once the episode's last
+//! limit ([`Episode::time_limit`]), and with success only once the episode's last
 //! formation is in force ([`success_after_last_change`]); a relabelled observation is the one
 //! the robot was told, its goal and slot moved to the new goal ([`Observer::move_goal`]), so
 //! the sensor noise it was told with stays.
@@ -122,11 +122,8 @@ impl Sampler {
         let total = buffer.transitions();
         let first = episodes.front()?;
         let n = first.n_agents();
-        // The episodes' time limit, as the sim's world has it.
-        let env = EnvConfig {
-            max_steps: self.env.episode_steps(n),
-            ..self.env.clone()
-        };
+        // Each episode's own time limit, as the sim's world has it (set per sample below).
+        let mut env = self.env.clone();
         let h = self.history;
         let sd = self.features(n).dim();
         let od = self.observer().dim();
@@ -164,6 +161,7 @@ impl Sampler {
             let episode = &episodes[index];
             let start = if index == 0 { 0 } else { ends[index - 1] };
             let t = pick - start;
+            env.max_steps = episode.time_limit;
             self.fill(&mut batch, b, episode, t, &env, rng);
         }
         Some(batch)
@@ -171,7 +169,7 @@ impl Sampler {
 
     /// Fills sample `b` of `batch` with transition `t` of `episode`; relabelled rewards are
     /// judged under `env`, the sampler's environment with the episode's time limit
-    /// ([`EnvConfig::episode_steps`]).
+    /// ([`Episode::time_limit`]).
     pub fn fill<R: Rng>(&self, batch: &mut Batch, b: usize, episode: &Episode, t: usize, env: &EnvConfig, rng: &mut R) {
         let n = batch.n_agents;
         let h = self.history;

@@ -7,8 +7,9 @@ use formation_core::config::{CriticArchitecture, EnvConfig, ObservationModel};
 use formation_core::features::CriticFeatures;
 use formation_core::formation::random_episode;
 use formation_core::observation::Observer;
+use formation_core::obstacles::{Obstacle, Obstacles};
 use formation_core::reality::{Reality, RealityConfig, Spread};
-use formation_core::task::score;
+use formation_core::task::{Outcome, score};
 use formation_core::world::World;
 use formation_protocol::ACTION_DIM;
 use formation_replay::buffer::{Episode, ReplayBuffer};
@@ -471,4 +472,54 @@ fn batches_carry_the_recorded_presence_at_t_and_t_plus_1_relabelled_or_not() {
         "{out_at_t} samples with robot 2 out, {relabelled_out} relabelled"
     );
     assert!(batch.present.contains(&1.0));
+}
+
+#[test]
+fn a_relabelled_transition_into_an_obstacle_stays_terminal_with_r_collision() {
+    let env = EnvConfig::default();
+    let mut rng = StdRng::seed_from_u64(11);
+    let mut init = random_episode(3, &env, &mut rng);
+    // A long wall across the robots' common heading, just beyond the formation's reach.
+    let centre = formation_core::task::centroid(&init.poses);
+    let reach = init
+        .poses
+        .iter()
+        .map(|p| (p.x - centre[0]).hypot(p.y - centre[1]))
+        .fold(0.0, f64::max);
+    let heading = init.poses[0].theta;
+    let (u, v) = ([heading.cos(), heading.sin()], [-heading.sin(), heading.cos()]);
+    let at = |along: f64, across: f64| {
+        [
+            centre[0] + along * u[0] + across * v[0],
+            centre[1] + along * u[1] + across * v[1],
+        ]
+    };
+    init.obstacles = Obstacles::new(vec![Obstacle::Wall {
+        a: at(reach + 0.4, -4.0),
+        b: at(reach + 0.4, 4.0),
+        thickness: 0.1,
+    }]);
+    let straight = env.action_from_command(env.v_max, 0.0);
+    let episode = record_episode(0, World::new(&env, init), 100, |w| vec![straight; w.n_agents()]);
+    assert!(episode.terminal, "the robots drove into the wall");
+    let last = episode.transitions() - 1;
+    let hit = score(&episode.scene(last + 1, episode.goal), (last + 1) as u32, &env);
+    assert!(hit.conditions.obstacle_collision && hit.outcome == Outcome::Collision);
+    let buffer = buffer_of(std::slice::from_ref(&episode));
+    let sampler = relabelling_sampler(&env, 1);
+    let batch = sampler
+        .sample(&buffer, 512, &mut StdRng::seed_from_u64(3))
+        .expect("batch");
+    let mut into_the_wall = 0;
+    for b in 0..batch.batch_size {
+        assert!(batch.relabelled[b]);
+        let (_, t) = batch.origins[b];
+        if t == last {
+            // Whatever goal HER gives it, the transition into the wall ends the episode.
+            assert_eq!(batch.terminals[b], 1.0);
+            assert_eq!(batch.rewards[b], env.r_collision as f32);
+            into_the_wall += 1;
+        }
+    }
+    assert!(into_the_wall > 0, "the last transition was sampled");
 }

@@ -35,6 +35,7 @@ use formation_core::config::RunConfig;
 use formation_core::formation::Episodes;
 use formation_core::mission::{Attendance, Away, Heard};
 use formation_core::observation::Layout;
+use formation_core::obstacles::Obstacle;
 use formation_core::run_dir::write_atomically;
 use formation_core::shapes::observed_edges;
 use formation_core::stepper::{EpisodeStepper, TransportCounts};
@@ -86,8 +87,18 @@ pub struct SimOptions {
     pub plots: bool,
 }
 
+/// What the view is offered at a logged tick: the state, and at an episode's first tick the
+/// episode's obstacles with it (one message, so the view never pairs a state with another
+/// episode's obstacles).
+pub struct Tapped {
+    /// The state of the tick.
+    pub state: StateMsg,
+    /// The episode's obstacles, at its first tick only.
+    pub obstacles: Option<Vec<Obstacle>>,
+}
+
 /// Where the view gets its states: the sim offers each logged state without ever waiting.
-pub type StateTap = SyncSender<StateMsg>;
+pub type StateTap = SyncSender<Tapped>;
 
 /// What the transport has added up in one episode.
 struct EpisodeTally {
@@ -418,10 +429,15 @@ where
         Ok(())
     }
 
-    /// Publishes a tick (observations, then the state with the transition into it), traces
+    /// Publishes a tick (the episode's obstacles at its first, the true poses, the observations,
+    /// then the state with the transition into it), traces
     /// it, offers it to the view and wakes the critic every half window and at an episode's end.
     fn publish_tick(&mut self, stepper: &EpisodeStepper, header: Header, missed: u32, log_world: bool) -> Result<()> {
         let (world, told, last) = (stepper.world(), told(stepper), stepper.last());
+        if header.tick == 0 {
+            self.ports.publish_obstacles(world, header)?;
+        }
+        self.ports.publish_truth(world, header)?;
         self.ports
             .publish_observations(world, header, &told, self.round.belled())?;
         if !header.has(FLAG_EPISODE_END) {
@@ -441,7 +457,8 @@ where
         self.trace.mean_edge_error.push(last.conditions.mean_edge_error);
         self.trace.goal_distance.push(last.conditions.goal_distance);
         if let (Some(tap), Some(state)) = (&self.tap, state) {
-            let _dropped_when_view_is_behind = tap.try_send(state);
+            let obstacles = (header.tick == 0).then(|| world.obstacles.list().to_vec());
+            let _dropped_when_view_is_behind = tap.try_send(Tapped { state, obstacles });
         }
         let half_window = u64::from((self.options.config.ticks.critic_window / 2).max(1));
         if self.options.expect_critic && (header.has(FLAG_EPISODE_END) || self.published.is_multiple_of(half_window)) {
@@ -493,6 +510,7 @@ where
             seed: options.seed,
             scripted_agents: options.scripted.clone(),
             external_agents: options.external.clone(),
+            obstacles: options.config.env.obstacles.kind.as_str().into(),
             env_steps: self.env_steps,
             env_steps_per_s: self.env_steps as f64 / self.stepping_time.as_secs_f64().max(1e-9),
             tick_p50_us: self.histogram.value_at_quantile(0.5) as f64,

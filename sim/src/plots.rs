@@ -280,6 +280,7 @@ mod tests {
                 departures: 0,
                 returns: 0,
                 wall_s: f64::from(i),
+                obstacle_collisions: 0,
             })
             .collect();
         let curve = dir.join("learning_curve.png");

@@ -33,6 +33,10 @@ pub struct SimPorts<S: Service> {
     pub command_ready: Listener<S>,
     /// The true state, for the critic and observers.
     pub state: Publisher<S, StateMsg, ()>,
+    /// The true poses, for privileged planners, before each tick's observations.
+    pub truth: Publisher<S, TruthMsg, ()>,
+    /// The episode's obstacles, once per episode.
+    pub obstacles: Publisher<S, ObstaclesMsg, ()>,
     /// Wakes the critic.
     pub critic_wake: Notifier<S>,
     /// How far the critic has consumed the stream.
@@ -97,6 +101,14 @@ impl<S: Service> SimPorts<S> {
                 .publisher_builder()
                 .create()
                 .with_context(|| err("state publisher"))?,
+            truth: services::truth_stream(node, sizing)?
+                .publisher_builder()
+                .create()
+                .with_context(|| err("truth publisher"))?,
+            obstacles: services::obstacles_stream(node, sizing)?
+                .publisher_builder()
+                .create()
+                .with_context(|| err("obstacles publisher"))?,
             critic_wake: services::critic_wake_event(node, sizing)?
                 .notifier_builder()
                 .create()
@@ -182,6 +194,35 @@ impl<S: Service> SimPorts<S> {
         let copy = keep_copy.then_some(*msg);
         sample.send().context("send state")?;
         Ok(copy)
+    }
+
+    /// Publishes the episode's obstacles (before its first tick).
+    pub fn publish_obstacles(&self, world: &World, header: Header) -> Result<()> {
+        let mut sample = self.obstacles.loan().context("loan obstacles")?;
+        let msg = sample.payload_mut();
+        msg.header = header;
+        msg.kind = world.obstacle_kind.code();
+        msg.time_limit = world.env.max_steps;
+        world.obstacles.write_wire(msg);
+        sample.send().context("send obstacles")?;
+        Ok(())
+    }
+
+    /// Publishes the true poses and the formation in force (before the tick's observations).
+    pub fn publish_truth(&self, world: &World, header: Header) -> Result<()> {
+        let mut sample = self.truth.loan().context("loan truth")?;
+        let msg = sample.payload_mut();
+        msg.header = header;
+        msg.n_agents = world.n_agents() as u32;
+        msg.present = 0;
+        for (agent, pose) in world.poses.iter().enumerate() {
+            msg.poses[agent] = [pose.x as f32, pose.y as f32, pose.theta as f32];
+            msg.slots[agent] = world.slots[agent].map(|d| d as f32);
+            msg.present |= u64::from(world.slot_of[agent] != NO_SLOT) << agent;
+        }
+        msg.goal = world.goal.map(|g| g as f32);
+        sample.send().context("send truth")?;
+        Ok(())
     }
 
     /// Wakes the critic to read what is waiting.

@@ -51,6 +51,7 @@ pub fn fill_episode_figures(summary: &mut Summary, records: &[EpisodeRecord]) {
     let mean = |f: &dyn Fn(&EpisodeRecord) -> f64| finished.iter().map(|r| f(r)).sum::<f64>() / count;
     summary.success_rate = rate(Outcome::Success);
     summary.collision_rate = rate(Outcome::Collision);
+    summary.obstacle_collisions = finished.iter().map(|r| u64::from(r.obstacle_collisions)).sum();
     summary.timeout_rate = rate(Outcome::Timeout);
     summary.mean_final_edge_error_m = mean(&|r| r.final_edge_error_m);
     summary.mean_final_goal_distance_m = mean(&|r| r.final_goal_distance_m);

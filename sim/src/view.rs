@@ -10,6 +10,12 @@
 //! simulated time), `world/centroid`, `world/trails`; series `plots/formation/edge_error/*`
 //! (one per observed edge up to 8 robots, else mean and max), `plots/formation/goal_distance`,
 //! `plots/reward`. Rerun's 2-D views are y-down, so y is flipped when logging.
+//!
+//! Among obstacles: `world/obstacles` (the episode's obstacles, logged at its first tick and
+//! cleared in an episode without any: a disc's outline, a wall's rectangle) and, when the robots
+//! observe `slot_proximity_scan`, `world/scans` (each robot's range-sensor hits in its colour:
+//! where a ray read less than `env.scan_range_m`, noise and dropouts included, from what the
+//! robot was told at that tick).
 
 use std::collections::VecDeque;
 use std::path::Path;
@@ -19,12 +25,14 @@ use std::thread::JoinHandle;
 use anyhow::{Context, Result};
 use formation_core::config::EnvConfig;
 use formation_core::mission::observed_robots;
+use formation_core::observation::{Layout, SCAN_RAYS};
+use formation_core::obstacles::Obstacle;
 use formation_ipc::cli::ViewerMode;
 use formation_protocol::wire::{FLAG_EPISODE_START, StateMsg};
 use rerun::RecordingStream;
 use rerun::blueprint::{Blueprint, Horizontal, Spatial2DView, TimeSeriesView, Vertical};
 
-use crate::lockstep::StateTap;
+use crate::lockstep::{StateTap, Tapped};
 
 /// States the view may fall behind by before the sim starts dropping them.
 const TAP_CAPACITY: usize = 4096;
@@ -40,6 +48,10 @@ const TARGET_COLOUR: [u8; 3] = [0, 140, 70];
 const OLD_COLOUR: [u8; 3] = [110, 110, 110];
 /// The lines from the robots to their slots.
 const ASSIGNMENT_COLOUR: [u8; 3] = [225, 225, 225];
+/// The obstacles' outlines.
+const OBSTACLE_COLOUR: [u8; 3] = [150, 160, 175];
+/// Sides of the polygon that draws a disc obstacle.
+const DISC_SIDES: usize = 32;
 
 /// The default layout: the world beside the formation and training curves.
 pub fn blueprint() -> Blueprint {
@@ -121,6 +133,9 @@ pub fn start(
         fade_ticks: fade_ticks(env.dt_s),
         target: None,
         old: None,
+        scan: Layout::of(env.observation).scan(),
+        scan_range: env.scan_range_m as f32,
+        obstacles_of: None,
     };
     let handle = std::thread::Builder::new()
         .name("rerun-world".into())
@@ -142,6 +157,12 @@ struct WorldView {
     target: Option<Target>,
     /// The formation it replaced and the view tick of the change, while it fades.
     old: Option<(Target, i64)>,
+    /// Where the range sensor's rays start in an observation, when the robots have one.
+    scan: Option<usize>,
+    /// The range a ray reading 1 stands for, metres.
+    scan_range: f32,
+    /// The episode whose obstacles are drawn.
+    obstacles_of: Option<u32>,
 }
 
 /// Ticks of `dt_s` seconds in [`FADE_S`] (at least one).
@@ -214,13 +235,13 @@ impl Target {
 }
 
 impl WorldView {
-    fn run(mut self, states: Receiver<StateMsg>) {
+    fn run(mut self, states: Receiver<Tapped>) {
         if let Err(err) = self.log_static() {
             eprintln!("sim: view: {err:#}");
             return;
         }
-        for state in states {
-            if let Err(err) = self.log_state(&state) {
+        for Tapped { state, obstacles } in states {
+            if let Err(err) = self.log_state(&state, obstacles.as_deref()) {
                 eprintln!("sim: view stopped: {err:#}");
                 break;
             }
@@ -247,7 +268,7 @@ impl WorldView {
         Ok(())
     }
 
-    fn log_state(&mut self, state: &StateMsg) -> Result<()> {
+    fn log_state(&mut self, state: &StateMsg, obstacles: Option<&[Obstacle]>) -> Result<()> {
         let n = state.n_agents as usize;
         if state.header.has(FLAG_EPISODE_START) {
             self.trails.iter_mut().for_each(VecDeque::clear);
@@ -258,7 +279,9 @@ impl WorldView {
             .set_time_sequence("episode", i64::from(state.header.episode));
         let positions: Vec<[f32; 2]> = state.poses[..n].iter().map(|p| flip(p[0], p[1])).collect();
         let colours: Vec<[u8; 3]> = (0..n).map(robot_colour).collect();
+        self.log_obstacles(state.header.episode, obstacles)?;
         self.log_robots(state, &positions, &colours)?;
+        self.log_scans(state, &colours)?;
         self.log_edges(state, &positions)?;
         self.log_formations(state, &positions)?;
         self.log_goal_and_trails(state, &positions, colours)
@@ -320,6 +343,53 @@ impl WorldView {
                 )?;
             }
         }
+        Ok(())
+    }
+
+    /// The episode's obstacles at its first tick (`obstacles`); an episode whose first tick the
+    /// view missed (the tap was full) shows none rather than the previous episode's.
+    fn log_obstacles(&mut self, episode: u32, obstacles: Option<&[Obstacle]>) -> Result<()> {
+        if obstacles.is_none() && self.obstacles_of == Some(episode) {
+            return Ok(());
+        }
+        self.obstacles_of = Some(episode);
+        match obstacles {
+            Some(list) if !list.is_empty() => self.stream.log(
+                "world/obstacles",
+                &rerun::LineStrips2D::new(list.iter().map(outline))
+                    .with_colors([OBSTACLE_COLOUR])
+                    .with_radii([0.03])
+                    .with_draw_order(2.0),
+            )?,
+            _ => self.stream.log("world/obstacles", &rerun::Clear::flat())?,
+        }
+        Ok(())
+    }
+
+    /// Each robot's range-sensor hits, in its colour (none for a robot whose observation was
+    /// lost: it was told nothing), above the edges and trails and below the robots.
+    fn log_scans(&self, state: &StateMsg, colours: &[[u8; 3]]) -> Result<()> {
+        let Some(at) = self.scan else {
+            return Ok(());
+        };
+        let (mut points, mut point_colours) = (Vec::new(), Vec::new());
+        for (i, colour) in colours.iter().enumerate() {
+            if state.observation_lost & (1 << i) != 0 {
+                continue;
+            }
+            let rays = &state.observations[i][at..at + SCAN_RAYS];
+            for hit in scan_hits(state.poses[i], rays, self.scan_range) {
+                points.push(hit);
+                point_colours.push(*colour);
+            }
+        }
+        self.stream.log(
+            "world/scans",
+            &rerun::Points2D::new(points)
+                .with_colors(point_colours)
+                .with_radii([0.035])
+                .with_draw_order(25.0),
+        )?;
         Ok(())
     }
 
@@ -446,6 +516,49 @@ impl WorldView {
     }
 }
 
+/// An obstacle's outline as a closed strip, y flipped: a disc's polygon, or a wall's rectangle
+/// (its centre line from `a` to `b`, `thickness` across, flat ends).
+fn outline(obstacle: &Obstacle) -> Vec<[f32; 2]> {
+    match *obstacle {
+        Obstacle::Disc { centre, radius } => (0..=DISC_SIDES)
+            .map(|k| {
+                let a = std::f64::consts::TAU * k as f64 / DISC_SIDES as f64;
+                flip(
+                    (centre[0] + radius * a.cos()) as f32,
+                    (centre[1] + radius * a.sin()) as f32,
+                )
+            })
+            .collect(),
+        Obstacle::Wall { a, b, thickness } => {
+            let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+            let length = dx.hypot(dy).max(f64::EPSILON);
+            // Half the thickness along the centre line's left normal.
+            let (nx, ny) = (-dy / length * thickness / 2.0, dx / length * thickness / 2.0);
+            [
+                [a[0] + nx, a[1] + ny],
+                [b[0] + nx, b[1] + ny],
+                [b[0] - nx, b[1] - ny],
+                [a[0] - nx, a[1] - ny],
+                [a[0] + nx, a[1] + ny],
+            ]
+            .into_iter()
+            .map(|p| flip(p[0] as f32, p[1] as f32))
+            .collect()
+        }
+    }
+}
+
+/// Where the rays of a robot at `pose` (x, y, heading) met something, y flipped: ray k points
+/// 2 pi k / rays counter-clockwise from the heading and reads its range / `range_m`; a ray
+/// reading 1 (or more) met nothing.
+fn scan_hits(pose: [f32; 3], rays: &[f32], range_m: f32) -> impl Iterator<Item = [f32; 2]> + '_ {
+    rays.iter().enumerate().filter(|&(_, &r)| r < 1.0).map(move |(k, &r)| {
+        let angle = pose[2] + std::f32::consts::TAU * k as f32 / rays.len() as f32;
+        let d = r * range_m;
+        flip(pose[0] + d * angle.cos(), pose[1] + d * angle.sin())
+    })
+}
+
 /// Rerun's 2-D views are y-down: the world's y goes up.
 fn flip(x: f32, y: f32) -> [f32; 2] {
     [x, -y]
@@ -454,4 +567,62 @@ fn flip(x: f32, y: f32) -> [f32; 2] {
 /// `colour` with opacity `alpha`.
 fn with_alpha([r, g, b]: [u8; 3], alpha: u8) -> rerun::Color {
     rerun::Color::from_unmultiplied_rgba(r, g, b, alpha)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn close(p: [f32; 2], q: [f32; 2]) -> bool {
+        (p[0] - q[0]).abs() < 1e-5 && (p[1] - q[1]).abs() < 1e-5
+    }
+
+    #[test]
+    fn a_wall_is_its_rectangle_with_flat_ends() {
+        // A diagonal wall from (1, 1) to (3, 3), 0.2 m thick: corners 0.1 m off the centre line
+        // along its normal (-1, 1) / sqrt 2, none beyond the ends; y flipped.
+        let h = 0.1 / std::f64::consts::SQRT_2;
+        let strip = outline(&Obstacle::Wall {
+            a: [1.0, 1.0],
+            b: [3.0, 3.0],
+            thickness: 0.2,
+        });
+        let expected = [
+            [1.0 - h, 1.0 + h],
+            [3.0 - h, 3.0 + h],
+            [3.0 + h, 3.0 - h],
+            [1.0 + h, 1.0 - h],
+            [1.0 - h, 1.0 + h],
+        ];
+        assert_eq!(strip.len(), expected.len());
+        for (p, q) in strip.iter().zip(expected) {
+            assert!(close(*p, flip(q[0] as f32, q[1] as f32)), "{p:?} vs {q:?}");
+        }
+    }
+
+    #[test]
+    fn a_disc_is_a_closed_polygon_on_its_circle() {
+        let strip = outline(&Obstacle::Disc {
+            centre: [2.0, 1.0],
+            radius: 0.5,
+        });
+        assert_eq!(strip.len(), DISC_SIDES + 1);
+        assert!(close(strip[0], strip[DISC_SIDES]));
+        assert!(close(strip[0], [2.5, -1.0]));
+        for p in strip {
+            assert!(((p[0] - 2.0).hypot(p[1] + 1.0) - 0.5).abs() < 1e-5, "{p:?}");
+        }
+    }
+
+    #[test]
+    fn scan_hits_lie_along_their_rays_from_the_heading() {
+        // Heading +y; 4 rays: ahead (+y) at 0.5 of 2 m, left (-x) at 0.25, behind nothing,
+        // right (+x) at 0.
+        let hits: Vec<[f32; 2]> =
+            scan_hits([1.0, 1.0, std::f32::consts::FRAC_PI_2], &[0.5, 0.25, 1.0, 0.0], 2.0).collect();
+        assert_eq!(hits.len(), 3);
+        assert!(close(hits[0], [1.0, -2.0]), "{hits:?}");
+        assert!(close(hits[1], [0.5, -1.0]), "{hits:?}");
+        assert!(close(hits[2], [1.0, -1.0]), "{hits:?}");
+    }
 }

@@ -29,7 +29,8 @@ pub(super) fn draw(config: &ObstacleConfig, way: &Way, rng: &mut StdRng) -> Obst
 }
 
 /// Discs of drawn radii until they cover the drawn density of the corridor (as long as the
-/// way, the formation's width plus [`SIDE_M`] each side), or until one finds no place. A disc
+/// way, the formation's width plus [`SIDE_M`] each side), until one finds no place, or until
+/// the wire's room (`MAX_OBSTACLES`) is full. A disc
 /// keeps out of both formations' room (their reach plus the clearance around each centre), out
 /// of the other discs and its centre inside the arena.
 fn discs(config: &ObstacleConfig, way: &Way, rng: &mut StdRng) -> Vec<Obstacle> {
@@ -39,7 +40,7 @@ fn discs(config: &ObstacleConfig, way: &Way, rng: &mut StdRng) -> Vec<Obstacle> 
     let room = way.reach + way.clearance;
     let goal = way.goal();
     let mut discs: Vec<([f64; 2], f64)> = Vec::new();
-    while uncovered > 0.0 {
+    while uncovered > 0.0 && discs.len() < formation_protocol::MAX_OBSTACLES {
         let radius = draw_spread(config.forest_radius_m, rng);
         let placed = (0..PLACE_ATTEMPTS).find_map(|_| {
             let centre = way.at(

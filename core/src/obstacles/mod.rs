@@ -30,6 +30,9 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 
+use formation_protocol::MAX_OBSTACLES;
+use formation_protocol::wire::{OBSTACLE_DISC, OBSTACLE_WALL, ObstaclesMsg};
+
 use crate::config::{ConfigError, EnvConfig};
 use crate::reality::Spread;
 
@@ -53,6 +56,17 @@ pub enum ObstacleKind {
 }
 
 impl ObstacleKind {
+    /// The code `ObstaclesMsg::kind` carries: 0 none, 1 forest, 2 passage, 3 trap (4 mixed,
+    /// which no episode plays).
+    pub fn code(self) -> u32 {
+        self as u32
+    }
+
+    /// The kind of a code written by [`ObstacleKind::code`].
+    pub fn from_code(code: u32) -> Option<Self> {
+        Self::ALL.into_iter().find(|kind| kind.code() == code)
+    }
+
     /// The kinds a `mixed` episode draws from.
     pub const KINDS: [ObstacleKind; 3] = [Self::Forest, Self::Passage, Self::Trap];
 
@@ -309,6 +323,12 @@ impl PartialEq for Obstacles {
     }
 }
 
+/// No obstacles, for a scene of the open arena that owns none.
+pub static NO_OBSTACLES: Obstacles = Obstacles {
+    list: Vec::new(),
+    placed: Vec::new(),
+};
+
 impl Obstacles {
     /// No obstacles (kind `none`).
     pub fn none() -> Self {
@@ -319,6 +339,42 @@ impl Obstacles {
     pub fn new(list: Vec<Obstacle>) -> Self {
         let placed = list.iter().map(Placed::new).collect();
         Self { list, placed }
+    }
+
+    /// The obstacles an `ObstaclesMsg` carries (its first `count`).
+    pub fn from_wire(msg: &ObstaclesMsg) -> Self {
+        let count = (msg.count as usize).min(MAX_OBSTACLES);
+        let list = msg.shapes[..count]
+            .iter()
+            .zip(&msg.values[..count])
+            .filter_map(|(&shape, v)| match shape {
+                OBSTACLE_DISC => Some(Obstacle::Disc {
+                    centre: [v[0], v[1]],
+                    radius: v[2],
+                }),
+                OBSTACLE_WALL => Some(Obstacle::Wall {
+                    a: [v[0], v[1]],
+                    b: [v[2], v[3]],
+                    thickness: v[4],
+                }),
+                _ => None,
+            })
+            .collect();
+        Self::new(list)
+    }
+
+    /// Writes the obstacles into `msg` (count, shapes, values; the rest zeroed). A draw never
+    /// makes more than `MAX_OBSTACLES`; should a list have more, the first are written.
+    pub fn write_wire(&self, msg: &mut ObstaclesMsg) {
+        msg.count = self.list.len().min(MAX_OBSTACLES) as u32;
+        msg.shapes = [0; MAX_OBSTACLES];
+        msg.values = [[0.0; 5]; MAX_OBSTACLES];
+        for ((shape, values), obstacle) in msg.shapes.iter_mut().zip(&mut msg.values).zip(&self.list) {
+            (*shape, *values) = match *obstacle {
+                Obstacle::Disc { centre, radius } => (OBSTACLE_DISC, [centre[0], centre[1], radius, 0.0, 0.0]),
+                Obstacle::Wall { a, b, thickness } => (OBSTACLE_WALL, [a[0], a[1], b[0], b[1], thickness]),
+            };
+        }
     }
 
     /// The obstacles, as drawn.

@@ -320,3 +320,59 @@ fn the_planners_paths_never_cross_an_inflated_obstacle() {
     // Both ways of moving come up.
     assert!(modes[0] > 0 && modes[1] > 0, "{modes:?}");
 }
+
+/// The episodes of a run with obstacles carry them: `Episodes` draws them per episode from the
+/// run's seed (the same again for the same seed), goals at least the kind's distance away, the
+/// time limit the kind's formula; and a robot driven into one ends the episode as a collision,
+/// counted apart in the episode's record.
+#[test]
+fn episodes_carry_their_obstacles_and_driving_into_one_ends_the_episode_counted_apart() {
+    use crate::reality::RealityConfig;
+    use crate::stepper::{EpisodeStepper, TransportCounts};
+    use crate::task::{Outcome, centroid};
+    let env = EnvConfig {
+        obstacles: ObstacleConfig {
+            kind: ObstacleKind::Passage,
+            ..ObstacleConfig::default()
+        },
+        ..EnvConfig::default()
+    };
+    let first: Vec<EpisodeInit> = Episodes::new(4, &env, 3).take(5).collect();
+    assert_eq!(first, Episodes::new(4, &env, 3).take(5).collect::<Vec<_>>());
+    let mut hits = 0;
+    for (episode, init) in first.into_iter().enumerate() {
+        assert!(!init.obstacles.is_empty() && init.obstacle_kind == ObstacleKind::Passage);
+        let c = centroid(&init.poses);
+        let distance = (init.goal[0] - c[0]).hypot(init.goal[1] - c[1]);
+        assert!(distance >= env.goal_range_m(4).0 - 1e-9);
+        assert_eq!(
+            init.time_limit,
+            episode_steps_with_obstacles(ObstacleKind::Passage, distance, 4, &env)
+        );
+        // Every robot heads straight for its own slot: the wall is in the way.
+        let mut stepper = EpisodeStepper::new(&env, &RealityConfig::default(), 3, episode as u32, init);
+        while stepper.running() {
+            let world = stepper.world();
+            let commands: Vec<(f64, f64)> = world
+                .poses
+                .iter()
+                .zip(&world.slots)
+                .map(|(p, s)| {
+                    let bearing = (world.goal[1] + s[1] - p.y).atan2(world.goal[0] + s[0] - p.x) - p.theta;
+                    let bearing = bearing.sin().atan2(bearing.cos());
+                    (env.v_max * bearing.cos().max(0.0), 2.0 * bearing)
+                })
+                .collect();
+            stepper.step(&commands, |_| true);
+        }
+        let record = stepper.record(episode as u32, TransportCounts::default());
+        let hit = stepper.last().conditions.obstacle_collision;
+        assert_eq!(record.obstacle_collisions, u32::from(hit));
+        if hit {
+            assert_eq!(record.outcome, Outcome::Collision);
+            assert_eq!(stepper.last().reward, env.r_collision);
+            hits += 1;
+        }
+    }
+    assert!(hits >= 3, "{hits} of 5 straight drives hit the wall");
+}
