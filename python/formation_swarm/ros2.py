@@ -1,9 +1,11 @@
 """A ROS 2 node without ROS 2: plays robot ``index`` of a swarm started with ``--ros2`` over
 rmw_zenoh's wire format, with ``eclipse-zenoh`` and ``rosbags``' ROS 2 type store (both on
-PyPI) instead of rclpy. It subscribes to ``/<ns>/robot_<i>/observation`` and ``.../odom``,
-answers each observation with a ``geometry_msgs/msg/Twist`` on ``.../cmd_vel`` from a policy
-(the scripted baseline by default), and announces itself on the ROS 2 graph with rmw_zenoh's
-liveliness tokens, as an ``rclpy`` node over ``rmw_zenoh_cpp`` would (docs/ROS2.md).
+PyPI) instead of rclpy. It subscribes to ``/<ns>/robot_<i>/observation``, ``.../odom`` and
+``.../scan`` (a ``sensor_msgs/msg/LaserScan``, published when the run's observation model has
+the range sensor), answers each observation with a ``geometry_msgs/msg/Twist`` on
+``.../cmd_vel`` from a policy (the scripted baseline by default), and announces itself on the
+ROS 2 graph with rmw_zenoh's liveliness tokens, as an ``rclpy`` node over ``rmw_zenoh_cpp``
+would (docs/ROS2.md).
 
     python3 -m formation_swarm ros2-node 2 [--endpoint tcp/127.0.0.1:7447] [--namespace formation] [--domain 0]
 
@@ -23,7 +25,7 @@ from .run import FormationError
 
 #: The QoS of every entity's liveliness token: reliable, volatile, keep last 10.
 QOS = "::,10:,:,:,,"
-#: The rosbags type store the types come from (Jazzy's; the four types are the same in Kilted).
+#: The rosbags type store the types come from (Jazzy's; the types are the same in Kilted).
 STORE = "ROS2_JAZZY"
 
 
@@ -48,7 +50,10 @@ class Ros2Node:
     """Robot ``index`` as a ROS 2 node named ``robot_<index>_driver`` in ``/<namespace>``.
 
     ``policy(obs) -> (v, w)`` answers each observation (default: the scripted baseline with
-    the Rust defaults' limits, ``formation_swarm.Baseline()``)."""
+    the Rust defaults' limits, ``formation_swarm.Baseline()``). ``obs`` is every float of the
+    robot's observation, the range sensor's rays included (each range / ``scan_range_m``) when
+    the model has them; the newest scan in metres is ``latest_scan`` (None in a run without the
+    range sensor)."""
 
     def __init__(self, index: int, endpoint: str = "tcp/127.0.0.1:7447", namespace: str = "formation",
                  domain: int = 0, policy: Optional[Callable[[Any], Tuple[float, float]]] = None) -> None:
@@ -76,11 +81,14 @@ class Ros2Node:
         self._observations: "queue.Queue[Any]" = queue.Queue()
         self.odometry = None
         self.odometry_count = 0
+        self.latest_scan = None
+        self.scans = 0
         self.twists = 0
         self._lock = threading.Lock()
         self._subscribers = [
             self._subscribe("observation", "std_msgs/msg/Float32MultiArray", self._observations.put),
             self._subscribe("odom", "nav_msgs/msg/Odometry", self._on_odometry),
+            self._subscribe("scan", "sensor_msgs/msg/LaserScan", self._on_scan),
         ]
         topic = self.topic("cmd_vel")
         token = self._entity("MP", topic, "geometry_msgs/msg/Twist")
@@ -125,6 +133,11 @@ class Ros2Node:
         with self._lock:
             self.odometry = odometry
             self.odometry_count += 1
+
+    def _on_scan(self, scan: Any) -> None:
+        with self._lock:
+            self.latest_scan = scan
+            self.scans += 1
 
     # --- the loop -------------------------------------------------------------------------
 

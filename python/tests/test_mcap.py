@@ -1,13 +1,15 @@
 """`--record mcap` (ros2/src/record.rs): a real eval run writes RUN_DIR/run.mcap, read back with
 the `mcap` + `mcap-ros2-support` readers (and rosbags): per episode each robot's odometry count
 is steps + 1, the outcome is episodes.csv's, and the final edge error recomputed from the
-recorded poses, targets and slot map is `final_edge_error_m`. Skipped only when those packages
-are missing (.ci/run installs them)."""
+recorded poses, targets and slot map is `final_edge_error_m`. A `--ros2` run through obstacles
+records each robot's LaserScan and the obstacles' MarkerArray. Skipped only when those packages
+are missing (.ci/run installs them; the --ros2 run also needs eclipse-zenoh)."""
 
 import bisect
 import csv
 import math
 import re
+import threading
 from collections import defaultdict
 
 import pytest
@@ -124,3 +126,115 @@ def test_an_eval_run_recorded_as_mcap_matches_its_episodes(tmp_path):
     with AnyReader([run_dir / "run.mcap"]) as reader:
         decoded = sum(1 for c, _, raw in reader.messages() if reader.deserialize(raw, c.msgtype) is not None)
     assert decoded == sum(len(messages) for messages in topics.values())
+
+
+def surface_distance(point, markers, others, arena_m, robot_radius):
+    """How far ``point`` is from the nearest surface the range sensor sees: an obstacle marker
+    (a cylinder's side, a box's outline), another robot's disc or the arena's walls."""
+    px, py = point
+    nearest = min(px, py, arena_m - px, arena_m - py)
+    for marker in markers:
+        c = marker.pose.position
+        if marker.type == CYLINDER:
+            nearest = min(nearest, abs(math.dist((px, py), (c.x, c.y)) - marker.scale.x / 2))
+        else:
+            q = marker.pose.orientation
+            yaw = 2 * math.atan2(q.z, q.w)
+            dx, dy = px - c.x, py - c.y
+            along = abs(math.cos(yaw) * dx + math.sin(yaw) * dy) - marker.scale.x / 2
+            across = abs(-math.sin(yaw) * dx + math.cos(yaw) * dy) - marker.scale.y / 2
+            outside = math.hypot(max(along, 0.0), max(across, 0.0))
+            nearest = min(nearest, outside if outside > 0 else -max(along, across))
+    for other in others:
+        nearest = min(nearest, abs(math.dist((px, py), other) - robot_radius))
+    return nearest
+
+
+CUBE, CYLINDER, DELETEALL = 1, 3, 3
+ROS2_N, ROS2_EPISODES, ROS2_ROBOT = 3, 3, 2
+
+
+def test_a_ros2_run_among_obstacles_records_its_scans_and_obstacles(tmp_path):
+    """A --ros2 run through a passage (robot 2 a ROS 2 node in this process): the MCAP holds
+    each robot's LaserScan at every state (16 rays, range_max 2 m, its body frame, stamped as
+    its odometry) and one MarkerArray of the obstacles per episode, decoded by the mcap ROS 2
+    reader; every ray shorter than range_max ends on a surface: an obstacle marker, another
+    robot or the arena's wall. The node received the scans on /formation/robot_2/scan."""
+    zenoh = pytest.importorskip("zenoh")  # noqa: F841 - the node's transport
+    from formation_swarm.ros2 import Ros2Node
+    from test_ros2 import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    run_dir = tmp_path / "run"
+    swarm = launch([str(ROS2_N), "--mode", "eval", "--scripted", "0,1", "--ros2", str(ROS2_ROBOT),
+                    "--obstacles", "passage", "--episodes", str(ROS2_EPISODES), "--seed", "2000",
+                    "--viewer", "off", "--ros2-endpoint", endpoint, "--record", "mcap"], run_dir)
+    node = None
+    try:
+        # A Zenoh peer dials again until the side listens.
+        node = Ros2Node(ROS2_ROBOT, endpoint)
+        spinning = threading.Thread(target=node.spin, kwargs={"idle_exit": 5.0}, daemon=True)
+        spinning.start()
+        status = swarm.wait(WATCHDOG_S)
+        spinning.join(30)
+    finally:
+        if node is not None:
+            node.close()
+        if swarm.proc.poll() is None:
+            swarm.wait(0)
+    ros2_log = (run_dir / "logs" / "ros2.log").read_text(errors="replace")
+    assert status == 0, f"launcher status {status}:\n{swarm.output}\nros2:\n{ros2_log}"
+    assert_clean(swarm)
+    assert node.scans > 0 and len(node.latest_scan.ranges) == 16, node.scans
+    assert node.latest_scan.header.frame_id == f"robot_{ROS2_ROBOT}/base_link"
+    assert f"{ROS2_EPISODES} obstacle marker arrays" in ros2_log, ros2_log
+
+    config = (run_dir / "config.toml").read_text()
+    number = lambda key: float(re.search(rf"^{key} = (\S+)$", config, re.M).group(1))  # noqa: E731
+    assert re.search(r'^observation = "slot_proximity_scan"$', config, re.M), config
+    arena_m, robot_radius = number("arena_m"), number("eps_coll_m") / 2
+    topics, schemas = read_mcap(run_dir / "run.mcap")
+    assert schemas["/formation/obstacles"] == "visualization_msgs/msg/MarkerArray"
+    starts = [t for t, _ in topics["/formation/episode"]]
+    arrays = topics["/formation/obstacles"]
+    assert [t for t, _ in arrays] == starts, "one marker array at each episode's first state"
+    for _, array in arrays:
+        assert array.markers[0].action == DELETEALL
+        assert len(array.markers) >= 2 and {m.type for m in array.markers[1:]} <= {CUBE, CYLINDER}
+        assert all(m.header.frame_id == "world" and m.ns == "obstacles" for m in array.markers)
+
+    poses = {}
+    for robot in range(ROS2_N):
+        for t, odometry in topics[f"/formation/robot_{robot}/odom"]:
+            q = odometry.pose.pose.orientation
+            poses[robot, t] = (odometry.pose.pose.position.x, odometry.pose.pose.position.y,
+                               2 * math.atan2(q.z, q.w))
+    assert schemas["/tf"] == "tf2_msgs/msg/TFMessage"
+    for t, tf in topics["/tf"]:
+        for transform in tf.transforms:
+            robot = int(re.fullmatch(r"robot_(\d+)/base_link", transform.child_frame_id).group(1))
+            x, y, _ = poses[robot, t]
+            assert transform.header.frame_id == "world"
+            assert (transform.transform.translation.x, transform.transform.translation.y) == (x, y)
+    assert len(topics["/tf"]) == len(topics["/formation/robot_0/odom"]), "one transform message per state"
+    hits, on_obstacles = 0, 0
+    for robot in range(ROS2_N):
+        assert schemas[f"/formation/robot_{robot}/scan"] == "sensor_msgs/msg/LaserScan"
+        scans = topics[f"/formation/robot_{robot}/scan"]
+        assert [t for t, _ in scans] == [t for t, _ in topics[f"/formation/robot_{robot}/odom"]]
+        for t, scan in scans:
+            assert scan.header.frame_id == f"robot_{robot}/base_link"
+            assert scan.header.stamp.sec * 10**9 + scan.header.stamp.nanosec == t
+            assert len(scan.ranges) == 16 and scan.range_max == 2.0 and scan.angle_min == 0.0
+            markers = in_force(arrays, t).markers[1:]
+            x, y, theta = poses[robot, t]
+            others = [poses[k, t][:2] for k in range(ROS2_N) if k != robot]
+            for k, r in enumerate(scan.ranges):
+                if r >= scan.range_max - 1e-4:
+                    continue
+                angle = theta + scan.angle_min + k * scan.angle_increment
+                end = (x + r * math.cos(angle), y + r * math.sin(angle))
+                assert surface_distance(end, markers, others, arena_m, robot_radius) < 1e-3, (robot, t, k, r)
+                hits += 1
+                on_obstacles += surface_distance(end, markers, [], math.inf, 0.0) < 1e-3
+    assert hits > 0 and on_obstacles > 0, (hits, on_obstacles)

@@ -1,8 +1,8 @@
 //! `formation-ros2`: the ROS 2 side of robot slots. For each robot it carries it stands in for
 //! the robot's agent process on iceoryx2 (as a robot host's bridge or the Python `Robot` do)
 //! and speaks rmw_zenoh's wire format on Zenoh, so a ROS 2 node (over `rmw_zenoh_cpp`, or any
-//! program that writes the same bytes) drives the robot: odometry, observation and `/clock` out,
-//! `cmd_vel` in (docs/ROS2.md).
+//! program that writes the same bytes) drives the robot: odometry, observation, scan, obstacles
+//! and `/clock` out, `cmd_vel` in (docs/ROS2.md).
 
 use std::process::ExitCode;
 use std::time::Duration;
@@ -16,6 +16,7 @@ use iceoryx2::prelude::*;
 use zenoh::Wait;
 
 use formation_ros2::side::{self, Names, Options};
+use formation_ros2::surroundings::ScanLayout;
 
 /// Plays robot slots of a swarm as ROS 2 topics over rmw_zenoh's wire format (started by the
 /// launcher for `--ros2`; by hand: docs/ROS2.md).
@@ -75,6 +76,8 @@ fn try_main(cli: Cli) -> Result<()> {
         ),
         names,
         observation_label: observation.as_str().to_string(),
+        scan: ScanLayout::of(&config.env),
+        obstacles: config.env.has_obstacles(),
         dt_s: config.env.dt_s,
         sim_silence: Duration::from_millis(config.ticks.sim_silence_ms),
         startup_timeout: Duration::from_secs(config.ticks.startup_timeout_s),

@@ -1,7 +1,8 @@
 //! A run as an MCAP file of ROS 2 messages (`--record mcap`: `<run dir>/run.mcap`). CDR
 //! payloads (`message_encoding` `cdr`), `ros2msg` schemas carrying the full dependent
 //! definitions as `ros2 bag` writes them, stamps in sim time (state number x dt, monotonic
-//! across episodes). The channels are in docs/ROS2.md, "Runs as MCAP".
+//! across episodes). With the range sensor, every robot's scan; with obstacles, each
+//! episode's obstacles as markers. The channels are in docs/ROS2.md, "Runs as MCAP".
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -10,6 +11,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{Context, Result, anyhow, bail};
+use formation_core::obstacles::Obstacle;
 use formation_ipc::cli::Mode;
 use formation_ipc::services::{self, RunIdentity, SimWatch, Sizing};
 use formation_ipc::termination_requested;
@@ -21,6 +23,7 @@ use iceoryx2::prelude::*;
 use serde::Serialize;
 
 use crate::side::{Names, odometry_of};
+use crate::surroundings::{self, ObstacleFeed, ScanLayout};
 use crate::wire::{self, Header, Pose, Quaternion, Time, Twist, Vector3};
 
 /// The file the recorder writes in the run directory.
@@ -35,6 +38,8 @@ const WAIT_SLICE: Duration = Duration::from_millis(100);
 /// left out): `(package/Name, text)`. A field type without a package is of the same package.
 const DEFINITIONS: &[(&str, &str)] = &[
     ("builtin_interfaces/Time", "int32 sec\nuint32 nanosec\n"),
+    ("builtin_interfaces/Duration", "int32 sec\nuint32 nanosec\n"),
+    ("std_msgs/ColorRGBA", "float32 r\nfloat32 g\nfloat32 b\nfloat32 a\n"),
     ("std_msgs/Header", "builtin_interfaces/Time stamp\nstring frame_id\n"),
     ("std_msgs/Float32", "float32 data\n"),
     ("std_msgs/String", "string data\n"),
@@ -65,7 +70,31 @@ const DEFINITIONS: &[(&str, &str)] = &[
         "Twist twist\nfloat64[36] covariance\n",
     ),
     ("geometry_msgs/TwistStamped", "std_msgs/Header header\nTwist twist\n"),
+    ("geometry_msgs/Transform", "Vector3 translation\nQuaternion rotation\n"),
+    (
+        "geometry_msgs/TransformStamped",
+        "std_msgs/Header header\nstring child_frame_id\nTransform transform\n",
+    ),
+    ("tf2_msgs/TFMessage", "geometry_msgs/TransformStamped[] transforms\n"),
     ("geometry_msgs/PoseArray", "std_msgs/Header header\nPose[] poses\n"),
+    (
+        "sensor_msgs/LaserScan",
+        "std_msgs/Header header\nfloat32 angle_min\nfloat32 angle_max\nfloat32 angle_increment\nfloat32 time_increment\nfloat32 scan_time\nfloat32 range_min\nfloat32 range_max\nfloat32[] ranges\nfloat32[] intensities\n",
+    ),
+    (
+        "sensor_msgs/CompressedImage",
+        "std_msgs/Header header\nstring format\nuint8[] data\n",
+    ),
+    ("visualization_msgs/UVCoordinate", "float32 u\nfloat32 v\n"),
+    ("visualization_msgs/MeshFile", "string filename\nuint8[] data\n"),
+    (
+        "visualization_msgs/Marker",
+        "int32 ARROW=0\nint32 CUBE=1\nint32 SPHERE=2\nint32 CYLINDER=3\nint32 LINE_STRIP=4\nint32 LINE_LIST=5\nint32 CUBE_LIST=6\nint32 SPHERE_LIST=7\nint32 POINTS=8\nint32 TEXT_VIEW_FACING=9\nint32 MESH_RESOURCE=10\nint32 TRIANGLE_LIST=11\nint32 ARROW_STRIP=12\n\
+         int32 ADD=0\nint32 MODIFY=0\nint32 DELETE=2\nint32 DELETEALL=3\n\
+         std_msgs/Header header\nstring ns\nint32 id\nint32 type\nint32 action\ngeometry_msgs/Pose pose\ngeometry_msgs/Vector3 scale\nstd_msgs/ColorRGBA color\nbuiltin_interfaces/Duration lifetime\nbool frame_locked\n\
+         geometry_msgs/Point[] points\nstd_msgs/ColorRGBA[] colors\nstring texture_resource\nsensor_msgs/CompressedImage texture\nUVCoordinate[] uv_coordinates\nstring text\nstring mesh_resource\nMeshFile mesh_file\nbool mesh_use_embedded_materials\n",
+    ),
+    ("visualization_msgs/MarkerArray", "Marker[] markers\n"),
     (
         "nav_msgs/Odometry",
         "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/PoseWithCovariance pose\ngeometry_msgs/TwistWithCovariance twist\n",
@@ -152,6 +181,33 @@ pub struct PoseArray {
     pub poses: Vec<Pose>,
 }
 
+/// `geometry_msgs/msg/Transform`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct Transform {
+    /// Where the child frame's origin is.
+    pub translation: Vector3,
+    /// How it is turned.
+    pub rotation: Quaternion,
+}
+
+/// `geometry_msgs/msg/TransformStamped`: `header.frame_id` -> `child_frame_id`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct TransformStamped {
+    /// Stamp and the parent frame.
+    pub header: Header,
+    /// The child frame.
+    pub child_frame_id: String,
+    /// The child frame in the parent's.
+    pub transform: Transform,
+}
+
+/// `tf2_msgs/msg/TFMessage`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct TfMessage {
+    /// The transforms.
+    pub transforms: Vec<TransformStamped>,
+}
+
 /// `std_msgs/msg/UInt32MultiArray`.
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct UInt32MultiArray {
@@ -166,6 +222,9 @@ pub struct UInt32MultiArray {
 enum Topic {
     Odometry(usize),
     Command(usize),
+    Scan(usize),
+    Obstacles,
+    Tf,
     Goal,
     Target,
     Slot,
@@ -179,6 +238,9 @@ impl Topic {
         match self {
             Topic::Odometry(_) => "nav_msgs/msg/Odometry",
             Topic::Command(_) => "geometry_msgs/msg/TwistStamped",
+            Topic::Scan(_) => "sensor_msgs/msg/LaserScan",
+            Topic::Obstacles => "visualization_msgs/msg/MarkerArray",
+            Topic::Tf => "tf2_msgs/msg/TFMessage",
             Topic::Goal | Topic::Target => "geometry_msgs/msg/PoseArray",
             Topic::Slot => "std_msgs/msg/UInt32MultiArray",
             Topic::Reward => "std_msgs/msg/Float32",
@@ -192,6 +254,9 @@ impl Topic {
         match self {
             Topic::Odometry(robot) => names.topic(robot, "odom"),
             Topic::Command(robot) => names.topic(robot, "cmd_applied"),
+            Topic::Scan(robot) => names.topic(robot, "scan"),
+            Topic::Obstacles => surroundings::obstacles_topic(ns),
+            Topic::Tf => "/tf".into(),
             Topic::Goal => format!("/{ns}/goal"),
             Topic::Target => format!("/{ns}/target"),
             Topic::Slot => format!("/{ns}/slot"),
@@ -236,6 +301,8 @@ pub struct Recorder<W: Write + Seek> {
     names: Names,
     n_agents: usize,
     dt_s: f64,
+    /// The range sensor in the observations, if the model has one.
+    scan: Option<ScanLayout>,
     /// Train mode: only evaluation episodes are written.
     eval_only: bool,
     channels: BTreeMap<String, u16>,
@@ -248,8 +315,17 @@ pub struct Recorder<W: Write + Seek> {
 
 impl<W: Write + Seek> Recorder<W> {
     /// A recorder of an `n_agents` swarm writing to `out`; in train mode (`mode`) only the
-    /// evaluation episodes are recorded.
-    pub fn new(out: W, names: Names, n_agents: usize, dt_s: f64, mode: Mode) -> Result<Self> {
+    /// evaluation episodes are recorded. With `scan`, each robot's scan is recorded; with
+    /// `obstacles`, the channel of the episodes' obstacles is opened.
+    pub fn new(
+        out: W,
+        names: Names,
+        n_agents: usize,
+        dt_s: f64,
+        mode: Mode,
+        scan: Option<ScanLayout>,
+        obstacles: bool,
+    ) -> Result<Self> {
         let writer = mcap::WriteOptions::new()
             .profile("ros2")
             .create(out)
@@ -259,6 +335,7 @@ impl<W: Write + Seek> Recorder<W> {
             names,
             n_agents,
             dt_s,
+            scan,
             eval_only: mode == Mode::Train,
             channels: BTreeMap::new(),
             sequences: BTreeMap::new(),
@@ -267,6 +344,7 @@ impl<W: Write + Seek> Recorder<W> {
             recorded: Recorded::default(),
         };
         let mut topics = vec![
+            Topic::Tf,
             Topic::Episode,
             Topic::Goal,
             Topic::Target,
@@ -274,8 +352,14 @@ impl<W: Write + Seek> Recorder<W> {
             Topic::Reward,
             Topic::Outcome,
         ];
+        if obstacles {
+            topics.push(Topic::Obstacles);
+        }
         for robot in 0..n_agents {
             topics.extend([Topic::Odometry(robot), Topic::Command(robot)]);
+            if scan.is_some() {
+                topics.push(Topic::Scan(robot));
+            }
         }
         for topic in topics {
             recorder.channel(topic)?;
@@ -316,6 +400,22 @@ impl<W: Write + Seek> Recorder<W> {
             .context("MCAP message")
     }
 
+    /// Whether a state is left out: a training episode's in train mode.
+    fn skips(&self, state: &StateMsg) -> bool {
+        self.eval_only && !state.header.has(FLAG_EVAL_EPISODE)
+    }
+
+    /// Writes an episode's obstacles as markers, stamped at its first state `state` (or
+    /// skips them with the episode).
+    pub fn obstacles(&mut self, state: &StateMsg, obstacles: &[Obstacle]) -> Result<()> {
+        if self.skips(state) {
+            return Ok(());
+        }
+        let nanos = sim_nanos(state.sequence, self.dt_s);
+        let markers = surroundings::obstacle_markers(obstacles, Time::from_nanos(nanos));
+        self.write(Topic::Obstacles, nanos, &markers)
+    }
+
     /// Writes one state of the sim (or skips it: a training episode in train mode).
     pub fn state(&mut self, state: &StateMsg) -> Result<()> {
         if self.last_sequence != 0 && state.sequence > self.last_sequence + 1 {
@@ -323,7 +423,7 @@ impl<W: Write + Seek> Recorder<W> {
         }
         self.last_sequence = state.sequence;
         let header = state.header;
-        if self.eval_only && !header.has(FLAG_EVAL_EPISODE) {
+        if self.skips(state) {
             return Ok(());
         }
         let nanos = sim_nanos(state.sequence, self.dt_s);
@@ -337,8 +437,30 @@ impl<W: Write + Seek> Recorder<W> {
             self.recorded.episodes += 1;
         }
         self.formation(state, n, nanos, &stamp)?;
+        let tf = TfMessage {
+            transforms: (0..n)
+                .map(|robot| {
+                    let pose = odometry_of(state, robot, stamp.stamp).pose.pose;
+                    TransformStamped {
+                        header: stamp.clone(),
+                        child_frame_id: format!("robot_{robot}/base_link"),
+                        transform: Transform {
+                            translation: pose.position,
+                            rotation: pose.orientation,
+                        },
+                    }
+                })
+                .collect(),
+        };
+        self.write(Topic::Tf, nanos, &tf)?;
         for robot in 0..n {
             self.write(Topic::Odometry(robot), nanos, &odometry_of(state, robot, stamp.stamp))?;
+            let scan = self
+                .scan
+                .and_then(|layout| layout.of_state(state, robot, stamp.stamp, self.dt_s));
+            if let Some(scan) = scan {
+                self.write(Topic::Scan(robot), nanos, &scan)?;
+            }
         }
         if header.tick > 0 {
             // The command in use over the transition into this state: stamped when it began.
@@ -436,6 +558,10 @@ pub struct Options {
     pub sizing: Sizing,
     /// Topic names.
     pub names: Names,
+    /// The range sensor in the observations (`None`: the model has none, no scans).
+    pub scan: Option<ScanLayout>,
+    /// The run has obstacles: each episode's are recorded.
+    pub obstacles: bool,
     /// One tick of sim time, seconds.
     pub dt_s: f64,
     /// How long a sim may be silent before its process is checked.
@@ -463,16 +589,29 @@ pub fn run(options: &Options, ready: impl FnOnce() -> Result<()>) -> Result<Reco
         .context("mcap: wake-up listener")?;
     let path = options.run_dir.join(MCAP_FILE);
     let file = File::create(&path).with_context(|| format!("cannot create {}", path.display()))?;
+    let mut obstacles = match options.obstacles {
+        true => Some(ObstacleFeed::new(&node, sizing).context("mcap")?),
+        false => None,
+    };
     let mut recorder = Recorder::new(
         BufWriter::new(file),
         options.names.clone(),
         options.n_agents,
         options.dt_s,
         options.mode,
+        options.scan,
+        options.obstacles,
     )?;
     ready()?;
     let mut sim_watch = SimWatch::new(options.sim_silence, options.startup_timeout);
-    let outcome = record(options, &states, &wake, &mut recorder, &mut sim_watch);
+    let outcome = record(
+        options,
+        &states,
+        obstacles.as_mut(),
+        &wake,
+        &mut recorder,
+        &mut sim_watch,
+    );
     let recorded = recorder.finish()?;
     outcome.map(|()| recorded)
 }
@@ -480,6 +619,7 @@ pub fn run(options: &Options, ready: impl FnOnce() -> Result<()>) -> Result<Reco
 fn record(
     options: &Options,
     states: &iceoryx2::port::subscriber::Subscriber<ipc::Service, StateMsg, ()>,
+    mut obstacles: Option<&mut ObstacleFeed>,
     wake: &iceoryx2::port::listener::Listener<ipc::Service>,
     recorder: &mut Recorder<BufWriter<File>>,
     sim_watch: &mut SimWatch,
@@ -492,6 +632,12 @@ fn record(
             sim_watch.heard();
             if state.header.has(FLAG_RUN_END) {
                 return Ok(());
+            }
+            if state.header.has(FLAG_EPISODE_START)
+                && let Some(feed) = obstacles.as_deref_mut()
+                && let Some(list) = feed.of_episode(state.header.episode)?
+            {
+                recorder.obstacles(state, &list)?;
             }
             recorder.state(state)?;
         }
@@ -535,6 +681,9 @@ mod tests {
             "std_msgs/msg/Float32",
             "std_msgs/msg/String",
             "std_msgs/msg/UInt32",
+            "sensor_msgs/msg/LaserScan",
+            "visualization_msgs/msg/MarkerArray",
+            "tf2_msgs/msg/TFMessage",
         ] {
             let text = schema_text(ty).expect("schema");
             let sections: Vec<&str> = text.split(&format!("{SEPARATOR}\n")).collect();
@@ -609,7 +758,7 @@ mod tests {
     fn record(mode: Mode, states: &[StateMsg]) -> (Vec<(String, u64)>, Recorded) {
         let names = Names::new(0, "formation").expect("names");
         let mut out = std::io::Cursor::new(Vec::new());
-        let mut recorder = Recorder::new(&mut out, names, 3, 0.1, mode).expect("recorder");
+        let mut recorder = Recorder::new(&mut out, names, 3, 0.1, mode, None, false).expect("recorder");
         for state in states {
             recorder.state(state).expect("state");
         }
@@ -643,6 +792,44 @@ mod tests {
         assert_eq!(count(&eval, "/formation/target"), 3, "once an episode: no shape change");
         let (_, gap) = record(Mode::Eval, &[states[0], states[1], states[5]]);
         assert_eq!(gap.lost, 3, "states 3-5 never read");
+    }
+
+    #[test]
+    fn scans_follow_the_odometry_but_for_lost_observations_and_obstacles_come_once_an_episode() {
+        let names = Names::new(0, "formation").expect("names");
+        let mut out = std::io::Cursor::new(Vec::new());
+        let scan = ScanLayout {
+            offset: 16,
+            rays: 16,
+            range_m: 2.0,
+        };
+        let mut recorder = Recorder::new(&mut out, names, 3, 0.1, Mode::Eval, Some(scan), true).expect("recorder");
+        let wall = Obstacle::Wall {
+            a: [1.0, 1.0],
+            b: [1.0, 3.0],
+            thickness: 0.1,
+        };
+        let mut states = episode(0, 1, 0);
+        states[1].observation_lost = 1 << 1;
+        for state in &states {
+            if state.header.has(FLAG_EPISODE_START) {
+                recorder.obstacles(state, &[wall]).expect("obstacles");
+            }
+            recorder.state(state).expect("state");
+        }
+        recorder.finish().expect("finish");
+        let messages = messages(out.get_ref());
+        let times = |topic: &str| -> Vec<u64> {
+            messages
+                .iter()
+                .filter(|(t, _)| t == topic)
+                .map(|(_, time)| *time)
+                .collect()
+        };
+        assert_eq!(times("/formation/robot_0/scan"), times("/formation/robot_0/odom"));
+        assert_eq!(times("/formation/robot_1/scan"), [0, 200_000_000], "tick 1 was lost");
+        assert_eq!(times("/formation/obstacles"), [0], "at the episode's first state");
+        assert_eq!(times("/tf"), [0, 100_000_000, 200_000_000], "every state");
     }
 
     #[test]

@@ -1,8 +1,9 @@
 //! The ROS 2 side's two directions. Observations: each carried robot's observation (on its
 //! wake-up) leaves as `/<ns>/robot_<i>/observation`, and each state of the sim as every carried
-//! robot's `odom` and one `/clock`. Commands: each `cmd_vel` Twist is checked and passed to the
-//! sim on the robot's command stream as the answer to the newest observation published before
-//! it arrived. The robot's greeting goes out once its ROS 2 node is seen (a publisher on its
+//! robot's `odom` (and `scan`, when the observation model has the range sensor) and one
+//! `/clock`; each episode's obstacles leave once as `/<ns>/obstacles` (a run with obstacles).
+//! Commands: each `cmd_vel` Twist is checked and passed to the sim on the robot's command
+//! stream as the answer to the newest observation published before it arrived. The robot's greeting goes out once its ROS 2 node is seen (a publisher on its
 //! `cmd_vel` in the graph, or its first Twist).
 
 use std::path::PathBuf;
@@ -15,7 +16,7 @@ use formation_core::run_dir::write_atomically;
 use formation_ipc::services::{self, RunIdentity, SimWatch, Sizing};
 use formation_ipc::termination_requested;
 use formation_protocol::wire::{
-    CommandMsg, FLAG_EPISODE_END, FLAG_HELLO, FLAG_RUN_END, Header, ObservationMsg, StateMsg,
+    CommandMsg, FLAG_EPISODE_END, FLAG_EPISODE_START, FLAG_HELLO, FLAG_RUN_END, Header, ObservationMsg, StateMsg,
 };
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::subscriber::Subscriber;
@@ -23,6 +24,7 @@ use iceoryx2::prelude::*;
 use zenoh::sample::{Sample, SampleKind};
 use zenoh::{Config, Session, Wait};
 
+use crate::surroundings::{self, ObstacleFeed, ScanLayout};
 use crate::wire::{self, Attachment, EntityKind, NodeIdentity, RosType};
 
 /// The ROS 2 node this side is on the graph: `/<namespace>/formation_swarm`.
@@ -117,6 +119,10 @@ pub struct Options {
     pub names: Names,
     /// `layout.dim[0].label` of the observation: the observation model's name.
     pub observation_label: String,
+    /// The range sensor in the observations (`None`: the model has none, no scan topic).
+    pub scan: Option<ScanLayout>,
+    /// The run has obstacles: `/<ns>/obstacles` is published once per episode.
+    pub obstacles: bool,
     /// One tick of sim time, seconds.
     pub dt_s: f64,
     /// How long a sim may be silent before its process is checked.
@@ -132,6 +138,10 @@ pub struct Counts {
     pub observations: AtomicU64,
     /// Odometry messages published.
     pub odometry: AtomicU64,
+    /// Laser scans published.
+    pub scans: AtomicU64,
+    /// Obstacle marker arrays published (one per episode).
+    pub obstacles: AtomicU64,
     /// Twists passed to the sim as a robot's command.
     pub twists: AtomicU64,
     /// Twists dropped: none of their robot's observations had been published yet.
@@ -152,9 +162,11 @@ impl Counts {
     /// One line for the log.
     pub fn report(&self) -> String {
         format!(
-            "published {} observations, {} odometry; passed {} twists on, dropped {} before any observation, superseded {}, rejected {}",
+            "published {} observations, {} odometry, {} scans, {} obstacle marker arrays; passed {} twists on, dropped {} before any observation, superseded {}, rejected {}",
             Self::get(&self.observations),
             Self::get(&self.odometry),
+            Self::get(&self.scans),
+            Self::get(&self.obstacles),
             Self::get(&self.twists),
             Self::get(&self.dropped),
             Self::get(&self.superseded),
@@ -433,7 +445,6 @@ fn observations_out(options: &Options, session: &Session, graph: &mut Graph, sha
         .context("ros2: state subscriber")?;
     let names = &options.names;
     let mut observation_out = Vec::new();
-    let mut odometry_out = Vec::new();
     for &robot in &options.robots {
         observation_out.push(graph.publisher(
             session,
@@ -441,9 +452,8 @@ fn observations_out(options: &Options, session: &Session, graph: &mut Graph, sha
             &names.topic(robot, "observation"),
             &wire::FLOAT32_MULTI_ARRAY,
         )?);
-        odometry_out.push(graph.publisher(session, names, &names.topic(robot, "odom"), &wire::ODOMETRY)?);
     }
-    let mut clock_out = graph.publisher(session, names, "/clock", &wire::CLOCK)?;
+    let mut state_out = StateOut::new(options, session, graph, &node)?;
     let listeners: Vec<&Listener<ipc::Service>> = inputs.iter().map(|(_, _, l)| l).collect();
     let mut ended = vec![false; options.robots.len()];
     let mut sim_watch = SimWatch::new(options.sim_silence, options.startup_timeout);
@@ -490,13 +500,7 @@ fn observations_out(options: &Options, session: &Session, graph: &mut Graph, sha
             if sample.payload().header.has(FLAG_RUN_END) {
                 continue; // the run's end repeats the last state
             }
-            publish_state(
-                options,
-                sample.payload(),
-                &mut odometry_out,
-                &mut clock_out,
-                &shared.counts,
-            )?;
+            state_out.publish(options, sample.payload(), &shared.counts)?;
         }
         if termination_requested() {
             break;
@@ -511,23 +515,75 @@ fn observations_out(options: &Options, session: &Session, graph: &mut Graph, sha
     Ok(())
 }
 
-/// One state of the sim as every carried robot's odometry (ground truth: pose in `world`, the
-/// velocity that acted in `robot_<i>/base_link`) and the clock, stamped in sim time.
-fn publish_state(
-    options: &Options,
-    state: &StateMsg,
-    odometry_out: &mut [RosPublisher],
-    clock_out: &mut RosPublisher,
-    counts: &Counts,
-) -> Result<()> {
-    let stamp = sim_time(state.sequence, options.dt_s);
-    clock_out.put(&wire::Clock { clock: stamp })?;
-    for (slot, &robot) in options.robots.iter().enumerate() {
-        let odometry = odometry_of(state, robot, stamp);
-        odometry_out[slot].put(&odometry)?;
-        counts.odometry.fetch_add(1, Ordering::Relaxed);
+/// The publishers of what each state of the sim becomes.
+struct StateOut {
+    clock: RosPublisher,
+    /// Per carried robot.
+    odometry: Vec<RosPublisher>,
+    /// Per carried robot, with the range sensor; else empty.
+    scans: Vec<RosPublisher>,
+    /// With obstacles: the sim's obstacles and `/<ns>/obstacles`.
+    obstacles: Option<(ObstacleFeed, RosPublisher)>,
+}
+
+impl StateOut {
+    fn new(options: &Options, session: &Session, graph: &mut Graph, node: &Node<ipc::Service>) -> Result<Self> {
+        let names = &options.names;
+        let mut odometry = Vec::new();
+        let mut scans = Vec::new();
+        for &robot in &options.robots {
+            odometry.push(graph.publisher(session, names, &names.topic(robot, "odom"), &wire::ODOMETRY)?);
+            if options.scan.is_some() {
+                scans.push(graph.publisher(session, names, &names.topic(robot, "scan"), &wire::LASER_SCAN)?);
+            }
+        }
+        let obstacles = match options.obstacles {
+            true => Some((
+                ObstacleFeed::new(node, &options.sizing).context("ros2")?,
+                graph.publisher(
+                    session,
+                    names,
+                    &surroundings::obstacles_topic(names.namespace()),
+                    &wire::MARKER_ARRAY,
+                )?,
+            )),
+            false => None,
+        };
+        Ok(Self {
+            clock: graph.publisher(session, names, "/clock", &wire::CLOCK)?,
+            odometry,
+            scans,
+            obstacles,
+        })
     }
-    Ok(())
+
+    /// One state of the sim as the clock, every carried robot's odometry (ground truth: pose in
+    /// `world`, the velocity that acted in `robot_<i>/base_link`) and scan (what its
+    /// observation told it), stamped in sim time; at an episode's first state its obstacles
+    /// first.
+    fn publish(&mut self, options: &Options, state: &StateMsg, counts: &Counts) -> Result<()> {
+        let stamp = sim_time(state.sequence, options.dt_s);
+        if state.header.has(FLAG_EPISODE_START)
+            && let Some((feed, out)) = &mut self.obstacles
+            && let Some(obstacles) = feed.of_episode(state.header.episode)?
+        {
+            out.put(&surroundings::obstacle_markers(&obstacles, stamp))?;
+            counts.obstacles.fetch_add(1, Ordering::Relaxed);
+        }
+        self.clock.put(&wire::Clock { clock: stamp })?;
+        for (slot, &robot) in options.robots.iter().enumerate() {
+            self.odometry[slot].put(&odometry_of(state, robot, stamp))?;
+            counts.odometry.fetch_add(1, Ordering::Relaxed);
+            let scan = options
+                .scan
+                .and_then(|layout| layout.of_state(state, robot, stamp, options.dt_s));
+            if let Some(scan) = scan {
+                self.scans[slot].put(&scan)?;
+                counts.scans.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+        Ok(())
+    }
 }
 
 /// Sim time of the state numbered `sequence` (from 1): `(sequence - 1) * dt`, monotonic

@@ -49,6 +49,20 @@ pub const TWIST: RosType = RosType {
     hash: "RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a",
 };
 
+/// `sensor_msgs/msg/LaserScan`.
+pub const LASER_SCAN: RosType = RosType {
+    name: "sensor_msgs/msg/LaserScan",
+    dds: "sensor_msgs::msg::dds_::LaserScan_",
+    hash: "RIHS01_64c191398013af96509d518dac71d5164f9382553fce5c1f8cca5be7924bd828",
+};
+
+/// `visualization_msgs/msg/MarkerArray`.
+pub const MARKER_ARRAY: RosType = RosType {
+    name: "visualization_msgs/msg/MarkerArray",
+    dds: "visualization_msgs::msg::dds_::MarkerArray_",
+    hash: "RIHS01_86cb8800b6fb05b5eff1abd7a56f62a5641d3ae9a1c29e78e67e704f1d067dcf",
+};
+
 /// `builtin_interfaces/msg/Time`.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct Time {
@@ -237,6 +251,145 @@ pub struct Float32MultiArray {
 pub struct Clock {
     /// The current time.
     pub clock: Time,
+}
+
+/// `builtin_interfaces/msg/Duration`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Duration {
+    /// Whole seconds.
+    pub sec: i32,
+    /// Nanoseconds past `sec`.
+    pub nanosec: u32,
+}
+
+/// `sensor_msgs/msg/LaserScan`: `ranges[k]` is read at `angle_min + k * angle_increment`
+/// counter-clockwise from the x axis of `header.frame_id`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct LaserScan {
+    /// Acquisition time and the scanner's frame.
+    pub header: Header,
+    /// The first ray's angle, rad.
+    pub angle_min: f32,
+    /// The last ray's angle, rad.
+    pub angle_max: f32,
+    /// Between two rays, rad.
+    pub angle_increment: f32,
+    /// Between two measurements, s.
+    pub time_increment: f32,
+    /// Between two scans, s.
+    pub scan_time: f32,
+    /// The shortest range read, m.
+    pub range_min: f32,
+    /// The longest range read, m.
+    pub range_max: f32,
+    /// One range per ray, m.
+    pub ranges: Vec<f32>,
+    /// Per ray (empty: none).
+    pub intensities: Vec<f32>,
+}
+
+/// `std_msgs/msg/ColorRGBA`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct ColorRgba {
+    /// Red, 0-1.
+    pub r: f32,
+    /// Green, 0-1.
+    pub g: f32,
+    /// Blue, 0-1.
+    pub b: f32,
+    /// Opacity, 0-1.
+    pub a: f32,
+}
+
+/// `sensor_msgs/msg/CompressedImage` (a marker's texture).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct CompressedImage {
+    /// Stamp and frame.
+    pub header: Header,
+    /// `jpeg` or `png`.
+    pub format: String,
+    /// The compressed bytes.
+    pub data: Vec<u8>,
+}
+
+/// `visualization_msgs/msg/UVCoordinate`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct UvCoordinate {
+    /// u.
+    pub u: f32,
+    /// v.
+    pub v: f32,
+}
+
+/// `visualization_msgs/msg/MeshFile`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct MeshFile {
+    /// The file's name.
+    pub filename: String,
+    /// Its bytes.
+    pub data: Vec<u8>,
+}
+
+/// `visualization_msgs/msg/Marker` as Jazzy and Kilted define it (with the texture and mesh
+/// fields added in Iron).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Marker {
+    /// Stamp and the frame of `pose`.
+    pub header: Header,
+    /// Namespace: with `id`, names the marker.
+    pub ns: String,
+    /// Its id within `ns`.
+    pub id: i32,
+    /// The shape ([`Marker::CUBE`], [`Marker::CYLINDER`], ...).
+    pub r#type: i32,
+    /// [`Marker::ADD`] or [`Marker::DELETEALL`], ...
+    pub action: i32,
+    /// The shape's centre and orientation.
+    pub pose: Pose,
+    /// The shape's size along its axes, m (a cylinder's x and y: its diameter).
+    pub scale: Vector3,
+    /// Its colour.
+    pub color: ColorRgba,
+    /// How long it stays (zero: until deleted).
+    pub lifetime: Duration,
+    /// Whether it follows its frame after it was placed.
+    pub frame_locked: bool,
+    /// Points of the list types.
+    pub points: Vec<Vector3>,
+    /// Per point colours.
+    pub colors: Vec<ColorRgba>,
+    /// Texture URI.
+    pub texture_resource: String,
+    /// Texture image.
+    pub texture: CompressedImage,
+    /// Texture coordinates.
+    pub uv_coordinates: Vec<UvCoordinate>,
+    /// Text of a text marker.
+    pub text: String,
+    /// Mesh URI.
+    pub mesh_resource: String,
+    /// Mesh bytes.
+    pub mesh_file: MeshFile,
+    /// Whether the mesh's own materials are used.
+    pub mesh_use_embedded_materials: bool,
+}
+
+impl Marker {
+    /// `type`: a box.
+    pub const CUBE: i32 = 1;
+    /// `type`: an upright cylinder.
+    pub const CYLINDER: i32 = 3;
+    /// `action`: add or replace.
+    pub const ADD: i32 = 0;
+    /// `action`: delete every marker.
+    pub const DELETEALL: i32 = 3;
+}
+
+/// `visualization_msgs/msg/MarkerArray`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct MarkerArray {
+    /// The markers, applied in order.
+    pub markers: Vec<Marker>,
 }
 
 /// The encapsulation header of little-endian plain CDR (what rmw_zenoh_cpp writes).
@@ -604,6 +757,82 @@ mod tests {
         assert_eq!(encode(&twist).expect("twist"), golden("twist.cdr"));
         assert_eq!(decode_twist(&golden("twist.cdr")), Ok(twist));
         assert_eq!(decode_twist(&golden("twist_be.cdr")), Ok(twist), "big-endian CDR too");
+    }
+
+    #[test]
+    fn a_laser_scan_and_a_marker_array_are_the_bytes_rosbags_writes() {
+        let scan = LaserScan {
+            header: Header {
+                stamp: Time {
+                    sec: 3,
+                    nanosec: 250_000_000,
+                },
+                frame_id: "robot_1/base_link".into(),
+            },
+            angle_min: 0.0,
+            angle_max: (std::f64::consts::TAU * 15.0 / 16.0) as f32,
+            angle_increment: (std::f64::consts::TAU / 16.0) as f32,
+            time_increment: 0.0,
+            scan_time: 0.1,
+            range_min: 0.0,
+            range_max: 2.0,
+            ranges: vec![0.5, 2.0, 1.25],
+            intensities: Vec::new(),
+        };
+        assert_eq!(encode(&scan).expect("scan"), golden("laser_scan.cdr"));
+        let header = Header {
+            stamp: Time { sec: 3, nanosec: 0 },
+            frame_id: "world".into(),
+        };
+        let delete_all = Marker {
+            header: header.clone(),
+            ns: "obstacles".into(),
+            action: Marker::DELETEALL,
+            ..Marker::default()
+        };
+        let rgba = |r, g, b, a| ColorRgba { r, g, b, a };
+        let wall = Marker {
+            header,
+            ns: "obstacles".into(),
+            id: 7,
+            r#type: Marker::CUBE,
+            action: Marker::ADD,
+            pose: Pose {
+                position: Vector3 {
+                    x: 2.0,
+                    y: 3.5,
+                    z: 0.15,
+                },
+                orientation: Quaternion::from_yaw(1.0),
+            },
+            scale: Vector3 { x: 3.0, y: 0.1, z: 0.3 },
+            color: rgba(0.5, 0.25, 0.125, 1.0),
+            lifetime: Duration::default(),
+            frame_locked: true,
+            points: vec![Vector3 { x: 1.0, y: 2.0, z: 3.0 }],
+            colors: vec![rgba(1.0, 0.0, 0.0, 1.0)],
+            texture_resource: "t".into(),
+            texture: CompressedImage {
+                header: Header {
+                    stamp: Time { sec: 1, nanosec: 2 },
+                    frame_id: "cam".into(),
+                },
+                format: "png".into(),
+                data: vec![1, 2, 3],
+            },
+            uv_coordinates: vec![UvCoordinate { u: 0.25, v: 0.75 }],
+            text: "wall".into(),
+            mesh_resource: "m".into(),
+            mesh_file: MeshFile {
+                filename: "f".into(),
+                data: vec![9],
+            },
+            mesh_use_embedded_materials: true,
+        };
+        let markers = MarkerArray {
+            markers: vec![delete_all, wall],
+        };
+        assert_eq!(encode(&markers).expect("markers"), golden("marker_array.cdr"));
     }
 
     #[test]

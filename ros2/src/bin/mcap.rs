@@ -14,6 +14,7 @@ use formation_ipc::placement::Role;
 use formation_ipc::services::Sizing;
 use formation_ros2::record::{self, Options, READY_LINE};
 use formation_ros2::side::Names;
+use formation_ros2::surroundings::ScanLayout;
 use iceoryx2::prelude::*;
 
 /// Records the run's states as ROS 2 messages in an MCAP file.
@@ -53,6 +54,8 @@ fn try_main(cli: Cli) -> Result<()> {
             Layout::of(config.env.observation).dim(),
         ),
         names: Names::new(0, &cli.namespace)?,
+        scan: ScanLayout::of(&config.env),
+        obstacles: config.env.has_obstacles(),
         dt_s: config.env.dt_s,
         sim_silence: Duration::from_millis(config.ticks.sim_silence_ms),
         startup_timeout: Duration::from_secs(config.ticks.startup_timeout_s),
