@@ -11,7 +11,7 @@ in ``formation_swarm.wire`` are checked against the Rust layout (``layout.json``
 
 from .baseline import Baseline
 from .control import Control, ControlAck, ControlRefused
-from .observer import Observer, WorldState
+from .observer import EpisodeObstacles, Observer, WorldState
 from .robot import Robot, RobotStats, Tick, run_robot
 from .run import FormationError, RunInfo, SimGone, connect
 from .wire import (
@@ -36,6 +36,7 @@ __all__ = [
     "ControlAck",
     "ControlRefused",
     "CriticProgress",
+    "EpisodeObstacles",
     "FLAG_EPISODE_END",
     "FLAG_EPISODE_START",
     "FLAG_EVAL_EPISODE",

@@ -44,7 +44,7 @@ import numpy as np
 from pettingzoo import ParallelEnv
 
 from . import wire
-from .observer import Observer, WorldState
+from .observer import EpisodeObstacles, Observer, WorldState
 from .robot import Robot, Tick
 from .run import FormationError, RunInfo, SimGone, connect
 
@@ -58,6 +58,9 @@ WAIT_SLICE_S = 0.1
 OUTCOME_MAX_CYCLES = "max_cycles"
 #: Outcome name in ``infos`` when the end of the episode went unseen (stream overflow).
 OUTCOME_LOST = "lost"
+#: What ``FormationEnv(obstacles=...)`` takes (run_swarm.sh ``--obstacles``): ``mixed`` draws one
+#: of the other three kinds per episode.
+OBSTACLE_KINDS = ("none", "forest", "passage", "trap", "mixed")
 #: How long the watcher gives an orphaned launcher to end the run before killing its group
 #: (the sim cannot finish an episode whose robots are gone: it waits for their commands).
 ORPHAN_GRACE_S = 5.0
@@ -303,8 +306,9 @@ class FormationEnv(ParallelEnv):
     Agents are ``robot_0`` .. ``robot_{N-1}``. Spaces (gymnasium ``Box``, float32):
 
     * observation: ``(observation_dim,)`` from run.json (16 for the default ``slot_proximity``
-      model, 12 ``paper``, 14 ``slot``), the robot's own observation, unbounded; laid out as
-      docs/PROTOCOL.md says;
+      model, 12 ``paper``, 14 ``slot``, 32 ``slot_proximity_scan``: the default among
+      obstacles), the robot's own observation, unbounded; laid out as docs/PROTOCOL.md says
+      (``wire.OBSERVATION_MODELS[env.run.observation]`` names each block's floats);
     * action: ``[-1, 1]^2``, **normalised** as the learned actor's tanh output:
       ``v = (a0 + 1) / 2 * v_max`` (0 .. v_max, forward only), ``w = a1 * w_max``; values
       outside are clipped. :meth:`action_from_command` maps a physical (v, w) back;
@@ -320,7 +324,8 @@ class FormationEnv(ParallelEnv):
     ``step(actions)`` answers the current tick for every robot and returns the next tick:
     ``rewards`` the team's shared reward of that transition (the sim's ``State.reward``, the
     same for every robot), ``terminations`` True on a ``success`` or ``collision`` outcome,
-    ``truncations`` True on the sim's time limit (``timeout``, ``env.max_steps`` ticks),
+    ``truncations`` True on the sim's time limit (``timeout``, ``env.max_steps`` ticks; among
+    obstacles the episode's own, :meth:`obstacles` ``.time_limit``),
     ``aborted`` or after ``max_cycles`` steps; ``infos[agent]["outcome"]`` names it
     (``running`` while it goes on, ``max_cycles`` for the env's own cut). An episode that ends
     empties :attr:`agents`.
@@ -342,7 +347,13 @@ class FormationEnv(ParallelEnv):
     missed ticks in a row the sim stops waiting for them.
 
     Keyword arguments: ``n`` robots (3 to 64); ``seed``; ``shape`` (``random``, ``ring``,
-    ``line``, ``wedge``, ``grid``, ``mixed``: run_swarm.sh ``--shape``); ``config`` (a TOML file of
+    ``line``, ``wedge``, ``grid``, ``mixed``: run_swarm.sh ``--shape``); ``obstacles`` (between
+    the start and the goal of every episode: ``forest``, ``passage``, ``trap``, ``mixed`` or
+    ``none``, run_swarm.sh ``--obstacles``, over the config's ``[obstacles] kind``; None keeps
+    the config's, none by default; among obstacles the robots observe ``slot_proximity_scan``,
+    32 floats with the range sensor's 16 rays in its ``scan`` block, each range over
+    ``env.scan_range_m``, unless ``config`` names another model; :meth:`obstacles` gives each
+    episode's); ``config`` (a TOML file of
     overrides, run_swarm.sh ``--config``); ``reality`` (the robots' real world: sensor noise,
     actuation delay, motor lag, lost messages, as run_swarm.sh ``--reality``: a TOML file whose
     ``[reality]`` table is read, e.g. ``configs/reality-field.toml``, or a dict of its keys;
@@ -378,6 +389,7 @@ class FormationEnv(ParallelEnv):
         render_mode: Optional[str] = None,
         *,
         reality: Reality = None,
+        obstacles: Optional[str] = None,
         viewer: Optional[str] = None,
         run_dir: Union[str, Path, None] = None,
         repo: Union[str, Path, None] = None,
@@ -392,7 +404,7 @@ class FormationEnv(ParallelEnv):
 
         self._configure(
             dict(
-                n=n, seed=seed, shape=shape, config=resolved(config), max_cycles=max_cycles,
+                n=n, seed=seed, shape=shape, obstacles=obstacles, config=resolved(config), max_cycles=max_cycles,
                 reality=dict(reality) if isinstance(reality, dict) else resolved(reality),
                 render_mode=render_mode, viewer=viewer, run_dir=resolved(run_dir), repo=resolved(repo),
                 bin_dir=resolved(bin_dir), placement=placement, step_timeout_s=step_timeout_s,
@@ -424,6 +436,10 @@ class FormationEnv(ParallelEnv):
         self.render_mode = render_mode
         self.max_cycles = args["max_cycles"]
         self.shape = args["shape"]
+        if args["obstacles"] is not None and args["obstacles"] not in OBSTACLE_KINDS:
+            raise FormationError(f"obstacles must be None or one of {', '.join(OBSTACLE_KINDS)}, got {args['obstacles']!r}")
+        #: The obstacles kind given to every swarm (None: the config's ``[obstacles] kind``).
+        self.obstacle_kind: Optional[str] = args["obstacles"]
         self.config = None if config is None else Path(config)
         if self.config is not None and not self.config.is_file():
             raise FormationError(f"config file {self.config} does not exist")
@@ -457,6 +473,7 @@ class FormationEnv(ParallelEnv):
         self._guards: List[Any] = []
         self._clients_lock: Optional[int] = None
         self._last_state: Optional[wire.State] = None
+        self._episode_obstacles: Optional[EpisodeObstacles] = None
         self._owed = False
         self._closed = False
         # An env left open at interpreter exit is closed then (a weak reference: the hook does
@@ -538,6 +555,7 @@ class FormationEnv(ParallelEnv):
         self.agents = []
         heads = self._next_episode()
         episode = self._last_state.header.episode
+        self._episode_obstacles = self._obstacles_of(episode)
         self._current = heads
         self._owed = True
         self._key = (episode, 0)
@@ -635,6 +653,25 @@ class FormationEnv(ParallelEnv):
         out[4 * n + 2: 6 * n + 2] = np.ctypeslib.as_array(raw.desired)[:n].reshape(-1)
         out[6 * n + 2:] = np.ctypeslib.as_array(raw.slots)[:n].reshape(-1)
         return out
+
+    def obstacles(self) -> Optional[EpisodeObstacles]:
+        """The current episode's obstacles as the sim published them (``formation/obstacles``):
+        ``kind``, ``time_limit``, ``discs`` (centre x, y, radius) and ``walls`` (a.x, a.y, b.x,
+        b.y, thickness), world frame, metres; empty lists in an open episode. None when they
+        went unseen."""
+        self._check_open()
+        if self._last_state is None:
+            raise FormationError("obstacles() before reset()")
+        return self._episode_obstacles
+
+    def _obstacles_of(self, episode: int) -> Optional[EpisodeObstacles]:
+        """Episode ``episode``'s obstacles among those that arrived (published before its first
+        tick: here once that tick's state is)."""
+        found = None
+        for published in self._observer.receive_obstacles():
+            if published.episode == episode:
+                found = published
+        return found
 
     def world(self) -> WorldState:
         """The true state at the current tick as a ``WorldState`` (poses, goal, slots, ...)."""
@@ -738,6 +775,8 @@ class FormationEnv(ParallelEnv):
         ]
         if self.shape:
             args += ["--shape", self.shape]
+        if self.obstacle_kind is not None:
+            args += ["--obstacles", self.obstacle_kind]
         environ = dict(os.environ)
         if self.launcher.bin_dir is not None:
             environ["FORMATION_BIN_DIR"] = str(self.launcher.bin_dir)

@@ -1,4 +1,5 @@
-"""Reading the live true state (``formation/state``) of a running swarm."""
+"""Reading the live true state (``formation/state``) and each episode's obstacles
+(``formation/obstacles``) of a running swarm."""
 
 from __future__ import annotations
 
@@ -97,6 +98,47 @@ class WorldState:
         ]
 
 
+@dataclasses.dataclass(frozen=True)
+class EpisodeObstacles:
+    """One episode's obstacles, world frame, metres (a copy of ``formation::Obstacles``, which
+    the sim publishes once per episode before its first tick; none in an open episode)."""
+
+    episode: int
+    #: The kind the episode drew: ``none``, ``forest``, ``passage`` or ``trap`` (a ``mixed``
+    #: run draws one of the three per episode).
+    kind: str
+    #: The episode's time limit, steps (it depends on the obstacles and the goal distance).
+    time_limit: int
+    #: Discs: centre x, centre y, radius.
+    discs: List[Tuple[float, float, float]]
+    #: Walls: a.x, a.y, b.x, b.y, thickness (a rectangle whose centre line runs from a to b,
+    #: flat ends).
+    walls: List[Tuple[float, float, float, float, float]]
+    #: The raw payload copy.
+    raw: wire.Obstacles = dataclasses.field(repr=False, compare=False)
+
+    @classmethod
+    def from_payload(cls, raw: wire.Obstacles) -> "EpisodeObstacles":
+        """Copies the ``count`` obstacles in use of a ``formation::Obstacles``."""
+        discs, walls = [], []
+        for k in range(min(int(raw.count), wire.MAX_OBSTACLES)):
+            values = tuple(float(v) for v in raw.values[k])
+            if raw.shapes[k] == wire.OBSTACLE_DISC:
+                discs.append(values[:3])
+            elif raw.shapes[k] == wire.OBSTACLE_WALL:
+                walls.append(values)
+            else:
+                raise runmod.FormationError(f"obstacle {k} of episode {raw.header.episode} has shape {raw.shapes[k]}")
+        return cls(
+            episode=raw.header.episode,
+            kind=wire.OBSTACLE_KIND_NAMES.get(raw.kind, str(raw.kind)),
+            time_limit=raw.time_limit,
+            discs=discs,
+            walls=walls,
+            raw=raw,
+        )
+
+
 class Observer:
     """Subscribes to the true state of the run in ``run_dir``.
 
@@ -118,6 +160,7 @@ class Observer:
         self.poll_s = poll_s
         self._node = self.run.create_node(name)
         self._states = runmod.state_stream(self._node, self.run).subscriber_builder().create()
+        self._obstacles = runmod.obstacles_stream(self._node, self.run).subscriber_builder().create()
         self._wake = runmod.critic_wake_event(self._node, self.run).listener_builder().create()
         self.run_ended = False
 
@@ -138,6 +181,19 @@ class Observer:
             if raw.header.flags & wire.FLAG_RUN_END:
                 self.run_ended = True
             out.append(raw)
+
+    def receive_obstacles(self) -> List[EpisodeObstacles]:
+        """The obstacles of every episode that started since the last call (oldest first; the
+        subscriber holds the last 2), without waiting. The sim publishes an episode's obstacles
+        before its first tick, so they are here once that tick's state is."""
+        out = []
+        while True:
+            sample = self._obstacles.receive()
+            if sample is None:
+                return out
+            raw = wire.Obstacles.from_buffer_copy(sample.payload().contents)
+            sample.delete()
+            out.append(EpisodeObstacles.from_payload(raw))
 
     @property
     def listener(self) -> Any:
@@ -187,7 +243,7 @@ class Observer:
 
     def close(self) -> None:
         """Releases the ports and the node."""
-        for port in ("_states", "_wake"):
+        for port in ("_states", "_obstacles", "_wake"):
             obj = getattr(self, port, None)
             if obj is not None:
                 obj.delete()

@@ -185,15 +185,21 @@ def run_contract(run: RunInfo) -> Any:
     return verifier
 
 
-def _stream(node: Any, run: RunInfo, name: str, payload: type, history: int, max_nodes: int) -> Any:
+def _stream(
+    node: Any, run: RunInfo, name: str, payload: type, history: int, max_nodes: int,
+    readers: int = 2, buffer: Optional[int] = None,
+) -> Any:
+    """A publish-subscribe service as ``services::stream_for`` sizes it: ``readers``
+    subscribers besides the spares, ``history`` samples kept for late subscribers, subscribers
+    holding ``buffer`` samples (default: the stream buffer, at least the history)."""
     return (
         node.service_builder(iox2.ServiceName.new(name))
         .publish_subscribe(payload)
         .max_publishers(1 + wire.SPARE_PORTS)
-        .max_subscribers(2 + wire.SPARE_PORTS)
+        .max_subscribers(readers + wire.SPARE_PORTS)
         .max_nodes(max_nodes)
         .history_size(history)
-        .subscriber_max_buffer_size(max(run.stream_buffer, history))
+        .subscriber_max_buffer_size(max(run.stream_buffer, history) if buffer is None else buffer)
         .open_or_create_with_attributes(run_contract(run))
     )
 
@@ -235,6 +241,14 @@ def command_event(node: Any, run: RunInfo) -> Any:
 def state_stream(node: Any, run: RunInfo) -> Any:
     """``formation/state``: the true world, every tick."""
     return _stream(node, run, "formation/state", wire.State, 0, run.shared_nodes)
+
+
+def obstacles_stream(node: Any, run: RunInfo) -> Any:
+    """``formation/obstacles``: each episode's obstacles, published once before its first tick
+    (history 1: a late subscriber gets the current episode's at once; every robot, the critic,
+    the view and spares may read; subscribers hold 2)."""
+    readers = run.n_agents + 2 + wire.SPARE_PORTS
+    return _stream(node, run, "formation/obstacles", wire.Obstacles, 1, run.shared_nodes, readers, 2)
 
 
 def critic_wake_event(node: Any, run: RunInfo) -> Any:

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Dict, Optional, Tuple
 
 #: Bumped whenever a payload's layout or meaning changes (``wire::PROTOCOL_VERSION``).
-PROTOCOL_VERSION = 5
+PROTOCOL_VERSION = 6
 
 #: ``Header.flags``: first tick of an episode (robots reset their history).
 FLAG_EPISODE_START = 1
@@ -52,7 +52,9 @@ MIN_AGENTS = 3
 #: Neighbours each robot observes: (i+1) mod N and (i+2) mod N.
 NEIGHBOURS = 2
 #: Room for the largest observation model's floats.
-MAX_OBS_DIM = 16
+MAX_OBS_DIM = 32
+#: Room for one episode's obstacles (``ObstaclesMsg``; a draw never makes more).
+MAX_OBSTACLES = 128
 #: Actions are (v, w).
 ACTION_DIM = 2
 #: Largest actuation delay, ticks: room for the commands queued at a robot's motors.
@@ -184,6 +186,55 @@ class WeightsHeader(ctypes.Structure):
         return "formation::WeightsHeader"
 
 
+#: ``Obstacles.shapes``: a disc, ``values`` = centre x, centre y, radius, 0, 0.
+OBSTACLE_DISC = 1
+#: ``Obstacles.shapes``: a wall, ``values`` = a.x, a.y, b.x, b.y, thickness (a rectangle whose
+#: centre line runs from a to b, flat ends).
+OBSTACLE_WALL = 2
+#: ``Obstacles.kind``: the kind an episode drew (``[obstacles] kind``; ``mixed`` draws one of the
+#: three per episode).
+OBSTACLE_KIND_NAMES = {0: "none", 1: "forest", 2: "passage", 3: "trap"}
+
+
+class Obstacles(ctypes.Structure):
+    """sim -> robots, critic and observers (``ObstaclesMsg``, ``formation/obstacles``), once per
+    episode before its first tick: the episode's obstacles, world frame, metres (``count`` 0 in
+    an open episode)."""
+
+    _fields_ = [
+        ("header", Header),
+        ("count", ctypes.c_uint32),
+        ("kind", ctypes.c_uint32),
+        ("time_limit", ctypes.c_uint32),
+        ("shapes", ctypes.c_uint32 * MAX_OBSTACLES),
+        ("values", (ctypes.c_double * 5) * MAX_OBSTACLES),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        """The iceoryx2 type name."""
+        return "formation::Obstacles"
+
+
+class Truth(ctypes.Structure):
+    """sim -> privileged planners and observers (``TruthMsg``, ``formation/truth``), every tick
+    before the observations: the true poses and the formation in force."""
+
+    _fields_ = [
+        ("header", Header),
+        ("n_agents", ctypes.c_uint32),
+        ("present", ctypes.c_uint64),
+        ("poses", (ctypes.c_float * 3) * MAX_AGENTS),
+        ("slots", (ctypes.c_float * 2) * MAX_AGENTS),
+        ("goal", ctypes.c_float * 2),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        """The iceoryx2 type name."""
+        return "formation::Truth"
+
+
 #: ``ControlRequest.kind``: a new formation (``shape``, ``scale``, ``orientation``).
 CONTROL_SET_FORMATION = 1
 #: ``ControlRequest.kind``: a new goal.
@@ -242,6 +293,8 @@ PAYLOADS = {
     "ObservationMsg": Observation,
     "CommandMsg": Command,
     "StateMsg": State,
+    "ObstaclesMsg": Obstacles,
+    "TruthMsg": Truth,
     "CriticProgressMsg": CriticProgress,
     "WeightsHeader": WeightsHeader,
     "ControlRequest": ControlRequest,
@@ -252,8 +305,8 @@ PAYLOADS = {
 @dataclasses.dataclass(frozen=True)
 class ObservationLayout:
     """One observation model as ``layout.json`` lists it: its name, its floats, and each block
-    (``neighbour_0``, ``neighbour_1``, ``goal``, ``slot``, ``proximity``) with its first float
-    and the names of its floats."""
+    (``neighbour_0``, ``neighbour_1``, ``goal``, ``slot``, ``proximity``, ``scan``) with its first
+    float and the names of its floats."""
 
     name: str
     dim: int
@@ -266,6 +319,14 @@ class ObservationLayout:
             return None
         offset, fields = self.blocks[block]
         return offset + fields.index(field)
+
+    def span(self, block: str) -> Optional[slice]:
+        """The floats of ``block`` as a slice of an observation (``obs[layout.span("scan")]``:
+        the range sensor's rays), or None when this model has no such block."""
+        if block not in self.blocks:
+            return None
+        offset, fields = self.blocks[block]
+        return slice(offset, offset + len(fields))
 
 
 def _observation_models() -> Dict[str, ObservationLayout]:

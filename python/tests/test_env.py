@@ -7,6 +7,7 @@ import contextlib
 import csv
 import os
 import json
+import math
 import signal
 import tempfile
 import time
@@ -210,6 +211,62 @@ def test_paper_observation_config_and_slow_caller(make_env, tmp_path):
         assert infos["robot_0"]["missed"] == 0 and infos["robot_0"]["skipped_ticks"] == 0
 
 
+#: ``env.scan_range_m``'s default (the obstacle test's config leaves it): a ray's range over it
+#: is what the observation's scan block holds.
+SCAN_RANGE_M = 2.0
+
+
+def distance_to_wall(point, wall):
+    """How far ``point`` is from a wall's rectangle (a.x, a.y, b.x, b.y, thickness; flat ends):
+    0 on or inside it."""
+    ax, ay, bx, by, thickness = wall
+    length = math.hypot(bx - ax, by - ay)
+    ux, uy = (bx - ax) / length, (by - ay) / length
+    px, py = point[0] - ax, point[1] - ay
+    along, across = px * ux + py * uy, abs(py * ux - px * uy)
+    return math.hypot(max(-along, 0.0, along - length), max(across - thickness / 2, 0.0))
+
+
+def test_obstacles_reach_the_observations_and_the_scan_sees_the_walls(make_env):
+    """obstacles="passage": the robots observe slot_proximity_scan (32 floats), the env reads
+    the episode's two walls from formation/obstacles, every ray of the scan block is in
+    [0, 1], and rays that read short of the range end on one of those walls at some tick."""
+    env = make_env(n=3, seed=2000, obstacles="passage")
+    layout = fs.wire.OBSERVATION_MODELS["slot_proximity_scan"]
+    assert env.run.observation == layout.name and env.observation_space("robot_1").shape == (32,)
+    scan = layout.span("scan")
+    rays = scan.stop - scan.start
+    baseline = fs.Baseline.for_run(env.run)
+    obs, infos = env.reset()
+    obstacles = env.obstacles()
+    assert obstacles.episode == infos["robot_0"]["episode"] and obstacles.kind == "passage", obstacles
+    assert len(obstacles.walls) == 2 and not obstacles.discs and obstacles.time_limit > 0, obstacles
+    short, on_wall, ticks = 0, 0, 0
+    while True:
+        world = env.world()
+        for i, agent in enumerate(env.possible_agents):
+            assert obs[agent].shape == (32,)
+            reading = obs[agent][scan]
+            assert np.all((reading >= 0.0) & (reading <= 1.0)), (world.tick, agent, reading)
+            x, y, theta = world.poses[i]
+            for k in np.flatnonzero(reading < 1.0):
+                short += 1
+                angle, r = theta + 2 * math.pi * k / rays, float(reading[k]) * SCAN_RANGE_M
+                hit = (x + r * math.cos(angle), y + r * math.sin(angle))
+                on_wall += min(distance_to_wall(hit, wall) for wall in obstacles.walls) < 1e-3
+        ticks += 1
+        if not env.agents:
+            break
+        obs, _, _, _, infos = env.step({a: env.action_from_command(*baseline(obs[a])) for a in env.agents})
+    print(f"{ticks} ticks, {infos['robot_0']['outcome']}: {short} short rays, {on_wall} on a wall")
+    assert on_wall > 0, (short, ticks, obstacles)
+
+
+def test_obstacles_must_name_a_kind(tmp_path):
+    with pytest.raises(fs.FormationError, match="obstacles must be"):
+        fs.FormationEnv(n=3, obstacles="wall", run_dir=tmp_path, bin_dir=bin_dir())
+
+
 def test_swarm_config_keeps_the_users_settings(tmp_path):
     config = tmp_path / "user.toml"
     config.write_text('# mine\n[env]\nobservation = "slot"\nmax_steps = 80\n\n[learn]\nactor_hidden = [64, 64]\n'
@@ -251,7 +308,9 @@ def test_reality_reaches_the_swarms_config_and_bad_values_are_refused_by_name(ma
     config.write_text("[env]\nmax_steps = 80\n")
     env = make_env(n=3, seed=7, config=config, reality=preset)
     written = tomllib.loads((env.base_dir / "swarm-1" / "config.toml").read_text())
-    assert written["reality"] == tomllib.loads(preset.read_text())["reality"]
+    field = tomllib.loads(preset.read_text())["reality"]
+    # The run's config lists every [reality] key: the preset's as it sets them, others defaulted.
+    assert {key: written["reality"][key] for key in field} == field
     assert written["reality"]["actuation_delay_ticks"] == [1, 3]
     assert written["env"]["max_steps"] == 80
     env.reset()

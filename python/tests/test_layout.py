@@ -17,7 +17,8 @@ from formation_swarm import wire
 
 LAYOUT = json.loads((Path(wire.__file__).parent / "layout.json").read_text())
 
-SCALARS = {"u8": ctypes.c_uint8, "u32": ctypes.c_uint32, "u64": ctypes.c_uint64, "f32": ctypes.c_float}
+SCALARS = {"u8": ctypes.c_uint8, "u32": ctypes.c_uint32, "u64": ctypes.c_uint64, "f32": ctypes.c_float,
+           "f64": ctypes.c_double}
 
 
 def ctype_of(spelled: str):
@@ -147,3 +148,40 @@ def test_baseline_matches_the_rust_unit_tests():
     assert v == 0.0 and abs(w - 1.0) < 1e-9
     ux, _ = baseline.desired_velocity(obs_with([(2.0, 0.0), (0.0, 1.0)], [1.0, 1.0], (2 / 3, 1 / 3)))
     assert ux > 1.0
+
+
+def test_the_baseline_pushes_away_from_the_obstacles_it_scans():
+    """slot_proximity_scan: rays reading under obstacle_range_m (0.5 m) push back along the ray
+    by k_obstacle (0.5 m - range), except a hit on a tracked neighbour; a clear scan changes
+    nothing against slot_proximity (the same floats without the scan)."""
+    scan_model = wire.OBSERVATION_MODELS["slot_proximity_scan"]
+    plain = wire.OBSERVATION_MODELS["slot_proximity"]
+    scan = scan_model.span("scan")
+    assert scan.stop - scan.start == 16
+
+    def observation(layout, neighbour_0=(-1.0, 0.5)):
+        obs = [0.0] * layout.dim
+        for block, (x, y) in (("neighbour_0", neighbour_0), ("neighbour_1", (-1.0, -0.5)),
+                              ("goal", (2.0, 0.0)), ("slot", (2.0, 0.0))):
+            obs[layout.index(block, "x")], obs[layout.index(block, "y")] = x, y
+        for block in ("neighbour_0", "neighbour_1"):
+            obs[layout.index(block, "cos")] = 1.0
+            obs[layout.index(block, "desired")] = 1.25 ** 0.5
+        if layout.span("scan") is not None:
+            obs[layout.span("scan")] = [1.0] * 16
+        return obs
+
+    baseline = formation_swarm.Baseline()  # scan range 2 m: a reading of 0.15 is 0.3 m
+    clear = observation(scan_model)
+    assert baseline(clear) == pytest.approx(baseline(observation(plain)))
+    ux, uy = baseline.desired_velocity(clear)
+    near = list(clear)
+    near[scan.start + 0] = 0.15  # straight ahead at 0.3 m: pushed back by 0.2
+    near[scan.start + 4] = 0.3  # to the left at 0.6 m: out of range
+    near[scan.start + 12] = 0.2  # to the right at 0.4 m: pushed left by 0.1
+    assert baseline.desired_velocity(near) == pytest.approx((ux - 0.2, uy + 0.1))
+    # The same ray ahead, its hit on neighbour 0 (0.3 m ahead): a robot, not an obstacle.
+    tracked = observation(scan_model, neighbour_0=(0.3, 0.0))
+    hit = list(tracked)
+    hit[scan.start + 0] = 0.15
+    assert baseline.desired_velocity(hit) == pytest.approx(baseline.desired_velocity(tracked))
