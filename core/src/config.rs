@@ -118,6 +118,17 @@ pub struct EnvConfig {
     pub r_goal: f64,
     /// Reward otherwise.
     pub r_penalty: f64,
+    /// Reward per metre the robots come closer to their slots at the goal in a tick (the mean
+    /// over the robots in the formation of each one's approach, its speed times the cosine
+    /// between its heading and its slot's bearing, times dt); 0 (the default) is the paper's
+    /// table. Among obstacles it makes getting through worth more than waiting
+    /// (docs/OBSTACLES.md, "The reward").
+    pub r_progress: f64,
+    /// While a robot in the formation is within this distance of an obstacle's surface, the
+    /// formation is excused from C1's reward: the tick earns `r_edge` in formation or not (a
+    /// column through a gap is not punished); success still needs C1. Metres; 0 (the default):
+    /// never excused.
+    pub formation_excuse_m: f64,
     /// What each robot is told every tick (see `formation_core::observation`): `paper` (the
     /// paper's 12 floats: two neighbours and the goal), `slot` (also the robot's own place in
     /// the goal formation) or `slot_proximity` (also the nearest robot it does not track).
@@ -173,6 +184,8 @@ impl Default for EnvConfig {
             r_collision: -100.0,
             r_goal: 50.0,
             r_penalty: -0.5,
+            r_progress: 0.0,
+            formation_excuse_m: 0.0,
             observation: ObservationModel::default(),
             shape: FormationShape::Random,
             proximity_range_m: 1.0,
@@ -726,6 +739,7 @@ impl EnvConfig {
             ("env.r_collision", e.r_collision),
             ("env.r_goal", e.r_goal),
             ("env.r_penalty", e.r_penalty),
+            ("env.r_progress", e.r_progress),
         ] {
             check(value.is_finite(), field, value, "must be finite")?;
         }

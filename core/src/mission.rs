@@ -219,7 +219,12 @@ pub fn success_after_last_change(
     env: &EnvConfig,
 ) -> StepResult {
     if result.outcome == Outcome::Success && change_to_come {
-        result.reward = env.r_edge;
+        // The progress term, if any, stays.
+        result.reward = if env.r_progress == 0.0 {
+            env.r_edge
+        } else {
+            env.r_edge + (result.reward - env.r_goal)
+        };
         result.outcome = if steps >= env.max_steps {
             Outcome::Timeout
         } else {

@@ -51,6 +51,9 @@ pub struct Conditions {
     pub collision: bool,
     /// The part of C2 an obstacle caused: a robot touched one.
     pub obstacle_collision: bool,
+    /// A robot in the formation is within `formation_excuse_m` of an obstacle: the tick's
+    /// formation reward does not ask for C1.
+    pub excused: bool,
     /// C3: C1 and the centroid within eps_goal of the goal.
     pub success: bool,
     /// Mean |d_ij - dbar_ij| over the observed edges, metres.
@@ -109,6 +112,12 @@ pub fn conditions(
     }
     let radius = robot_radius_m(env);
     let obstacle_collision = !obstacles.is_empty() && poses.iter().any(|p| obstacles.hits_robot([p.x, p.y], radius));
+    let excused = env.formation_excuse_m > 0.0
+        && !obstacles.is_empty()
+        && poses
+            .iter()
+            .enumerate()
+            .any(|(agent, p)| is_present(agent, observed) && !obstacles.is_clear([p.x, p.y], env.formation_excuse_m));
     let c = present_centroid(poses, observed);
     let goal_distance = (c[0] - goal[0]).hypot(c[1] - goal[1]);
     let in_formation = max <= env.eps_form_m;
@@ -116,6 +125,7 @@ pub fn conditions(
         in_formation,
         collision: collision || obstacle_collision,
         obstacle_collision,
+        excused,
         success: in_formation && goal_distance <= env.eps_goal_m,
         mean_edge_error: sum / edges.max(1) as f64,
         max_edge_error: max,
@@ -192,7 +202,7 @@ pub fn reward(conditions: &Conditions, steps: u32, env: &EnvConfig) -> (f64, Out
         (env.r_collision, Outcome::Collision)
     } else if conditions.success {
         (env.r_goal, Outcome::Success)
-    } else if conditions.in_formation {
+    } else if conditions.in_formation || conditions.excused {
         (env.r_edge, Outcome::Running)
     } else {
         (env.r_penalty, Outcome::Running)
@@ -216,8 +226,29 @@ pub struct StepResult {
     pub conditions: Conditions,
 }
 
+/// The mean approach of the robots in the formation to their slots at the goal in the
+/// transition into `scene`, metres: each one's applied speed times the cosine between its
+/// heading and the bearing of its slot, times dt (a robot on its slot approaches by 0).
+pub fn progress(scene: &Scene, env: &EnvConfig) -> f64 {
+    let (mut sum, mut m) = (0.0, 0usize);
+    for (agent, (pose, &(v, _))) in scene.poses.iter().zip(scene.commands).enumerate() {
+        if !is_present(agent, scene.observed) {
+            continue;
+        }
+        let slot = scene.slots[agent];
+        let (dx, dy) = (scene.goal[0] + slot[0] - pose.x, scene.goal[1] + slot[1] - pose.y);
+        let distance = dx.hypot(dy);
+        if distance > 1e-9 {
+            sum += v * env.dt_s * (pose.theta.cos() * dx + pose.theta.sin() * dy) / distance;
+        }
+        m += 1;
+    }
+    sum / m.max(1) as f64
+}
+
 /// Scores the transition into `scene`, the `steps`-th of its episode: C1-C3 at its poses, the
-/// reward and the outcome. The sim's step and HER's relabelling both call this.
+/// reward (the paper's table, plus `r_progress` x [`progress`] when set) and the outcome. The
+/// sim's step and HER's relabelling both call this.
 pub fn score(scene: &Scene, steps: u32, env: &EnvConfig) -> StepResult {
     let conditions = conditions(
         scene.poses,
@@ -227,7 +258,10 @@ pub fn score(scene: &Scene, steps: u32, env: &EnvConfig) -> StepResult {
         scene.obstacles,
         env,
     );
-    let (reward, outcome) = reward(&conditions, steps, env);
+    let (mut reward, outcome) = reward(&conditions, steps, env);
+    if env.r_progress != 0.0 {
+        reward += env.r_progress * progress(scene, env);
+    }
     StepResult {
         reward,
         outcome,

@@ -2,7 +2,8 @@
 //! are told, by DAgger (Ross, Gordon and Bagnell 2011, "A Reduction of Imitation Learning and
 //! Structured Prediction to No-Regret Online Learning"), in-process and offline.
 //!
-//! The teacher is the scripted baseline with the run's `[baseline]` gains, answering from what
+//! The teacher is the scripted baseline with the run's `[baseline]` gains (or, among obstacles,
+//! the privileged planner that knows the map, `DistillOptions::planner_teacher`), answering from what
 //! the robot was told (the noisy observation under a `[reality]`), as a scripted agent does.
 //! A student with a command head is taught the teacher's command; one with a gains head (a gain
 //! schedule, [`ActorHead::Gains`]) is taught the teacher's gains, and runs the baseline's law
@@ -36,7 +37,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
 use crate::learner::reinitialise;
-use crate::selection::Played;
+use crate::selection::{Played, TruthPlanner};
 
 /// How a distillation runs.
 #[derive(Debug, Clone)]
@@ -77,6 +78,10 @@ pub struct DistillOptions {
     pub soft_from_delay_ticks: Option<u32>,
     /// What the student outputs (a student carried on from a checkpoint has the checkpoint's).
     pub head: ActorHead,
+    /// The privileged planner that knows the map teaches instead of the scripted baseline
+    /// (command heads only): every robot's label is the planner's command for it at that tick,
+    /// planned from the true state as the sim's truth stream carries it.
+    pub planner_teacher: bool,
 }
 
 impl Default for DistillOptions {
@@ -97,6 +102,7 @@ impl Default for DistillOptions {
             noise_scale_m: 0.05,
             soft_from_delay_ticks: None,
             head: ActorHead::Command,
+            planner_teacher: false,
         }
     }
 }
@@ -239,6 +245,10 @@ impl Distiller {
         if let Some(quiet) = &options.quiet_teacher {
             quiet.validate()?;
         }
+        ensure!(
+            !options.planner_teacher || (options.head == ActorHead::Command && options.quiet_teacher.is_none()),
+            "the planner teaches commands only, and alone (no quiet teacher, no gains head)"
+        );
         if options.head == ActorHead::Gains {
             for (teacher, gains) in [
                 ("[baseline]", Some(config.baseline)),
@@ -350,11 +360,19 @@ impl Distiller {
                         (ScriptedBaseline::new(&self.config.env, gains), gains.to_unit())
                     })
                     .collect();
+                let mut planner = TruthPlanner::default();
                 while game.running() {
+                    let planned = match self.options.planner_teacher {
+                        true => planner.commands(game.world(), &self.config.env, self.config.baseline),
+                        false => Vec::new(),
+                    };
                     let (env, samples, head) = (&self.config.env, &mut self.samples, self.shape.head);
                     game.step(|asked| {
                         let (teacher, unit_gains) = &teachers[asked.agent];
-                        let (v, w) = teacher.command(asked.window.latest());
+                        let (v, w) = match planned.get(asked.agent) {
+                            Some(&command) => command,
+                            None => teacher.command(asked.window.latest()),
+                        };
                         let action = env.action_from_command(v, w);
                         if asked.present {
                             let label: &[f32] = match head {
@@ -420,7 +438,11 @@ impl Distiller {
     /// Writes the student as a checkpoint of one shared actor (its target copy too, so training
     /// can carry it on with a fresh critic), with `extra` and the teacher's gains as metadata.
     pub fn save(&self, path: &Path, mut extra: HashMap<String, String>) -> Result<()> {
-        extra.insert("distilled_from".into(), gains_text(&self.config.baseline));
+        let teacher = match self.options.planner_teacher {
+            true => format!("planner (tracking with {})", gains_text(&self.config.baseline)),
+            false => gains_text(&self.config.baseline),
+        };
+        extra.insert("distilled_from".into(), teacher);
         if let Some(quiet) = self.options.quiet_teacher {
             extra.insert(
                 "distilled_from_quiet".into(),

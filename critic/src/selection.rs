@@ -243,13 +243,13 @@ impl Game {
 /// The privileged planner on the truth as the sim's truth stream carries it: planned at the
 /// episode's first tick and again when the formation changes, as each oracle agent plans.
 #[derive(Default)]
-struct TruthPlanner {
+pub(crate) struct TruthPlanner {
     plan: Option<(Vec<[f64; 2]>, Planner)>,
 }
 
 impl TruthPlanner {
     /// Every robot's command at the world's tick.
-    fn commands(&mut self, world: &World, env: &EnvConfig, gains: BaselineGains) -> Vec<Command> {
+    pub(crate) fn commands(&mut self, world: &World, env: &EnvConfig, gains: BaselineGains) -> Vec<Command> {
         let wire = |v: f64| f64::from(v as f32);
         let poses: Vec<Pose> = world
             .poses

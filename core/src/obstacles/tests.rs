@@ -376,3 +376,94 @@ fn episodes_carry_their_obstacles_and_driving_into_one_ends_the_episode_counted_
     }
     assert!(hits >= 3, "{hits} of 5 straight drives hit the wall");
 }
+
+/// Discounted return of `rewards` (the first at t = 0).
+fn discounted(rewards: &[f64], gamma: f64) -> f64 {
+    rewards.iter().rev().fold(0.0, |sum, r| r + gamma * sum)
+}
+
+/// The rewards from the wall on of one passage episode of 8 robots: the formation drives
+/// straight at the goal (the blind baseline) until a robot comes within 0.5 m of the wall;
+/// from there it waits (stands still, in formation, to the time limit) or passes (the planner,
+/// planning from there, takes it through the gap in file to the goal).
+fn waiting_and_passing(env: &EnvConfig, seed: u64) -> (Vec<f64>, Vec<f64>) {
+    use crate::baseline::ScriptedBaseline;
+    use crate::config::ObservationModel;
+    use crate::task::Outcome;
+    use crate::world::World;
+    let blind = EnvConfig {
+        observation: ObservationModel::SlotProximity,
+        ..env.clone()
+    };
+    let init = Episodes::new(8, &blind, seed).next().expect("an episode");
+    let baseline = ScriptedBaseline::new(&blind, BaselineGains::default());
+    let mut world = World::new(&blind, init);
+    while !world.poses.iter().any(|p| world.obstacles.distance([p.x, p.y]) < 0.5) {
+        let commands: Vec<(f64, f64)> = (0..8)
+            .map(|agent| baseline.command(&world.observation(agent)))
+            .collect();
+        assert_eq!(world.step(&commands).outcome, Outcome::Running, "reached the wall");
+    }
+    fn play(mut world: World, mut drive: impl FnMut(&World) -> Vec<(f64, f64)>) -> Vec<f64> {
+        let mut rewards = Vec::new();
+        loop {
+            let commands = drive(&world);
+            let result = world.step(&commands);
+            rewards.push(result.reward);
+            if result.outcome != Outcome::Running {
+                return rewards;
+            }
+        }
+    }
+    let waiting = play(world.clone(), |_| vec![(0.0, 0.0); 8]);
+    let mut planner = Planner::new(
+        &world.poses,
+        world.goal,
+        &world.slots,
+        &world.obstacles,
+        env,
+        BaselineGains::default(),
+    );
+    let passing = play(world, |world| planner.commands(&world.poses, world.steps).to_vec());
+    (waiting, passing)
+}
+
+#[test]
+fn the_obstacle_reward_makes_passing_worth_more_than_waiting() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/obstacles-train.toml");
+    let config = crate::config::RunConfig::from_toml_file(&path).expect("the training config");
+    let env = EnvConfig {
+        obstacles: ObstacleConfig {
+            kind: ObstacleKind::Passage,
+            ..config.env.obstacles.clone()
+        },
+        ..config.env.clone()
+    };
+    let table = EnvConfig::default();
+    let paper = EnvConfig {
+        r_edge: table.r_edge,
+        r_progress: table.r_progress,
+        formation_excuse_m: table.formation_excuse_m,
+        ..env.clone()
+    };
+    for seed in [5, 6, 7] {
+        let gamma = config.learn.gamma;
+        let (wait, pass) = waiting_and_passing(&paper, seed);
+        let (paper_wait, paper_pass) = (discounted(&wait, gamma), discounted(&pass, gamma));
+        let (wait, pass) = waiting_and_passing(&env, seed);
+        let (ours_wait, ours_pass) = (discounted(&wait, gamma), discounted(&pass, gamma));
+        println!(
+            "seed {seed}, gamma {gamma}: paper's reward: waiting {paper_wait:.2}, passing {paper_pass:.2} \
+             ({} ticks); obstacle reward: waiting {ours_wait:.2}, passing {ours_pass:.2}",
+            pass.len()
+        );
+        assert!(
+            paper_wait > paper_pass,
+            "the paper's reward pays waiting more (seed {seed})"
+        );
+        assert!(
+            ours_pass > ours_wait,
+            "the obstacle reward pays passing more (seed {seed})"
+        );
+    }
+}

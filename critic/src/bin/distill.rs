@@ -97,6 +97,12 @@ struct Cli {
     /// With --checkpoint, the checkpoint's head.
     #[arg(long, default_value = "command", value_parser = ["command", "gains"])]
     head: String,
+    /// The privileged planner that knows the map teaches (its command for each robot, from the
+    /// true state) instead of the config's [baseline]: the imitation start of a policy among
+    /// obstacles (a config with [obstacles] and env.observation = "slot_proximity_scan"; command
+    /// head only).
+    #[arg(long)]
+    planner_teacher: bool,
     /// Also write the student to --out every this many rounds (unscored; its metadata says the
     /// rounds done), so an interrupted run keeps its work; 0: only at the end.
     #[arg(long, default_value_t = 50)]
@@ -166,6 +172,7 @@ fn distill_options(cli: &Cli) -> Result<DistillOptions> {
         },
         noise_scale_m: cli.noise_scale_m,
         quiet_below_m: cli.quiet_below_m,
+        planner_teacher: cli.planner_teacher,
         soft_from_delay_ticks: cli.soft_from_delay_ticks,
         head: ActorHead::from_name(&cli.head).context("--head")?,
         ..DistillOptions::default()
