@@ -14,7 +14,7 @@ use parry2d_f64::na::{Isometry2, Point2, Vector2};
 use parry2d_f64::query::{Ray, RayCast};
 use parry2d_f64::shape::Ball;
 
-use crate::obstacles::Obstacles;
+use crate::obstacles::{Obstacles, ray_may_meet_circle};
 use crate::physics::Pose;
 
 /// A range sensor of `rays` rays up to `range_m`, with buffers kept between scans so that a
@@ -84,17 +84,26 @@ impl RangeSensor {
                 .map(|(_, p)| [p.x, p.y]),
         );
         let arena = Aabb::new(Point2::origin(), Point2::new(arena_m, arena_m));
+        let walls_in_range = me.x.min(me.y).min(arena_m - me.x).min(arena_m - me.y) < self.range_m;
         let robot = Ball::new(robot_radius);
         let (sin, cos) = me.theta.sin_cos();
         for (range, d) in out.iter_mut().zip(&self.directions) {
             let direction = [cos * d[0] - sin * d[1], sin * d[0] + cos * d[1]];
             let ray = Ray::new(Point2::new(me.x, me.y), Vector2::new(direction[0], direction[1]));
-            // From inside the arena, a hollow cast reads the distance to the wall it leaves by.
-            let mut nearest = arena.cast_local_ray(&ray, self.range_m, false).unwrap_or(self.range_m);
+            // From inside the arena, a hollow cast reads the distance to the wall it leaves by
+            // (no wall within range: nothing to cast).
+            let mut nearest = if walls_in_range {
+                arena.cast_local_ray(&ray, self.range_m, false).unwrap_or(self.range_m)
+            } else {
+                self.range_m
+            };
             if let Some(hit) = obstacles.cast_ray_among(&self.near_obstacles, origin, direction, nearest) {
                 nearest = nearest.min(hit);
             }
             for other in &self.near_robots {
+                if !ray_may_meet_circle(origin, direction, *other, robot_radius, nearest) {
+                    continue;
+                }
                 let place = Isometry2::translation(other[0], other[1]);
                 if let Some(hit) = robot.cast_ray(&place, &ray, nearest, true) {
                     nearest = nearest.min(hit);

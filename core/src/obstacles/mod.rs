@@ -443,7 +443,8 @@ impl Obstacles {
         out.extend((0..self.placed.len()).filter(|&k| self.placed[k].distance_bound(p) <= range));
     }
 
-    /// [`Obstacles::cast_ray`] over the obstacles of `indices` only (from [`Obstacles::near`]).
+    /// [`Obstacles::cast_ray`] over the obstacles of `indices` only (from [`Obstacles::near`]);
+    /// an obstacle whose bounding circle the ray misses is not cast against.
     pub fn cast_ray_among(&self, indices: &[usize], origin: [f64; 2], direction: [f64; 2], max: f64) -> Option<f64> {
         let ray = Ray::new(
             Point2::new(origin[0], origin[1]),
@@ -451,7 +452,9 @@ impl Obstacles {
         );
         indices
             .iter()
-            .filter_map(|&k| self.placed[k].cast(&ray, max))
+            .map(|&k| &self.placed[k])
+            .filter(|placed| ray_may_meet_circle(origin, direction, placed.centre, placed.bound, max))
+            .filter_map(|placed| placed.cast(&ray, max))
             .min_by(f64::total_cmp)
     }
 
@@ -511,6 +514,22 @@ pub(crate) fn nearest_on_segment(p: [f64; 2], a: [f64; 2], b: [f64; 2]) -> f64 {
     } else {
         0.0
     }
+}
+
+/// Whether the ray from `origin` along the unit `direction` may meet the circle of `radius`
+/// about `centre` within `max` (always from inside it): a cheap, slightly generous test that
+/// lets a caller skip exact casts that cannot hit.
+pub fn ray_may_meet_circle(origin: [f64; 2], direction: [f64; 2], centre: [f64; 2], radius: f64, max: f64) -> bool {
+    let (dx, dy) = (centre[0] - origin[0], centre[1] - origin[1]);
+    let distance2 = dx * dx + dy * dy;
+    // Generous by a relative 1e-9 and 1e-9 m, so rounding never skips a hit.
+    let r = radius * (1.0 + 1e-9) + 1e-9;
+    if distance2 <= r * r {
+        return true;
+    }
+    let along = dx * direction[0] + dy * direction[1];
+    let across2 = distance2 - along * along;
+    along > 0.0 && across2 <= r * r && along - (r * r - across2).max(0.0).sqrt() <= max + 1e-9
 }
 
 /// Distance from `p` to the segment a-b.
