@@ -348,7 +348,13 @@ fn range_noise_and_dropout_reach_the_told_scan_with_the_configured_spread_and_ra
     // The episodes' obstacles, drawn as the sim draws them from the run's seed.
     let episodes: Vec<_> = Episodes::new(N, env, 7).take(4).collect();
     let (mut errors, mut near_rays, mut dropped, mut compared) = (Vec::new(), 0usize, 0usize, 0usize);
-    for (&(episode, _), state) in &streamed.states {
+    let mut from_obs_stream = 0;
+    for (&(episode, tick), state) in &streamed.states {
+        // What robot 1's obs stream carried is what the state says it was told.
+        if let Some(msg) = streamed.observations.get(&(episode, tick)) {
+            assert_eq!(msg.obs, state.observations[1]);
+            from_obs_stream += 1;
+        }
         let poses: Vec<Pose> = state.poses[..N].iter().map(|&p| Pose::from(p)).collect();
         let slot_of: Vec<usize> = state.slot[..N].iter().map(|&s| s as usize).collect();
         let desired: Vec<[f64; NEIGHBOURS]> = state.desired[..N].iter().map(|d| d.map(f64::from)).collect();
