@@ -391,6 +391,7 @@ fn range_noise_and_dropout_reach_the_told_scan_with_the_configured_spread_and_ra
         compared > 100 && near_rays > 2000,
         "{compared} states, {near_rays} rays in range"
     );
+    assert!(from_obs_stream > 50, "{from_obs_stream} ticks of robot 1's obs stream");
     let rate = dropped as f64 / near_rays as f64;
     assert!((rate - dropout).abs() < 0.015, "dropout rate {rate} for {dropout}");
     let mean = errors.iter().sum::<f64>() / errors.len() as f64;
