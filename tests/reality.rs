@@ -13,6 +13,7 @@ use formation_core::config::{LearnConfig, RunConfig};
 use formation_core::formation::Episodes;
 use formation_core::mission::observed_robots;
 use formation_core::observation::{Layout, Observer};
+use formation_core::obstacles::Obstacles;
 use formation_core::physics::{Pose, integrate};
 use formation_core::reality::{Reality, RealityConfig};
 use formation_core::scene::Scene;
@@ -140,6 +141,48 @@ fn observe(log: &Path, config: &RunConfig) -> Streamed {
     streamed
 }
 
+/// A state's true tick, owned: what the sim's scene of that tick is built from.
+struct TrueTick {
+    poses: Vec<Pose>,
+    /// The velocities that acted in the transition into the tick.
+    acting: Vec<(f64, f64)>,
+    desired: Vec<[f64; NEIGHBOURS]>,
+    observed: Vec<[usize; NEIGHBOURS]>,
+    goal: [f64; 2],
+    slots: Vec<[f64; 2]>,
+}
+
+impl TrueTick {
+    fn of(state: &StateMsg) -> Self {
+        let slot_of: Vec<usize> = state.slot[..N].iter().map(|&s| s as usize).collect();
+        Self {
+            poses: state.poses[..N].iter().map(|&p| Pose::from(p)).collect(),
+            acting: state.acting[..N]
+                .iter()
+                .map(|&[v, w]| (f64::from(v), f64::from(w)))
+                .collect(),
+            desired: state.desired[..N].iter().map(|d| d.map(f64::from)).collect(),
+            observed: observed_robots(&slot_of),
+            goal: state.goal.map(f64::from),
+            slots: state.slots[..N].iter().map(|s| s.map(f64::from)).collect(),
+        }
+    }
+
+    /// The tick as the sim's scene among `obstacles` in an arena of side `arena_m`.
+    fn scene<'a>(&'a self, obstacles: &'a Obstacles, arena_m: f64) -> Scene<'a> {
+        Scene {
+            obstacles,
+            arena_m,
+            poses: &self.poses,
+            commands: &self.acting,
+            desired: &self.desired,
+            observed: &self.observed,
+            goal: self.goal,
+            slots: &self.slots,
+        }
+    }
+}
+
 /// Removes the scratch directory of `run` (the test passed).
 fn remove_scratch(run: &RunOutcome) {
     std::fs::remove_dir_all(run.run_dir.parent().expect("scratch dir")).expect("cleanup");
@@ -261,24 +304,9 @@ fn position_noise_reaches_what_robots_are_told_with_the_configured_spread_and_le
     let mut compared_with_obs_stream = 0;
     let mut checked_physics = 0;
     for (&(episode, tick), state) in &streamed.states {
-        let poses: Vec<Pose> = state.poses[..N].iter().map(|&p| Pose::from(p)).collect();
-        let commands: Vec<(f64, f64)> = state.acting[..N]
-            .iter()
-            .map(|&[v, w]| (f64::from(v), f64::from(w)))
-            .collect();
-        let desired: Vec<[f64; NEIGHBOURS]> = state.desired[..N].iter().map(|d| d.map(f64::from)).collect();
-        let slots: Vec<[f64; 2]> = state.slots[..N].iter().map(|s| s.map(f64::from)).collect();
-        let slot_of: Vec<usize> = state.slot[..N].iter().map(|&s| s as usize).collect();
-        let scene = Scene {
-            obstacles: &formation_core::obstacles::NO_OBSTACLES,
-            arena_m: 10.0,
-            poses: &poses,
-            commands: &commands,
-            desired: &desired,
-            observed: &observed_robots(&slot_of),
-            goal: state.goal.map(f64::from),
-            slots: &slots,
-        };
+        let truth = TrueTick::of(state);
+        let poses = &truth.poses;
+        let scene = truth.scene(&formation_core::obstacles::NO_OBSTACLES, 10.0);
         for agent in 0..N {
             let truth = observer.observation(agent, &scene);
             let told = state.observations[agent];
@@ -355,20 +383,8 @@ fn range_noise_and_dropout_reach_the_told_scan_with_the_configured_spread_and_ra
             assert_eq!(msg.obs, state.observations[1]);
             from_obs_stream += 1;
         }
-        let poses: Vec<Pose> = state.poses[..N].iter().map(|&p| Pose::from(p)).collect();
-        let slot_of: Vec<usize> = state.slot[..N].iter().map(|&s| s as usize).collect();
-        let desired: Vec<[f64; NEIGHBOURS]> = state.desired[..N].iter().map(|d| d.map(f64::from)).collect();
-        let slots: Vec<[f64; 2]> = state.slots[..N].iter().map(|s| s.map(f64::from)).collect();
-        let scene = Scene {
-            obstacles: &episodes[episode as usize].obstacles,
-            arena_m: env.effective_arena_m(N),
-            poses: &poses,
-            commands: &[(0.0, 0.0); N],
-            desired: &desired,
-            observed: &observed_robots(&slot_of),
-            goal: state.goal.map(f64::from),
-            slots: &slots,
-        };
+        let truth = TrueTick::of(state);
+        let scene = truth.scene(&episodes[episode as usize].obstacles, env.effective_arena_m(N));
         for agent in 0..N {
             let truth = observer.observation(agent, &scene);
             let told = state.observations[agent];

@@ -12,7 +12,7 @@ use formation_core::baseline::BaselineGains;
 use formation_core::config::EnvConfig;
 use formation_core::obstacles::Obstacles;
 use formation_core::physics::Pose;
-use formation_core::planner::Planner;
+use formation_core::planner::Replanner;
 use formation_protocol::wire::{Header, ObstaclesMsg, TruthMsg};
 
 /// One robot's privileged planner.
@@ -20,9 +20,10 @@ pub struct Oracle {
     agent: usize,
     env: EnvConfig,
     gains: BaselineGains,
-    /// The plan, the episode it was made for and the slots it was made with.
-    plan: Option<(u32, Vec<[f64; 2]>, Planner)>,
+    /// The episode planned for, its obstacles and the plan.
+    episode: Option<(u32, Obstacles, Replanner)>,
     poses: Vec<Pose>,
+    slots: Vec<[f64; 2]>,
 }
 
 impl Oracle {
@@ -32,8 +33,9 @@ impl Oracle {
             agent,
             env: env.clone(),
             gains,
-            plan: None,
+            episode: None,
             poses: Vec::new(),
+            slots: Vec::new(),
         }
     }
 
@@ -50,22 +52,22 @@ impl Oracle {
         let n = truth.n_agents as usize;
         self.poses.clear();
         self.poses.extend(truth.poses[..n].iter().map(|&p| Pose::from(p)));
-        let slots: Vec<[f64; 2]> = truth.slots[..n].iter().map(|s| s.map(f64::from)).collect();
-        let stale =
-            !matches!(&self.plan, Some((episode, planned, _)) if *episode == header.episode && *planned == slots);
-        if stale {
-            let goal = truth.goal.map(f64::from);
-            let planner = Planner::new(
-                &self.poses,
-                goal,
-                &slots,
-                &Obstacles::from_wire(obstacles),
-                &self.env,
-                self.gains,
-            );
-            self.plan = Some((header.episode, slots, planner));
+        self.slots.clear();
+        self.slots.extend(truth.slots[..n].iter().map(|s| s.map(f64::from)));
+        if !matches!(&self.episode, Some((episode, ..)) if *episode == header.episode) {
+            self.episode = Some((header.episode, Obstacles::from_wire(obstacles), Replanner::default()));
         }
-        let (_, _, planner) = self.plan.as_mut()?;
-        Some(planner.commands(&self.poses, header.tick)[self.agent])
+        let (_, obstacles, replanner) = self.episode.as_mut()?;
+        let goal = truth.goal.map(f64::from);
+        let commands = replanner.commands(
+            &self.poses,
+            goal,
+            &self.slots,
+            obstacles,
+            header.tick,
+            &self.env,
+            self.gains,
+        );
+        Some(commands[self.agent])
     }
 }

@@ -321,6 +321,15 @@ impl EnvConfig {
         self.obstacles.kind != ObstacleKind::None
     }
 
+    /// For robots that run no learned actor (scripted, the planner): among obstacles they
+    /// observe their range sensor (`slot_proximity_scan`) unless another model than the default
+    /// was asked for. A learned robot keeps its checkpoint's model.
+    pub fn scan_among_obstacles(&mut self) {
+        if self.has_obstacles() && self.observation == ObservationModel::default() {
+            self.observation = ObservationModel::SlotProximityScan;
+        }
+    }
+
     /// The time limit of an episode of `n_agents`, steps: `max_steps`, plus for each shape
     /// change the ticks a robot needs to cross the widest formation of `change_shapes` at top
     /// speed (2 reach / (v_max dt)), so that a large swarm can re-form and still reach the goal

@@ -621,6 +621,40 @@ fn leave_file_at(path: &Polyline, obstacles: &Obstacles, offset: [f64; 2], clear
     if way_out_is_clear(length) { leave } else { length }
 }
 
+/// The planner as a privileged robot runs it on the true state, tick after tick: planned at the
+/// first tick it is asked and again whenever the formation's slots change (a shape or team
+/// change). Each oracle agent and the in-process players run this, so they plan alike.
+#[derive(Debug, Clone, Default)]
+pub struct Replanner {
+    /// The plan and the slots it was made for.
+    plan: Option<(Vec<[f64; 2]>, Planner)>,
+}
+
+impl Replanner {
+    /// Every robot's (v, w) at `tick` for robots at `poses` bringing the formation of `slots`
+    /// to `goal` around `obstacles` (see [`Planner::new`]), planning again first if the slots
+    /// changed.
+    #[allow(clippy::too_many_arguments)]
+    pub fn commands(
+        &mut self,
+        poses: &[Pose],
+        goal: [f64; 2],
+        slots: &[[f64; 2]],
+        obstacles: &Obstacles,
+        tick: u32,
+        env: &EnvConfig,
+        gains: BaselineGains,
+    ) -> &[(f64, f64)] {
+        if !matches!(&self.plan, Some((planned, _)) if planned == slots) {
+            self.plan = None;
+        }
+        let (_, planner) = self
+            .plan
+            .get_or_insert_with(|| (slots.to_vec(), Planner::new(poses, goal, slots, obstacles, env, gains)));
+        planner.commands(poses, tick)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -25,7 +25,7 @@ use formation_core::formation::Episodes;
 use formation_core::mission::{Attendance, Heard, NO_SLOT};
 use formation_core::observation::Layout;
 use formation_core::physics::Pose;
-use formation_core::planner::Planner;
+use formation_core::planner::Replanner;
 use formation_core::reality::{Command, Reality, RealityConfig};
 use formation_core::stepper::{EpisodeRecord, EpisodeStepper, TransportCounts};
 use formation_core::task::Outcome;
@@ -244,7 +244,7 @@ impl Game {
 /// episode's first tick and again when the formation changes, as each oracle agent plans.
 #[derive(Default)]
 pub(crate) struct TruthPlanner {
-    plan: Option<(Vec<[f64; 2]>, Planner)>,
+    replanner: Replanner,
 }
 
 impl TruthPlanner {
@@ -257,12 +257,17 @@ impl TruthPlanner {
             .map(|p| Pose::from([p.x as f32, p.y as f32, p.theta as f32]))
             .collect();
         let slots: Vec<[f64; 2]> = world.slots.iter().map(|s| s.map(wire)).collect();
-        if !matches!(&self.plan, Some((planned, _)) if *planned == slots) {
-            let planner = Planner::new(&poses, world.goal.map(wire), &slots, &world.obstacles, env, gains);
-            self.plan = Some((slots, planner));
-        }
-        let (_, planner) = self.plan.as_mut().expect("planned above");
-        planner.commands(&poses, world.steps).to_vec()
+        self.replanner
+            .commands(
+                &poses,
+                world.goal.map(wire),
+                &slots,
+                &world.obstacles,
+                world.steps,
+                env,
+                gains,
+            )
+            .to_vec()
     }
 }
 

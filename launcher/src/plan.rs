@@ -7,7 +7,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 use anyhow::{Context, Result, anyhow, bail, ensure};
 use clap::ValueEnum;
-use formation_core::config::{FormationShape, ObservationModel, RunConfig, extra_swarm_seed};
+use formation_core::config::{FormationShape, RunConfig, extra_swarm_seed};
 use formation_core::observation::Layout;
 use formation_core::reality::RealityConfig;
 use formation_ipc::cli::{Mode, ViewerMode, parse_robot_set, robot_set_arg};
@@ -611,8 +611,8 @@ fn read_config(args: &LaunchArgs, learned: usize) -> Result<RunConfig> {
     if let Some(kind) = args.obstacles {
         config.env.obstacles.kind = kind;
     }
-    if config.env.has_obstacles() && learned == 0 && config.env.observation == ObservationModel::default() {
-        config.env.observation = ObservationModel::SlotProximityScan;
+    if learned == 0 {
+        config.env.scan_among_obstacles();
     }
     if args.mode == Mode::Train {
         config.learn.check_training_seeds(args.seed, args.extra_swarms.len())?;

@@ -8,7 +8,7 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, ValueEnum};
-use formation_core::config::{ObservationModel, RunConfig, validate_agent_count};
+use formation_core::config::{RunConfig, validate_agent_count};
 use formation_core::obstacles::{Obstacle, ObstacleKind};
 use formation_core::reality::RealityConfig;
 use formation_core::stepper::EpisodeRecord;
@@ -42,7 +42,8 @@ struct Cli {
     /// Run config (the defaults without it).
     #[arg(long)]
     config: Option<PathBuf>,
-    /// A file whose [reality] replaces the config's (as the launcher's --reality).
+    /// A file holding only a [reality] section (as the presets configs/reality-*.toml) that
+    /// replaces the config's.
     #[arg(long)]
     reality: Option<PathBuf>,
     /// Obstacles (overrides the config's [obstacles] kind).
@@ -114,9 +115,7 @@ fn run(cli: Cli) -> Result<()> {
             Some(loaded)
         }
         TeamKind::Scripted | TeamKind::Oracle => {
-            if env.has_obstacles() && env.observation == ObservationModel::default() {
-                env.observation = ObservationModel::SlotProximityScan;
-            }
+            env.scan_among_obstacles();
             if cli.checkpoint.is_some() {
                 bail!("--checkpoint is for --team model");
             }
