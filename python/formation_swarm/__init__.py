@@ -4,6 +4,7 @@
     fs.run_robot("runs/demo", 2, fs.Baseline())       # robot 2 of the run in runs/demo
     env = fs.FormationEnv(n=3, seed=1)                # a whole swarm as a PettingZoo ParallelEnv
     fs.Control("runs/demo").set_formation("ring")     # a new formation, live
+    actor = fs.NumpyActor.from_file("models/formation.safetensors")  # a learned policy, numpy only
 
 Built on the ``iceoryx2`` PyPI bindings (same release as the Rust crate); the payload mirrors
 in ``formation_swarm.wire`` are checked against the Rust layout (``layout.json``).
@@ -12,6 +13,7 @@ in ``formation_swarm.wire`` are checked against the Rust layout (``layout.json``
 from .baseline import Baseline
 from .control import Control, ControlAck, ControlRefused
 from .observer import EpisodeObstacles, Observer, WorldState
+from .policy import NumpyActor
 from .robot import Robot, RobotStats, Tick, run_robot
 from .run import FormationError, RunInfo, SimGone, connect
 from .wire import (
@@ -44,6 +46,7 @@ __all__ = [
     "FLAG_RUN_END",
     "FormationError",
     "Header",
+    "NumpyActor",
     "Observation",
     "Observer",
     "PROTOCOL_VERSION",

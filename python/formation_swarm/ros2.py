@@ -3,11 +3,13 @@ rmw_zenoh's wire format, with ``eclipse-zenoh`` and ``rosbags``' ROS 2 type stor
 PyPI) instead of rclpy. It subscribes to ``/<ns>/robot_<i>/observation``, ``.../odom`` and
 ``.../scan`` (a ``sensor_msgs/msg/LaserScan``, published when the run's observation model has
 the range sensor), answers each observation with a ``geometry_msgs/msg/Twist`` on
-``.../cmd_vel`` from a policy (the scripted baseline by default), and announces itself on the
+``.../cmd_vel`` from a policy (the scripted baseline by default, or a learned actor's checkpoint
+played in numpy, ``formation_swarm.NumpyActor``), and announces itself on the
 ROS 2 graph with rmw_zenoh's liveliness tokens, as an ``rclpy`` node over ``rmw_zenoh_cpp``
 would (docs/ROS2.md).
 
     python3 -m formation_swarm ros2-node 2 [--endpoint tcp/127.0.0.1:7447] [--namespace formation] [--domain 0]
+                                           [--policy models/formation.safetensors]
 
 Every key, type hash and byte here comes from rmw_zenoh's design document and from rosbags, not
 from the Rust side, so this node checks the Rust side against sources that are not ours."""
@@ -16,7 +18,9 @@ from __future__ import annotations
 
 import hashlib
 import queue
+import re
 import struct
+import sys
 import threading
 import time
 from typing import Any, Callable, Optional, Tuple
@@ -27,6 +31,8 @@ from .run import FormationError
 QOS = "::,10:,:,:,,"
 #: The rosbags type store the types come from (Jazzy's; the types are the same in Kilted).
 STORE = "ROS2_JAZZY"
+#: ``layout.dim[1].label`` of an observation: the episode and tick it belongs to.
+EPISODE_LABEL = re.compile(r"episode (\d+) tick (\d+)")
 
 
 def dds_name(ros_type: str) -> str:
@@ -53,7 +59,11 @@ class Ros2Node:
     the Rust defaults' limits, ``formation_swarm.Baseline()``). ``obs`` is every float of the
     robot's observation, the range sensor's rays included (each range / ``scan_range_m``) when
     the model has them; the newest scan in metres is ``latest_scan`` (None in a run without the
-    range sensor)."""
+    range sensor). A policy with a window of observations (``formation_swarm.NumpyActor``) is
+    told more when it has the methods: ``check_observation(model, dim)`` at the first
+    observation (it raises ``FormationError`` to refuse the run's model, which ends ``spin``),
+    ``reset()`` at each episode's first observation, ``observe(obs)`` for an observation
+    superseded before it was answered."""
 
     def __init__(self, index: int, endpoint: str = "tcp/127.0.0.1:7447", namespace: str = "formation",
                  domain: int = 0, policy: Optional[Callable[[Any], Tuple[float, float]]] = None) -> None:
@@ -84,6 +94,13 @@ class Ros2Node:
         self.latest_scan = None
         self.scans = 0
         self.twists = 0
+        #: The run's observation model (``layout.dim[0].label`` of the first observation).
+        self.observation_model: Optional[str] = None
+        #: The episode and tick of the newest observation (``layout.dim[1]``), and the episodes seen.
+        self.episode: Optional[int] = None
+        self.tick: Optional[int] = None
+        self.episodes = 0
+        self._warned_no_episode = False
         self._lock = threading.Lock()
         self._subscribers = [
             self._subscribe("observation", "std_msgs/msg/Float32MultiArray", self._observations.put),
@@ -154,17 +171,45 @@ class Ros2Node:
     def spin_once(self, timeout: float) -> bool:
         """Waits up to ``timeout`` s for an observation; answers the newest one. True if it did."""
         try:
-            newest = self._observations.get(timeout=timeout)
+            batch = [self._observations.get(timeout=timeout)]
         except queue.Empty:
             return False
         while True:
             try:
-                newest = self._observations.get_nowait()
+                batch.append(self._observations.get_nowait())
             except queue.Empty:
                 break
-        v, w = self.policy(newest.data)
+        for k, message in enumerate(batch):
+            self._follow(message)
+            if k + 1 < len(batch) and hasattr(self.policy, "observe"):
+                self.policy.observe(message.data)  # superseded, but part of the policy's window
+        v, w = self.policy(batch[-1].data)
         self.publish(v, w)
         return True
+
+    def _follow(self, message: Any) -> None:
+        """Reads an observation's layout: ``dim[0]`` the run's observation model (checked once by
+        a policy with ``check_observation``), ``dim[1]`` ``episode E tick T`` (a policy with
+        ``reset`` is reset whenever E changes)."""
+        dims = message.layout.dim
+        model = dims[0].label if dims else None
+        if self.observation_model is None:
+            self.observation_model = model
+            if hasattr(self.policy, "check_observation"):
+                self.policy.check_observation(model, len(message.data))
+        match = EPISODE_LABEL.fullmatch(dims[1].label) if len(dims) > 1 else None
+        if match is None:
+            if not self._warned_no_episode and hasattr(self.policy, "reset"):
+                self._warned_no_episode = True
+                print(f"robot {self.index}: the observation names no episode (layout.dim[1]; a formation-ros2 "
+                      "older than this node): the policy's window is never reset", file=sys.stderr, flush=True)
+            return
+        episode, self.tick = int(match.group(1)), int(match.group(2))
+        if episode != self.episode:
+            self.episode = episode
+            self.episodes += 1
+            if hasattr(self.policy, "reset"):
+                self.policy.reset()
 
     def spin(self, idle_exit: Optional[float] = None) -> None:
         """Answers observations until interrupted (Ctrl-C, SIGTERM) or, with ``idle_exit``, until

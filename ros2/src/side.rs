@@ -458,14 +458,7 @@ fn observations_out(options: &Options, session: &Session, graph: &mut Graph, sha
     let mut ended = vec![false; options.robots.len()];
     let mut sim_watch = SimWatch::new(options.sim_silence, options.startup_timeout);
     let mut observation = wire::Float32MultiArray {
-        layout: wire::MultiArrayLayout {
-            dim: vec![wire::MultiArrayDimension {
-                label: options.observation_label.clone(),
-                size: sizing.observation_dim as u32,
-                stride: sizing.observation_dim as u32,
-            }],
-            data_offset: 0,
-        },
+        layout: observation_layout(&options.observation_label, sizing.observation_dim, 0, 0),
         data: Vec::new(),
     };
     while !ended.iter().all(|&e| e) {
@@ -483,6 +476,12 @@ fn observations_out(options: &Options, session: &Session, graph: &mut Graph, sha
                 if msg.header.has(FLAG_EPISODE_END) {
                     continue; // the episode's last state: no answer is expected
                 }
+                observation.layout = observation_layout(
+                    &options.observation_label,
+                    sizing.observation_dim,
+                    msg.header.episode,
+                    msg.header.tick,
+                );
                 observation.data.clear();
                 observation.data.extend_from_slice(&msg.obs[..msg.dim as usize]);
                 observation_out[slot]
@@ -513,6 +512,28 @@ fn observations_out(options: &Options, session: &Session, graph: &mut Graph, sha
         }
     }
     Ok(())
+}
+
+/// The layout of a robot's observation: `dim[0]` the observation model (its name as label, its
+/// floats as size and stride), `dim[1]` of size 1 labelled `episode E tick T`, the tick the
+/// observation belongs to (a node with a window of observations starts a new one when `E`
+/// changes). The floats are `dim[0].size` x 1, whatever a reader makes of the labels.
+pub fn observation_layout(model: &str, dim: usize, episode: u32, tick: u32) -> wire::MultiArrayLayout {
+    wire::MultiArrayLayout {
+        dim: vec![
+            wire::MultiArrayDimension {
+                label: model.to_string(),
+                size: dim as u32,
+                stride: dim as u32,
+            },
+            wire::MultiArrayDimension {
+                label: format!("episode {episode} tick {tick}"),
+                size: 1,
+                stride: 1,
+            },
+        ],
+        data_offset: 0,
+    }
 }
 
 /// The publishers of what each state of the sim becomes.
