@@ -474,6 +474,10 @@ pub struct LearnConfig {
     /// baseline's on the same replayed observation. 0 = off (plain TD3 or DDPG, the paper);
     /// the default 2.5 is TD3+BC's own.
     pub imitation_alpha: f64,
+    /// Critic-only updates at the start of a run: the actor (and its target) is held while the
+    /// critics learn its value, so that a run starting from an imitated actor does not climb a
+    /// random critic first. 0 = off.
+    pub critic_warmup_updates: u64,
     /// Replay capacity in ticks.
     pub replay_capacity: usize,
     /// New actor weights are published every this many updates.
@@ -524,6 +528,7 @@ impl Default for LearnConfig {
             reward_scale: 1.0,
             action_l2: 0.0,
             imitation_alpha: 2.5,
+            critic_warmup_updates: 0,
             replay_capacity: 1_000_000,
             publish_every_updates: 50,
             checkpoint_every_s: 120,

@@ -214,6 +214,8 @@ pub struct Learner {
     /// each critic can step on its own thread.
     critic_optimizers: Vec<AdamW>,
     updates: u64,
+    /// Updates of this run (not restored from a checkpoint): `critic_warmup_updates` counts these.
+    run_updates: u64,
     /// Indexed by swarm; grown as swarms appear.
     swarm_steps: Vec<SwarmSteps>,
     rng: StdRng,
@@ -406,6 +408,7 @@ impl Learner {
             critics,
             critic_targets,
             updates: 0,
+            run_updates: 0,
             swarm_steps: Vec::new(),
             rng,
             teacher: (config.imitation_alpha > 0.0)
@@ -656,6 +659,11 @@ impl Learner {
             ..Losses::default()
         };
         self.updates += 1;
+        self.run_updates += 1;
+        if self.run_updates <= self.config.critic_warmup_updates {
+            soft_update(&self.critic_vars, &self.critic_target_vars, self.config.tau)?;
+            return Ok(losses);
+        }
         let delay = match self.config.algorithm {
             Algorithm::Ddpg => 1,
             Algorithm::Td3 => u64::from(self.config.policy_delay),

@@ -606,3 +606,37 @@ fn with_every_robot_present_the_masked_updates_are_bit_identical_to_the_plain_on
     }
     std::fs::remove_dir_all(&dir).expect("cleanup");
 }
+
+#[test]
+fn during_the_critic_warmup_the_actor_is_held_and_the_critic_learns() {
+    let (env, learn) = pooled_config();
+    let learn = LearnConfig {
+        critic_warmup_updates: 6,
+        ..learn
+    };
+    let mut learner = Learner::new(3, &env, &learn, 31).expect("learner");
+    let batch = random_batch_for(&env, CriticArchitecture::Pooled, 3, 8, 32);
+    let start = learner.actor_weights(0).expect("weights");
+    let mut critic_losses = Vec::new();
+    for _ in 0..6 {
+        let losses = learner.update(&batch, 0).expect("update");
+        assert!(losses.actor.is_none(), "no actor step during the warm-up");
+        critic_losses.push(losses.critic);
+    }
+    assert_eq!(learner.actor_weights(0).expect("weights"), start, "the actor is held");
+    assert!(
+        critic_losses[5] < critic_losses[0],
+        "the critic stepped: {critic_losses:?}"
+    );
+    // After it, the actor steps on the policy delay's schedule.
+    let stepped: Vec<bool> = (0..4)
+        .map(|_| learner.update(&batch, 0).expect("update").actor.is_some())
+        .collect();
+    assert_eq!(stepped, [false, true, false, true]);
+    assert_ne!(
+        learner.actor_weights(0).expect("weights"),
+        start,
+        "then the actor moves"
+    );
+    assert_eq!(learner.updates(), 10);
+}
