@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The obstacles grid: four controllers among each kind of obstacle, in the ideal world and the
+"""The obstacles grid: the controllers among each kind of obstacle, in the ideal world and the
 field preset with a noisy range sensor, at several swarm sizes, on held-out episodes (seed 1000).
 
 Rows: kinds none / forest / passage / trap x N. Worlds: ideal (no [reality]) and field
@@ -9,9 +9,11 @@ Rows: kinds none / forest / passage / trap x N. Worlds: ideal (no [reality]) and
            while the file is missing)
   planner  the privileged planner that knows the map (--team oracle)
   model    the shipped model as it is (its own observation model: it does not see obstacles)
+  learned  the actor of --learned FILE (only with it), e.g. a policy trained among obstacles
 
   scripts/obstacle_grid.py                                  # 100 episodes a cell, N = 4, 8, 16
   scripts/obstacle_grid.py --episodes 10 --n 4 --kinds forest --out runs/obstacle-grid-try
+  scripts/obstacle_grid.py --learned models/formation-forest.safetensors --controllers tuned,planner,learned
 
 Writes OUT/grid.json (every cell's formation-play line) and OUT/grid.md, and prints the Markdown.
 formation-play comes from $FORMATION_BIN_DIR (default target/debug).
@@ -30,9 +32,10 @@ ROOT = Path(__file__).resolve().parent.parent
 KINDS = ("none", "forest", "passage", "trap")
 WORLDS = {"ideal": None, "field": "configs/reality-field-ranging.toml"}
 WORLD_TITLES = {"ideal": "Ideal world", "field": "Field preset + noisy range sensor (configs/reality-field-ranging.toml)"}
-CONTROLLERS = ("default", "tuned", "planner", "model")
-TITLES = {"default": "potential field (default)", "tuned": "potential field (tuned)", "planner": "planner", "model": "shipped model"}
-TEAM = {"default": "scripted", "tuned": "scripted", "planner": "oracle", "model": "model"}
+CONTROLLERS = ("default", "tuned", "planner", "model", "learned")
+TITLES = {"default": "potential field (default)", "tuned": "potential field (tuned)", "planner": "planner",
+          "model": "shipped model", "learned": "learned"}
+TEAM = {"default": "scripted", "tuned": "scripted", "planner": "oracle", "model": "model", "learned": "model"}
 
 
 def tuned_config(kind: str) -> Path:
@@ -49,6 +52,8 @@ def play(args, kind: str, world: str, controller: str) -> dict[int, dict] | str:
         if not tuned_config(kind).is_file():
             return "not yet tuned"
         cmd += ["--config", str(tuned_config(kind).relative_to(ROOT))]
+    if controller == "learned":
+        cmd += ["--checkpoint", str(args.learned)]
     if WORLDS[world]:
         cmd += ["--reality", WORLDS[world]]
     print("$", " ".join(cmd), file=sys.stderr, flush=True)
@@ -63,13 +68,13 @@ def cell(line: dict) -> str:
             f"{line['timeouts']:.2f} | {steps} | {1000 * line['final_edge_error_m']:.1f}")
 
 
-def table(results: dict, world: str, kinds: list[str], ns: list[int]) -> str:
+def table(results: dict, world: str, kinds: list[str], ns: list[int], controllers: list[str]) -> str:
     lines = [f"**{WORLD_TITLES[world]}**", "",
              "| kind | N | controller | success | robot coll. | obstacle coll. | timeouts | steps to goal | final edge error (mm) |",
              "|---|---|---|---|---|---|---|---|---|"]
     for kind in kinds:
         for n in ns:
-            for controller in CONTROLLERS:
+            for controller in controllers:
                 got = results[world][kind][controller]
                 if got == "-":
                     continue
@@ -78,10 +83,10 @@ def table(results: dict, world: str, kinds: list[str], ns: list[int]) -> str:
     return "\n".join(lines)
 
 
-def glance(results: dict, worlds: list[str], kinds: list[str], ns: list[int]) -> str:
+def glance(results: dict, worlds: list[str], kinds: list[str], ns: list[int], controllers: list[str]) -> str:
     """Success only: rows kind x N, a column per world and controller (default, tuned: the potential
     field with default or tuned gains)."""
-    cols = [(w, c) for w in worlds for c in CONTROLLERS]
+    cols = [(w, c) for w in worlds for c in controllers]
     lines = ["**Success at a glance**", "",
              "| kind | N | " + " | ".join(f"{c}, {w}" for w, c in cols) + " |",
              "|---|---|" + "---|" * len(cols)]
@@ -102,11 +107,23 @@ def main() -> None:
     parser.add_argument("--worlds", default=",".join(WORLDS))
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "obstacle-grid")
     parser.add_argument("--bin-dir", default=os.environ.get("FORMATION_BIN_DIR", "target/debug"))
+    parser.add_argument("--learned", type=Path, help="a checkpoint to play as the 'learned' controller")
+    parser.add_argument("--controllers", help="comma-separated subset of " + ",".join(CONTROLLERS)
+                        + " (default: all four rivals, and learned with --learned)")
     args = parser.parse_args()
     kinds, worlds = args.kinds.split(","), args.worlds.split(",")
+    default = [c for c in CONTROLLERS if c != "learned" or args.learned]
+    controllers = args.controllers.split(",") if args.controllers else default
+    unknown = [c for c in controllers if c not in CONTROLLERS]
+    if unknown:
+        parser.error(f"unknown controllers {unknown}: choose from {', '.join(CONTROLLERS)}")
+    if "learned" in controllers and not args.learned:
+        parser.error("the learned controller needs --learned FILE")
+    if args.learned and not args.learned.is_file():
+        parser.error(f"--learned {args.learned}: no such file")
     ns = [int(n) for n in args.n.split(",")]
 
-    results = {w: {k: {c: play(args, k, w, c) for c in CONTROLLERS} for k in kinds} for w in worlds}
+    results = {w: {k: {c: play(args, k, w, c) for c in controllers} for k in kinds} for w in worlds}
     for kind in kinds:
         if kind != "none" and not tuned_config(kind).is_file():
             print(f"note: {tuned_config(kind).relative_to(ROOT)} is missing: its tuned column is 'not yet tuned'", file=sys.stderr)
@@ -114,7 +131,10 @@ def main() -> None:
     header = (f"{args.episodes} episodes a cell from seed {args.seed}. Rates are fractions of the episodes; "
               "steps to goal: mean over successful episodes; final edge error: mean |d_ij - dbar_ij| at the "
               "episode's end over all episodes.")
-    markdown = "\n\n".join([header, glance(results, worlds, kinds, ns)] + [table(results, w, kinds, ns) for w in worlds]) + "\n"
+    if args.learned:
+        header += f" learned: {args.learned}."
+    markdown = "\n\n".join([header, glance(results, worlds, kinds, ns, controllers)]
+                           + [table(results, w, kinds, ns, controllers) for w in worlds]) + "\n"
     args.out.mkdir(parents=True, exist_ok=True)
     json_results = {w: {k: {c: (v if isinstance(v, str) else {str(n): line for n, line in v.items()})
                             for c, v in row.items()} for k, row in per.items()} for w, per in results.items()}

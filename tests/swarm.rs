@@ -310,8 +310,11 @@ fn one_critic_trains_one_actor_on_two_swarm_sizes_at_once() {
     std::fs::create_dir_all(&dir).expect("dir");
     let config = dir.join("two-sizes.toml");
     let base = std::fs::read_to_string(repo_root().join("configs/multi-size.toml")).expect("config");
-    // Short: updates start after 300 ticks of each swarm.
-    let quick = base.replace("[learn]\n", "[learn]\nwarmup_transitions = 300\nbatch_size = 32\n");
+    // Short: updates start after 300 ticks of each swarm; every checkpoint kept.
+    let quick = base.replace(
+        "[learn]\n",
+        "[learn]\nwarmup_transitions = 300\nbatch_size = 32\nkeep_checkpoints = true\n",
+    );
     assert_ne!(quick, base, "configs/multi-size.toml has a [learn] section");
     std::fs::write(&config, quick).expect("write");
     let run = run_swarm(
@@ -343,6 +346,13 @@ fn one_critic_trains_one_actor_on_two_swarm_sizes_at_once() {
     assert!(extra["episodes"].as_u64().expect("episodes") > 0, "{extra}");
     let last = checkpoint::load(&run.run_dir.join("checkpoint.safetensors")).expect("checkpoint");
     assert_eq!(last.meta.extra["swarm_sizes"], "3,4");
+    // The last checkpoint is also kept, named by its updates.
+    let kept = run.run_dir.join(format!(
+        "checkpoints/updates-{:08}.safetensors",
+        last.meta.extra["updates"].parse::<u64>().expect("updates")
+    ));
+    let kept = checkpoint::load(&kept).unwrap_or_else(|e| panic!("the last checkpoint kept: {e:#}"));
+    assert_eq!(kept.meta.extra, last.meta.extra);
     // Scored on each size's selection episodes; the first score is also the best so far.
     let path = run.run_dir.join("best.safetensors");
     let best = checkpoint::load(&path).expect("best.safetensors");

@@ -484,6 +484,9 @@ pub struct LearnConfig {
     pub publish_every_updates: u64,
     /// A checkpoint is written at least this often, seconds.
     pub checkpoint_every_s: u64,
+    /// Also keep every checkpoint, as `checkpoints/updates-<U>.safetensors` in the run directory,
+    /// for learning curves computed afterwards (scripts/checkpoint_curves.py).
+    pub keep_checkpoints: bool,
     /// Threads the critic's matrix products may use.
     pub threads: usize,
     /// TD3's twin critics take their gradient steps (and compute their target values) on two
@@ -532,6 +535,7 @@ impl Default for LearnConfig {
             replay_capacity: 1_000_000,
             publish_every_updates: 50,
             checkpoint_every_s: 120,
+            keep_checkpoints: false,
             threads: 1,
             parallel_critics: false,
             eval_every_episodes: 10,

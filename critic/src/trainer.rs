@@ -57,6 +57,8 @@ pub struct Trainer<S: Service> {
     selecting: Option<Selection>,
     last_checkpoint: Instant,
     checkpoint_every: Duration,
+    /// `learn.keep_checkpoints`: every checkpoint also kept under `checkpoints/`.
+    keep_checkpoints: bool,
     warmup_transitions: usize,
     updates_per_transition: f64,
     /// Ticks a sim may run ahead of the critic's acknowledgements.
@@ -126,6 +128,7 @@ impl<S: Service> Trainer<S> {
             selecting: None,
             last_checkpoint: Instant::now(),
             checkpoint_every: Duration::from_secs(learn.checkpoint_every_s),
+            keep_checkpoints: learn.keep_checkpoints,
             warmup_transitions: learn.warmup_transitions,
             critic_window: u64::from(config.ticks.critic_window),
             last_served: 0,
@@ -290,6 +293,13 @@ impl<S: Service> Trainer<S> {
         let mut meta = self.meta(rolling);
         score.to_metadata(&mut meta);
         self.learner.save(&self.run_dir.join(FILE_NAME), meta.clone())?;
+        if self.keep_checkpoints {
+            let kept = self.run_dir.join("checkpoints");
+            std::fs::create_dir_all(&kept).with_context(|| format!("cannot create {}", kept.display()))?;
+            let name = format!("updates-{:08}.safetensors", self.learner.updates());
+            std::fs::copy(self.run_dir.join(FILE_NAME), kept.join(&name))
+                .with_context(|| format!("cannot keep the checkpoint as {}", kept.join(&name).display()))?;
+        }
         let better = score.beats(self.best.as_ref());
         if better {
             self.learner.save(&self.run_dir.join(BEST_FILE_NAME), meta)?;
