@@ -16,7 +16,7 @@ use candle_nn::{AdamW, Linear, Optimizer, ParamsAdamW, VarBuilder, VarMap};
 use formation_core::baseline::{BaselineGains, ScriptedBaseline};
 use formation_core::config::{Algorithm, CriticArchitecture, EnvConfig, LearnConfig, ObservationModel};
 use formation_core::features::CriticFeatures;
-use formation_core::observation::Layout;
+use formation_core::observation::{Layout, SCAN_RAYS};
 use formation_ipc::placement;
 use formation_model::actor::{Actor, ActorHead, ActorShape, dense, var_map_actor_weights};
 use formation_model::checkpoint::{self, CheckpointMeta, actor_prefix};
@@ -200,6 +200,10 @@ pub struct Learner {
     n_agents: usize,
     observation: ObservationModel,
     history: usize,
+    /// Where each observation's range-sensor rays start and how many there are, when the model
+    /// has a range sensor: the critics read every robot's rays beside its state (the state
+    /// holds no obstacle, so without them no value could foresee a collision with one).
+    scan: Option<(usize, usize)>,
     actor_shape: ActorShape,
     actor_vars: VarMap,
     actor_target_vars: VarMap,
@@ -361,9 +365,11 @@ impl Learner {
             Algorithm::Td3 => 2,
         };
         let features = CriticFeatures::new(n_agents, env.observation, config.critic);
+        let scan = Layout::of(env.observation).scan().map(|offset| (offset, SCAN_RAYS));
+        let rays = scan.map_or(0, |(_, rays)| rays);
         let critic_input = match config.critic {
-            CriticArchitecture::Mlp => history * (features.dim() + n_agents * ACTION_DIM),
-            CriticArchitecture::Pooled => history * (features.token_dim() + ACTION_DIM),
+            CriticArchitecture::Mlp => history * (features.dim() + n_agents * (ACTION_DIM + rays)),
+            CriticArchitecture::Pooled => history * (features.token_dim() + ACTION_DIM + rays),
         };
         let build_actors = |vars: &VarMap| -> Result<Vec<Actor>> {
             let vb = VarBuilder::from_varmap(vars, DType::F32, &device);
@@ -398,6 +404,7 @@ impl Learner {
             n_agents,
             observation: env.observation,
             history,
+            scan,
             actor_shape,
             actor_vars,
             actor_target_vars,
@@ -490,18 +497,35 @@ impl Learner {
         Ok(Some(f64::from(error)))
     }
 
-    /// What the critics read, from a state window [B, H * state_dim] and a joint-action window
-    /// [B, H * N * 2] (both tick-major): the two side by side for the `mlp` critic, one token
-    /// per robot [B, N, H * (token_dim + 2)] (its own ticks' features and actions) for `pooled`.
-    fn critic_input(&self, batch: &Batch, states: Tensor, actions: Tensor) -> Result<Tensor> {
-        if self.config.critic == CriticArchitecture::Mlp {
-            return Ok(Tensor::cat(&[states, actions], 1)?);
-        }
+    /// What the critics read, from a state window [B, H * state_dim], a joint-action window
+    /// [B, H * N * 2] (both tick-major) and the robots' observation windows [B, N, H * od]: the
+    /// three side by side for the `mlp` critic, one token per robot [B, N, H * (token_dim + 2) +
+    /// H * rays] (its own ticks' features and actions, then its range sensor's rays over the
+    /// window) for `pooled`. Of the observations only the rays are read, when the model has them.
+    fn critic_input(&self, batch: &Batch, states: Tensor, actions: Tensor, observations: &Tensor) -> Result<Tensor> {
         let (b, h, n) = (batch.batch_size, batch.history, batch.n_agents);
+        let scans = match self.scan {
+            Some((offset, rays)) => Some(
+                observations
+                    .reshape((b, n, h, batch.obs_dim))?
+                    .narrow(3, offset, rays)?
+                    .reshape((b, n, h * rays))?,
+            ),
+            None => None,
+        };
+        if self.config.critic == CriticArchitecture::Mlp {
+            let mut parts = vec![states, actions];
+            parts.extend(scans.map(|s| s.reshape((b, ()))).transpose()?);
+            return Ok(Tensor::cat(&parts, 1)?);
+        }
         let token = batch.state_dim / n;
         let states = states.reshape((b, h, n, token))?.transpose(1, 2)?;
         let actions = actions.reshape((b, h, n, ACTION_DIM))?.transpose(1, 2)?;
-        Ok(Tensor::cat(&[states, actions], 3)?.reshape((b, n, h * (token + ACTION_DIM)))?)
+        let tokens = Tensor::cat(&[states, actions], 3)?.reshape((b, n, h * (token + ACTION_DIM)))?;
+        Ok(match scans {
+            Some(scans) => Tensor::cat(&[tokens, scans], 2)?,
+            None => tokens,
+        })
     }
 
     /// The TD target y for a batch (no gradient flows through it).
@@ -528,7 +552,7 @@ impl Learner {
         }
         let joint = n * ACTION_DIM;
         let next_window = Tensor::cat(&[played.narrow(1, joint, (h - 1) * joint)?, next_actions], 1)?;
-        let next_input = self.critic_input(batch, next_states, next_window)?;
+        let next_input = self.critic_input(batch, next_states, next_window, &next_obs)?;
         let members = Members::of(&batch.next_present, b, n)?;
         let q_targets = per_critic(
             self.config.parallel_critics,
@@ -550,7 +574,8 @@ impl Learner {
         let b = batch.batch_size;
         let states = Tensor::from_slice(&batch.states, (b, batch.state_window_dim()), &device)?;
         let actions = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?;
-        self.critic_input(batch, states, actions)
+        let obs = Tensor::from_slice(&batch.observations, (b, batch.n_agents, batch.window_dim()), &device)?;
+        self.critic_input(batch, states, actions, &obs)
     }
 
     /// The critic loss on a batch against a given target, summed over the critics (used by
@@ -599,7 +624,7 @@ impl Learner {
         let current = Self::joint_actions(&self.actors, &obs)?;
         let window = Tensor::cat(&[actions.narrow(1, 0, (self.history - 1) * joint)?, current.clone()], 1)?;
         let members = Members::of(&batch.present, b, batch.n_agents)?;
-        let q = self.critics[0].forward(&self.critic_input(batch, states, window)?, members.as_ref())?;
+        let q = self.critics[0].forward(&self.critic_input(batch, states, window, &obs)?, members.as_ref())?;
         Ok((q, current, members))
     }
 

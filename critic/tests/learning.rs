@@ -640,3 +640,54 @@ fn during_the_critic_warmup_the_actor_is_held_and_the_critic_learns() {
     );
     assert_eq!(learner.updates(), 10);
 }
+
+/// The critic loss on `batch` against a target of zeros.
+fn zero_target_loss(learner: &Learner, batch: &Batch) -> f32 {
+    let zeros = Tensor::zeros((batch.batch_size, 1), DType::F32, &Device::Cpu).expect("zeros");
+    let loss = learner.critic_loss(batch, &zeros).expect("loss");
+    loss.to_scalar::<f32>().expect("scalar")
+}
+
+#[test]
+fn with_a_range_sensor_the_critics_read_every_robots_rays_and_nothing_else_of_its_observation() {
+    use formation_core::config::ObservationModel;
+    for critic in [CriticArchitecture::Pooled, CriticArchitecture::Mlp] {
+        let (env, learn) = small_config(Algorithm::Td3);
+        let env = EnvConfig {
+            observation: ObservationModel::SlotProximityScan,
+            history: 2,
+            ..env
+        };
+        let learn = LearnConfig {
+            critic,
+            critic_encoder: vec![16],
+            ..learn
+        };
+        let (n, b) = (3, 8);
+        let learner = Learner::new(n, &env, &learn, 41).expect("learner");
+        let batch = random_batch_for(&env, critic, n, b, 42);
+        let layout = Layout::of(env.observation);
+        let (od, scan) = (layout.dim(), layout.scan().expect("a range sensor"));
+        let at =
+            |sample: usize, robot: usize, tick: usize, k: usize| ((sample * n + robot) * env.history + tick) * od + k;
+        let base = zero_target_loss(&learner, &batch);
+        // One ray of robot 2 at the window's first tick: the value changes.
+        let mut ray = batch.clone();
+        ray.observations[at(0, 2, 0, scan + 5)] += 0.5;
+        assert_ne!(
+            zero_target_loss(&learner, &ray),
+            base,
+            "{critic:?}: a ray moves the value"
+        );
+        // The goal and slot the robot observes: the state already holds them, the critic ignores them.
+        let mut goal = batch.clone();
+        for k in 0..scan {
+            goal.observations[at(0, 2, 1, k)] += 0.5;
+        }
+        assert_eq!(
+            zero_target_loss(&learner, &goal),
+            base,
+            "{critic:?}: only the rays are read"
+        );
+    }
+}
