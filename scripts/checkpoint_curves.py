@@ -12,6 +12,12 @@ updates, one line per run, beside the selection score the run measured live (tra
 
 Writes OUT (a PNG) and OUT with .json (every point), and prints a Markdown table.
 formation-play comes from $FORMATION_BIN_DIR (default target/debug).
+
+--pick FILE applies the selection rule before any held-out play and copies its choice to FILE:
+of every kept checkpoint of the runs on which the actor had stepped (past
+`learn.critic_warmup_updates`: the ones before it hold the run's start), the best selection
+score (success over the selection episodes, then mean success over the sizes, then fewer steps;
+the trainer's `best.safetensors` rule).
 """
 from __future__ import annotations
 
@@ -20,7 +26,10 @@ import csv
 import json
 import os
 import re
+import shutil
+import struct
 import subprocess
+import tomllib
 import sys
 from pathlib import Path
 
@@ -32,6 +41,32 @@ def play(bin_dir: str, run: Path, checkpoint: Path, n: str, episodes: int, seed:
            "--config", str(run / "config.toml"), "--n", n, "--episodes", str(episodes), "--seed", str(seed)]
     out = subprocess.run(cmd, cwd=ROOT, check=True, stdout=subprocess.PIPE, text=True).stdout
     return {line["n"]: line for line in (json.loads(l) for l in out.splitlines() if l.startswith("{"))}
+
+
+def metadata(path: Path) -> dict[str, str]:
+    """A safetensors file's string metadata."""
+    with path.open("rb") as f:
+        (length,) = struct.unpack("<Q", f.read(8))
+        return json.loads(f.read(length)).get("__metadata__", {})
+
+
+def pick(runs: list[Path]) -> Path:
+    """The selection rule over the kept checkpoints on which the actor had stepped."""
+    candidates = []
+    for run in runs:
+        warmup = tomllib.loads((run / "config.toml").read_text()).get("learn", {}).get("critic_warmup_updates", 0)
+        for checkpoint in sorted((run / "checkpoints").glob("updates-*.safetensors")):
+            meta = metadata(checkpoint)
+            stepped = int(meta["run_actor_steps"]) > 0 if "run_actor_steps" in meta else int(meta["updates"]) > warmup
+            if stepped and "selection_success" in meta:
+                sizes = [float(size.split(":")[1]) for size in meta["selection_by_size"].split(",")]
+                key = (float(meta["selection_success"]), sum(sizes) / len(sizes), -float(meta["selection_mean_steps"]))
+                candidates.append((key, str(checkpoint)))
+    if not candidates:
+        sys.exit("checkpoint_curves.py --pick: no kept checkpoint on which the actor had stepped")
+    key, best = max(candidates)
+    print(f"picked {best}: selection success {key[0]:.3f} (of {len(candidates)} candidates)", file=sys.stderr)
+    return Path(best)
 
 
 def selection_curve(run: Path) -> list[tuple[int, float]]:
@@ -55,7 +90,13 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1000)
     parser.add_argument("--out", type=Path, required=True, help="the PNG to write")
     parser.add_argument("--bin-dir", default=os.environ.get("FORMATION_BIN_DIR", "target/debug"))
+    parser.add_argument("--pick", type=Path, help="copy the selection rule's choice here before any held-out play")
     args = parser.parse_args()
+    if args.pick:
+        chosen = pick(args.runs)
+        args.pick.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(chosen, args.pick)
+        print(f"copied {chosen} to {args.pick}", file=sys.stderr)
     curves = {}
     for run in args.runs:
         kept = sorted((run / "checkpoints").glob("updates-*.safetensors"))

@@ -8,12 +8,14 @@ Rows: kinds none / forest / passage / trap x N. Worlds: ideal (no [reality]) and
   tuned    the same with configs/potential-field-KIND.toml (not for kind none; "not yet tuned"
            while the file is missing)
   planner  the privileged planner that knows the map (--team oracle)
-  model    the shipped model as it is (its own observation model: it does not see obstacles)
-  learned  the actor of --learned FILE (only with it), e.g. a policy trained among obstacles
+  model    the open-arena model, models/formation.safetensors (its own observation model: it
+           does not see obstacles)
+  learned  the actor of --learned FILE (default models/formation-obstacles.safetensors, the
+           shipped obstacle policy the launcher loads among obstacles)
 
   scripts/obstacle_grid.py                                  # 100 episodes a cell, N = 4, 8, 16
   scripts/obstacle_grid.py --episodes 10 --n 4 --kinds forest --out runs/obstacle-grid-try
-  scripts/obstacle_grid.py --learned models/formation-forest.safetensors --controllers tuned,planner,learned
+  scripts/obstacle_grid.py --learned runs/forest/rl-s1/best.safetensors --controllers tuned,planner,learned
 
 Writes OUT/grid.json (every cell's formation-play line) and OUT/grid.md, and prints the Markdown.
 formation-play comes from $FORMATION_BIN_DIR (default target/debug).
@@ -34,7 +36,7 @@ WORLDS = {"ideal": None, "field": "configs/reality-field-ranging.toml"}
 WORLD_TITLES = {"ideal": "Ideal world", "field": "Field preset + noisy range sensor (configs/reality-field-ranging.toml)"}
 CONTROLLERS = ("default", "tuned", "planner", "model", "learned")
 TITLES = {"default": "potential field (default)", "tuned": "potential field (tuned)", "planner": "planner",
-          "model": "shipped model", "learned": "learned"}
+          "model": "open-arena model", "learned": "learned"}
 TEAM = {"default": "scripted", "tuned": "scripted", "planner": "oracle", "model": "model", "learned": "model"}
 
 
@@ -52,6 +54,8 @@ def play(args, kind: str, world: str, controller: str) -> dict[int, dict] | str:
         if not tuned_config(kind).is_file():
             return "not yet tuned"
         cmd += ["--config", str(tuned_config(kind).relative_to(ROOT))]
+    if controller == "model":
+        cmd += ["--checkpoint", "models/formation.safetensors"]
     if controller == "learned":
         cmd += ["--checkpoint", str(args.learned)]
     if WORLDS[world]:
@@ -107,19 +111,17 @@ def main() -> None:
     parser.add_argument("--worlds", default=",".join(WORLDS))
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "obstacle-grid")
     parser.add_argument("--bin-dir", default=os.environ.get("FORMATION_BIN_DIR", "target/debug"))
-    parser.add_argument("--learned", type=Path, help="a checkpoint to play as the 'learned' controller")
-    parser.add_argument("--controllers", help="comma-separated subset of " + ",".join(CONTROLLERS)
-                        + " (default: all four rivals, and learned with --learned)")
+    parser.add_argument("--learned", type=Path, default=ROOT / "models" / "formation-obstacles.safetensors",
+                        help="the checkpoint the 'learned' controller plays")
+    parser.add_argument("--controllers", default=",".join(CONTROLLERS),
+                        help="comma-separated subset of " + ",".join(CONTROLLERS))
     args = parser.parse_args()
     kinds, worlds = args.kinds.split(","), args.worlds.split(",")
-    default = [c for c in CONTROLLERS if c != "learned" or args.learned]
-    controllers = args.controllers.split(",") if args.controllers else default
+    controllers = args.controllers.split(",")
     unknown = [c for c in controllers if c not in CONTROLLERS]
     if unknown:
         parser.error(f"unknown controllers {unknown}: choose from {', '.join(CONTROLLERS)}")
-    if "learned" in controllers and not args.learned:
-        parser.error("the learned controller needs --learned FILE")
-    if args.learned and not args.learned.is_file():
+    if "learned" in controllers and not args.learned.is_file():
         parser.error(f"--learned {args.learned}: no such file")
     ns = [int(n) for n in args.n.split(",")]
 
@@ -131,8 +133,8 @@ def main() -> None:
     header = (f"{args.episodes} episodes a cell from seed {args.seed}. Rates are fractions of the episodes; "
               "steps to goal: mean over successful episodes; final edge error: mean |d_ij - dbar_ij| at the "
               "episode's end over all episodes.")
-    if args.learned:
-        header += f" learned: {args.learned}."
+    if "learned" in controllers:
+        header += f" learned: {args.learned.resolve().relative_to(ROOT) if args.learned.resolve().is_relative_to(ROOT) else args.learned}."
     markdown = "\n\n".join([header, glance(results, worlds, kinds, ns, controllers)]
                            + [table(results, w, kinds, ns, controllers) for w in worlds]) + "\n"
     args.out.mkdir(parents=True, exist_ok=True)

@@ -36,7 +36,9 @@ def controllers(kind: str) -> dict[str, tuple[str, list[str]]]:
     tuned = ROOT / "configs" / f"potential-field-{kind}.toml"
     field = ("potential field (tuned)", ["--team", "scripted", "--config", str(tuned.relative_to(ROOT))]) \
         if tuned.is_file() else ("potential field (default gains)", ["--team", "scripted"])
-    return {"field": field, "planner": ("planner", ["--team", "oracle"]), "model": ("shipped model", ["--team", "model"])}
+    # formation-play's default model among obstacles: the shipped obstacle policy.
+    return {"field": field, "planner": ("planner", ["--team", "oracle"]),
+            "model": ("learned (models/formation-obstacles.safetensors)", ["--team", "model"])}
 
 
 def play(args, kind: str, extra: list[str], out: Path) -> tuple[dict, dict]:

@@ -353,6 +353,8 @@ fn one_critic_trains_one_actor_on_two_swarm_sizes_at_once() {
     ));
     let kept = checkpoint::load(&kept).unwrap_or_else(|e| panic!("the last checkpoint kept: {e:#}"));
     assert_eq!(kept.meta.extra, last.meta.extra);
+    let actor_steps: u64 = last.meta.extra["run_actor_steps"].parse().expect("run_actor_steps");
+    assert!(actor_steps > 0, "the actor stepped in this run: {:?}", last.meta.extra);
     // Scored on each size's selection episodes; the first score is also the best so far.
     let path = run.run_dir.join("best.safetensors");
     let best = checkpoint::load(&path).expect("best.safetensors");

@@ -364,6 +364,9 @@ impl<S: Service> Trainer<S> {
         let sizes: Vec<String> = self.swarms.iter().map(|s| s.n_agents.to_string()).collect();
         extra.insert("swarm_sizes".into(), sizes.join(","));
         extra.insert("algorithm".into(), format!("{:?}", self.algorithm).to_lowercase());
+        // Actor steps of this run: 0 while the critic warms up (the actor is still the start's).
+        let actor_steps: u64 = (0..self.swarms.len()).map(|k| self.learner.swarm_steps(k).actor).sum();
+        extra.insert("run_actor_steps".into(), actor_steps.to_string());
         extra.insert("success_rate_100".into(), format!("{:.3}", rolling.success_rate()));
         extra
     }

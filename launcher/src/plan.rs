@@ -156,7 +156,7 @@ impl Plan {
         check_extra_swarms_and_files(&args)?;
         let learned = args.n - sets.scripted.len() - sets.oracle.len() - sets.external.len() - sets.ros2.len();
         let config = read_config(&args, learned)?;
-        let checkpoint = checkpoint_to_load(&args, learned)?;
+        let checkpoint = checkpoint_to_load(&args, learned, &config)?;
         let run_dir = args.run_dir.clone().unwrap_or_else(default_run_dir);
         let (config_path, launch_config) = members_config(&args, &config, &run_dir);
         let run_id = new_run_id();
@@ -595,8 +595,9 @@ fn check_extra_swarms_and_files(args: &LaunchArgs) -> Result<()> {
 
 /// The configuration every member reads: `--config` (or the defaults) with `--reality`'s
 /// `[reality]`, the `--shape` and the `--obstacles`; in training, checked for the seeds and the
-/// critic. Among obstacles a swarm without `learned` robots observes its range sensor
-/// (`slot_proximity_scan`) when the config leaves the default model.
+/// critic. Among obstacles a swarm observes its range sensor (`slot_proximity_scan`) when the
+/// config leaves the default model and no learned robot reads another: none is `learned`, or
+/// they load the shipped obstacle model ([`shipped_model`]).
 fn read_config(args: &LaunchArgs, learned: usize) -> Result<RunConfig> {
     let mut config = match &args.config {
         Some(path) => RunConfig::from_toml_file(path)?,
@@ -611,7 +612,7 @@ fn read_config(args: &LaunchArgs, learned: usize) -> Result<RunConfig> {
     if let Some(kind) = args.obstacles {
         config.env.obstacles.kind = kind;
     }
-    if learned == 0 {
+    if learned == 0 || loads_shipped_model(args, learned) {
         config.env.scan_among_obstacles();
     }
     if args.mode == Mode::Train {
@@ -621,11 +622,17 @@ fn read_config(args: &LaunchArgs, learned: usize) -> Result<RunConfig> {
     Ok(config)
 }
 
-/// `--checkpoint`; without it, an eval with `learned` robots loads the shipped model.
-fn checkpoint_to_load(args: &LaunchArgs, learned: usize) -> Result<Option<PathBuf>> {
-    Ok(match (&args.checkpoint, args.mode) {
-        (None, Mode::Eval) if learned > 0 => Some(shipped_model()?),
-        (given, _) => given.clone(),
+/// Whether the `learned` robots load a shipped model: an eval without `--checkpoint`.
+fn loads_shipped_model(args: &LaunchArgs, learned: usize) -> bool {
+    learned > 0 && args.mode == Mode::Eval && args.checkpoint.is_none()
+}
+
+/// `--checkpoint`; without it, an eval with `learned` robots loads the shipped model of the
+/// run's world.
+fn checkpoint_to_load(args: &LaunchArgs, learned: usize, config: &RunConfig) -> Result<Option<PathBuf>> {
+    Ok(match loads_shipped_model(args, learned) {
+        true => Some(shipped_model(config.env.has_obstacles())?),
+        false => args.checkpoint.clone(),
     })
 }
 
@@ -875,11 +882,16 @@ fn free_local_port() -> Result<u16> {
     Ok(listener.local_addr()?.port())
 }
 
-/// The model shipped with the repository, one for any N and any world:
-/// `models/formation.safetensors`, trained under randomised reality (from the ideal world to past
-/// the field preset), so it serves the ideal world and every `[reality]` alike.
-fn shipped_model() -> Result<PathBuf> {
-    let name = "formation.safetensors";
+/// The model shipped with the repository for the run's world, any N and any `[reality]`: in the
+/// open arena `models/formation.safetensors` (trained under randomised reality, from the ideal
+/// world to past the field preset; it does not see obstacles), among obstacles of any kind
+/// `models/formation-obstacles.safetensors` (the one model that reads the range sensor; trained
+/// in the forest, models/README.md).
+fn shipped_model(obstacles: bool) -> Result<PathBuf> {
+    let name = match obstacles {
+        true => "formation-obstacles.safetensors",
+        false => "formation.safetensors",
+    };
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models").join(name);
     ensure!(
         path.is_file(),
@@ -1225,6 +1237,40 @@ mod tests {
         let text: Vec<String> = args.iter().map(|a| a.to_string_lossy().into_owned()).collect();
         assert!(text.windows(2).any(|w| w == ["--agent", "4"]), "{text:?}");
         assert!(text.contains(&"--check".to_string()));
+    }
+
+    #[test]
+    fn among_obstacles_an_eval_loads_the_obstacle_policy_and_observes_its_range_sensor() {
+        use formation_core::config::ObservationModel;
+        for kind in ["forest", "passage", "trap", "mixed"] {
+            let plan = plan(&["4", "--mode", "eval", "--viewer", "off", "--obstacles", kind]).expect("plan");
+            let model = plan.checkpoint.clone().expect("a shipped model");
+            assert!(
+                model.ends_with("models/formation-obstacles.safetensors"),
+                "{kind}: {model:?}"
+            );
+            assert_eq!(
+                plan.config.env.observation,
+                ObservationModel::SlotProximityScan,
+                "{kind}"
+            );
+        }
+        // A checkpoint given keeps the config's model (the run refuses a mismatch at start).
+        let given = repo_path("models/formation.safetensors");
+        let chosen = plan(&[
+            "4",
+            "--mode",
+            "eval",
+            "--viewer",
+            "off",
+            "--obstacles",
+            "forest",
+            "--checkpoint",
+            &given,
+        ])
+        .expect("plan");
+        assert_eq!(chosen.checkpoint.as_deref(), Some(Path::new(&given)));
+        assert_eq!(chosen.config.env.observation, ObservationModel::default());
     }
 
     #[test]

@@ -224,7 +224,7 @@ def episodes_csv(run_dir):
 
 
 def test_the_ros2_node_refuses_the_shipped_checkpoint_in_a_run_with_the_range_sensor(tmp_path):
-    """No checkpoint in models/ observes slot_proximity_scan (the model among obstacles): the
+    """The open-arena model does not observe slot_proximity_scan (the model among obstacles): the
     node refuses the run's first observation, says why and exits 1."""
     pytest.importorskip("zenoh")
     pytest.importorskip("rosbags")
@@ -249,3 +249,52 @@ def test_the_ros2_node_refuses_the_shipped_checkpoint_in_a_run_with_the_range_se
             "but this run observes 'slot_proximity_scan' (32 floats)" in log), log
     assert "sent 0 twists" in log, "nothing was sent for a model the actor was not trained on"
     assert_clean(swarm)
+
+
+OBSTACLE_POLICY = REPO / "models" / "formation-obstacles.safetensors"
+FOREST_EPISODES = 2
+
+
+def test_the_ros2_node_plays_the_obstacle_policy_on_the_scans_it_receives(tmp_path):
+    """Among obstacles the launcher's learned robots load models/formation-obstacles.safetensors
+    and observe their range sensor; the node plays the same file on robot 2's observations (the
+    scan's 16 rays over scan_range_m within them): the forest episodes play out as with Rust
+    agents only."""
+    pytest.importorskip("zenoh")
+    pytest.importorskip("rosbags")
+    common = ["3", "--mode", "eval", "--obstacles", "forest", "--episodes", str(FOREST_EPISODES), "--seed", "1000",
+              "--viewer", "off"]
+    reference_dir = tmp_path / "reference"
+    reference = launch(common, reference_dir)
+    assert reference.wait(WATCHDOG_S) == 0, reference.output
+    assert_clean(reference)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    run_dir = tmp_path / "run"
+    node_log = tmp_path / "node.log"
+    swarm = launch(common + ["--ros2", "2", "--ros2-endpoint", endpoint], run_dir)
+    node = ros2_node(endpoint, node_log, "--policy", str(OBSTACLE_POLICY))
+    try:
+        status = swarm.wait(WATCHDOG_S)
+        node.send_signal(signal.SIGTERM)
+        node_status = wait_or_kill(node, 30)
+    finally:
+        if node.poll() is None:
+            kill_group(node)
+        if swarm.proc.poll() is None:
+            swarm.wait(0)
+    log = node_log.read_text(errors="replace")
+    assert status == 0, f"launcher status {status}:\n{swarm.output}\nnode:\n{log}"
+    assert node_status == 0, log
+    assert "'slot_proximity_scan'" in log, log
+    summary = swarm.summary()
+    assert summary["episodes"] == FOREST_EPISODES and summary["ros2_agents"] == [2], summary
+    assert summary["ros2_twists"] >= summary["env_steps"] - summary["missed_ticks"], summary
+    assert_clean(swarm)
+    # Hundreds of ticks among discs amplify f32 rounding (numpy's products against candle's):
+    # measured, the same outcomes, steps and returns (to the CSV's 0.1), final edge errors 3 mm apart.
+    ours, theirs = episodes_csv(run_dir), episodes_csv(reference_dir)
+    assert [(e["outcome"], e["steps"]) for e in ours] == [(e["outcome"], e["steps"]) for e in theirs], (ours, theirs)
+    for a, b in zip(ours, theirs):
+        assert abs(float(a["episode_return"]) - float(b["episode_return"])) <= 1.0, (a, b)
+        for key in ("final_edge_error_m", "final_goal_distance_m"):
+            assert abs(float(a[key]) - float(b[key])) < 0.05, (key, a, b)

@@ -26,7 +26,8 @@ enum TeamKind {
     Scripted,
     /// The privileged planner that knows the map (`--oracle all` of the launcher).
     Oracle,
-    /// The actor of --checkpoint (default: the shipped model), with its own observation model
+    /// The actor of --checkpoint (default: the shipped model of the world, as the launcher's eval:
+    /// models/formation-obstacles.safetensors among obstacles), with its own observation model
     /// and window.
     Model,
 }
@@ -107,7 +108,12 @@ fn run(cli: Cli) -> Result<()> {
         TeamKind::Model => {
             let path = match &cli.checkpoint {
                 Some(path) => checkpoint::resolve(path)?,
-                None => PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../models/formation.safetensors")),
+                None => {
+                    PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../models")).join(match env.has_obstacles() {
+                        true => "formation-obstacles.safetensors",
+                        false => "formation.safetensors",
+                    })
+                }
             };
             let loaded = checkpoint::load(&path)?;
             env.observation = loaded.meta.observation;
