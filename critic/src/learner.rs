@@ -432,9 +432,14 @@ impl Learner {
         self
     }
 
-    /// Gradient updates done.
+    /// Gradient updates done (with those of the checkpoint it resumed from).
     pub fn updates(&self) -> u64 {
         self.updates
+    }
+
+    /// Gradient updates done by this learner since it was made.
+    pub fn run_updates(&self) -> u64 {
+        self.run_updates
     }
 
     /// Number of actors (1 when shared).

@@ -73,8 +73,10 @@ impl Rolling {
 /// The learner's side of a progress report.
 #[derive(Debug, Clone, Copy)]
 pub struct TrainingStatus {
-    /// Gradient updates so far.
+    /// Gradient updates so far (with those of the checkpoint the run resumed from).
     pub updates: u64,
+    /// Gradient updates of this process: what the rates count.
+    pub run_updates: u64,
     /// The latest losses.
     pub losses: Losses,
     /// The weights version last streamed.
@@ -218,7 +220,7 @@ impl Progress {
         if let Some(status) = training {
             line += &format!(
                 " | {:.0} updates/s | critic {:.3} | actor {} | weights v{}",
-                status.updates as f64 / secs,
+                status.run_updates as f64 / secs,
                 status.losses.critic,
                 status.losses.actor.map_or("-".into(), |a| format!("{a:.2}")),
                 status.weights_version,

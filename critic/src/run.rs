@@ -228,7 +228,7 @@ fn merge_summary(
     summary.lost_transitions = Some(stats.lost_transitions);
     if let Some(status) = training {
         summary.updates = Some(status.updates);
-        summary.updates_per_s = Some(status.updates as f64 / elapsed_s.max(1e-9));
+        summary.updates_per_s = Some(status.run_updates as f64 / elapsed_s.max(1e-9));
         summary.critic_loss = Some(status.losses.critic);
         summary.actor_loss = status.losses.actor;
         summary.weights_version = Some(status.weights_version);

@@ -348,6 +348,7 @@ impl<S: Service> Trainer<S> {
     pub fn status(&self) -> TrainingStatus {
         TrainingStatus {
             updates: self.learner.updates(),
+            run_updates: self.learner.run_updates(),
             losses: self.losses,
             weights_version: self.weights_version(),
             replay_transitions: self.swarms.iter().map(|s| s.replay.transitions()).sum(),

@@ -691,3 +691,30 @@ fn with_a_range_sensor_the_critics_read_every_robots_rays_and_nothing_else_of_it
         );
     }
 }
+
+#[test]
+fn a_resumed_learner_counts_its_own_updates_apart_from_the_checkpoints() {
+    let (env, learn) = pooled_config();
+    let mut first = Learner::new(3, &env, &learn, 51).expect("learner");
+    let batch = random_batch_for(&env, CriticArchitecture::Pooled, 3, 8, 52);
+    for _ in 0..3 {
+        first.update(&batch, 0).expect("update");
+    }
+    let dir = std::env::temp_dir().join(format!("formation-resumed-updates-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("dir");
+    let path = dir.join("checkpoint.safetensors");
+    let meta = [("updates".to_string(), first.updates().to_string())]
+        .into_iter()
+        .collect();
+    first.save(&path, meta).expect("save");
+    let mut resumed = Learner::new(3, &env, &learn, 53).expect("learner");
+    resumed.load(&path).expect("load");
+    assert_eq!((resumed.updates(), resumed.run_updates()), (3, 0));
+    resumed.update(&batch, 0).expect("update");
+    assert_eq!(
+        (resumed.updates(), resumed.run_updates()),
+        (4, 1),
+        "rates count this run's updates only"
+    );
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
