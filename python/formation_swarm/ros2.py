@@ -80,8 +80,11 @@ class Ros2Node:
         self.store = get_typestore(getattr(Stores, STORE))
         self.types = self.store.types
         config = zenoh.Config()
+        # No shared memory: the node talks TCP to one peer, and a segment zenoh made would
+        # outlive a node stopped by a signal in /dev/shm.
         for key, value in [("mode", '"peer"'), ("connect/endpoints", f'["{endpoint}"]'),
-                           ("listen/endpoints", "[]"), ("scouting/multicast/enabled", "false")]:
+                           ("listen/endpoints", "[]"), ("scouting/multicast/enabled", "false"),
+                           ("transport/shared_memory/enabled", "false")]:
             config.insert_json5(key, value)
         self.session = zenoh.open(config)
         self.zid = str(self.session.info.zid())

@@ -131,6 +131,14 @@ def free_port():
         return sock.getsockname()[1]
 
 
+def zenoh_segments():
+    """Zenoh's shared-memory segments in /dev/shm: the node opens none (it would outlive a
+    node stopped by a signal)."""
+    import glob
+
+    return set(glob.glob("/dev/shm/*.zenoh"))
+
+
 def ros2_node(endpoint, log, *extra):
     with open(log, "wb") as out:
         return subprocess.Popen(
@@ -146,6 +154,7 @@ def test_the_ros2_node_plays_the_shipped_checkpoint_beside_the_rust_agents(tmp_p
     node_log = tmp_path / "node.log"
     swarm = launch(["3", "--mode", "eval", "--ros2", "2", "--episodes", str(EPISODES), "--seed", "1000",
                     "--viewer", "off", "--ros2-endpoint", endpoint], run_dir)
+    segments = zenoh_segments()
     node = ros2_node(endpoint, node_log, "--policy", str(SHIPPED))
     try:
         status = swarm.wait(WATCHDOG_S)
@@ -172,6 +181,7 @@ def test_the_ros2_node_plays_the_shipped_checkpoint_beside_the_rust_agents(tmp_p
     assert episodes == EPISODES, log
     assert summary["ros2_twists"] >= summary["env_steps"] - summary["missed_ticks"], summary
     assert_clean(swarm)
+    assert zenoh_segments() <= segments, "the node left a zenoh segment in /dev/shm"
     assert_same_episodes(run_dir, reference)
 
 
@@ -272,6 +282,7 @@ def test_the_ros2_node_plays_the_obstacle_policy_on_the_scans_it_receives(tmp_pa
     run_dir = tmp_path / "run"
     node_log = tmp_path / "node.log"
     swarm = launch(common + ["--ros2", "2", "--ros2-endpoint", endpoint], run_dir)
+    segments = zenoh_segments()
     node = ros2_node(endpoint, node_log, "--policy", str(OBSTACLE_POLICY))
     try:
         status = swarm.wait(WATCHDOG_S)
@@ -290,6 +301,7 @@ def test_the_ros2_node_plays_the_obstacle_policy_on_the_scans_it_receives(tmp_pa
     assert summary["episodes"] == FOREST_EPISODES and summary["ros2_agents"] == [2], summary
     assert summary["ros2_twists"] >= summary["env_steps"] - summary["missed_ticks"], summary
     assert_clean(swarm)
+    assert zenoh_segments() <= segments, "the node left a zenoh segment in /dev/shm"
     # Hundreds of ticks among discs amplify f32 rounding (numpy's products against candle's):
     # measured, the same outcomes, steps and returns (to the CSV's 0.1), final edge errors 3 mm apart.
     ours, theirs = episodes_csv(run_dir), episodes_csv(reference_dir)
