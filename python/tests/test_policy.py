@@ -146,16 +146,14 @@ def ros2_node(endpoint, log, *extra):
             stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
 
 
-def test_the_ros2_node_plays_the_shipped_checkpoint_beside_the_rust_agents(tmp_path, reference):
-    pytest.importorskip("zenoh")
-    pytest.importorskip("rosbags")
+def run_with_ros2_node(args, run_dir, node_log, policy):
+    """A swarm launched with `args` (robot 2 a --ros2 robot) and the ROS 2 node playing `policy`
+    on it; both end cleanly, and the node leaves no zenoh segment. Returns the swarm and the
+    node's log."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    run_dir = tmp_path / "run"
-    node_log = tmp_path / "node.log"
-    swarm = launch(["3", "--mode", "eval", "--ros2", "2", "--episodes", str(EPISODES), "--seed", "1000",
-                    "--viewer", "off", "--ros2-endpoint", endpoint], run_dir)
+    swarm = launch(args + ["--ros2-endpoint", endpoint], run_dir)
     segments = zenoh_segments()
-    node = ros2_node(endpoint, node_log, "--policy", str(SHIPPED))
+    node = ros2_node(endpoint, node_log, "--policy", str(policy))
     try:
         status = swarm.wait(WATCHDOG_S)
         node.send_signal(signal.SIGTERM)
@@ -168,6 +166,16 @@ def test_the_ros2_node_plays_the_shipped_checkpoint_beside_the_rust_agents(tmp_p
     log = node_log.read_text(errors="replace")
     assert status == 0, f"launcher status {status}:\n{swarm.output}\nnode:\n{log}"
     assert node_status == 0, log
+    assert zenoh_segments() <= segments, "the node left a zenoh segment in /dev/shm"
+    return swarm, log
+
+
+def test_the_ros2_node_plays_the_shipped_checkpoint_beside_the_rust_agents(tmp_path, reference):
+    pytest.importorskip("zenoh")
+    pytest.importorskip("rosbags")
+    run_dir = tmp_path / "run"
+    swarm, log = run_with_ros2_node(["3", "--mode", "eval", "--ros2", "2", "--episodes", str(EPISODES), "--seed",
+                                     "1000", "--viewer", "off"], run_dir, tmp_path / "node.log", SHIPPED)
     assert "gains head, 'slot_proximity' x H = 4" in log, log
     summary = swarm.summary()
     print(f"ROS 2 node with {SHIPPED.name}: success {summary['success_rate']}, collisions "
@@ -181,7 +189,6 @@ def test_the_ros2_node_plays_the_shipped_checkpoint_beside_the_rust_agents(tmp_p
     assert episodes == EPISODES, log
     assert summary["ros2_twists"] >= summary["env_steps"] - summary["missed_ticks"], summary
     assert_clean(swarm)
-    assert zenoh_segments() <= segments, "the node left a zenoh segment in /dev/shm"
     assert_same_episodes(run_dir, reference)
 
 
@@ -278,30 +285,13 @@ def test_the_ros2_node_plays_the_obstacle_policy_on_the_scans_it_receives(tmp_pa
     reference = launch(common, reference_dir)
     assert reference.wait(WATCHDOG_S) == 0, reference.output
     assert_clean(reference)
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
     run_dir = tmp_path / "run"
-    node_log = tmp_path / "node.log"
-    swarm = launch(common + ["--ros2", "2", "--ros2-endpoint", endpoint], run_dir)
-    segments = zenoh_segments()
-    node = ros2_node(endpoint, node_log, "--policy", str(OBSTACLE_POLICY))
-    try:
-        status = swarm.wait(WATCHDOG_S)
-        node.send_signal(signal.SIGTERM)
-        node_status = wait_or_kill(node, 30)
-    finally:
-        if node.poll() is None:
-            kill_group(node)
-        if swarm.proc.poll() is None:
-            swarm.wait(0)
-    log = node_log.read_text(errors="replace")
-    assert status == 0, f"launcher status {status}:\n{swarm.output}\nnode:\n{log}"
-    assert node_status == 0, log
+    swarm, log = run_with_ros2_node(common + ["--ros2", "2"], run_dir, tmp_path / "node.log", OBSTACLE_POLICY)
     assert "'slot_proximity_scan'" in log, log
     summary = swarm.summary()
     assert summary["episodes"] == FOREST_EPISODES and summary["ros2_agents"] == [2], summary
     assert summary["ros2_twists"] >= summary["env_steps"] - summary["missed_ticks"], summary
     assert_clean(swarm)
-    assert zenoh_segments() <= segments, "the node left a zenoh segment in /dev/shm"
     # Hundreds of ticks among discs amplify f32 rounding (numpy's products against candle's):
     # measured, the same outcomes, steps and returns (to the CSV's 0.1), final edge errors 3 mm apart.
     ours, theirs = episodes_csv(run_dir), episodes_csv(reference_dir)
