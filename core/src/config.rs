@@ -321,6 +321,16 @@ impl EnvConfig {
         self.obstacles.kind != ObstacleKind::None
     }
 
+    /// The model under `models/` an eval's learned robots load without `--checkpoint`: the
+    /// obstacle policy (it reads the range sensor) among obstacles of any kind, else the
+    /// open-arena model.
+    pub fn shipped_model_file(&self) -> &'static str {
+        match self.has_obstacles() {
+            true => "formation-obstacles.safetensors",
+            false => "formation.safetensors",
+        }
+    }
+
     /// For robots that run no learned actor (scripted, the planner): among obstacles they
     /// observe their range sensor (`slot_proximity_scan`) unless another model than the default
     /// was asked for. A learned robot keeps its checkpoint's model.

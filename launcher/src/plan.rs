@@ -7,7 +7,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 use anyhow::{Context, Result, anyhow, bail, ensure};
 use clap::ValueEnum;
-use formation_core::config::{FormationShape, RunConfig, extra_swarm_seed};
+use formation_core::config::{EnvConfig, FormationShape, RunConfig, extra_swarm_seed};
 use formation_core::observation::Layout;
 use formation_core::reality::RealityConfig;
 use formation_ipc::cli::{Mode, ViewerMode, parse_robot_set, robot_set_arg};
@@ -631,7 +631,7 @@ fn loads_shipped_model(args: &LaunchArgs, learned: usize) -> bool {
 /// run's world.
 fn checkpoint_to_load(args: &LaunchArgs, learned: usize, config: &RunConfig) -> Result<Option<PathBuf>> {
     Ok(match loads_shipped_model(args, learned) {
-        true => Some(shipped_model(config.env.has_obstacles())?),
+        true => Some(shipped_model(&config.env)?),
         false => args.checkpoint.clone(),
     })
 }
@@ -882,16 +882,13 @@ fn free_local_port() -> Result<u16> {
     Ok(listener.local_addr()?.port())
 }
 
-/// The model shipped with the repository for the run's world, any N and any `[reality]`: in the
-/// open arena `models/formation.safetensors` (trained under randomised reality, from the ideal
-/// world to past the field preset; it does not see obstacles), among obstacles of any kind
+/// The model shipped with the repository for the run's world, any N and any `[reality]`
+/// ([`EnvConfig::shipped_model_file`]): in the open arena `models/formation.safetensors`
+/// (trained under randomised reality; it does not see obstacles), among obstacles of any kind
 /// `models/formation-obstacles.safetensors` (the one model that reads the range sensor; trained
 /// in the forest, models/README.md).
-fn shipped_model(obstacles: bool) -> Result<PathBuf> {
-    let name = match obstacles {
-        true => "formation-obstacles.safetensors",
-        false => "formation.safetensors",
-    };
+fn shipped_model(env: &EnvConfig) -> Result<PathBuf> {
+    let name = env.shipped_model_file();
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models").join(name);
     ensure!(
         path.is_file(),

@@ -108,12 +108,7 @@ fn run(cli: Cli) -> Result<()> {
         TeamKind::Model => {
             let path = match &cli.checkpoint {
                 Some(path) => checkpoint::resolve(path)?,
-                None => {
-                    PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../models")).join(match env.has_obstacles() {
-                        true => "formation-obstacles.safetensors",
-                        false => "formation.safetensors",
-                    })
-                }
+                None => PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../models")).join(env.shipped_model_file()),
             };
             let loaded = checkpoint::load(&path)?;
             env.observation = loaded.meta.observation;
