@@ -361,6 +361,16 @@ pub fn critic_progress_event_name() -> String {
     "formation/critic/progress_ready".into()
 }
 
+/// Name of the MCAP recorder's progress service (flow control, as the critic's).
+pub fn recorder_progress_service_name() -> String {
+    "formation/recorder/progress".into()
+}
+
+/// Name of the event raised when the MCAP recorder's progress changes.
+pub fn recorder_progress_event_name() -> String {
+    "formation/recorder/progress_ready".into()
+}
+
 /// Name of actor `actor_index`'s weights service.
 pub fn weights_service_name(actor_index: usize) -> String {
     format!("formation/actor/{actor_index}/weights")
@@ -619,6 +629,23 @@ pub fn critic_progress_stream<S: Service>(node: &Node<S>, sizing: &Sizing) -> Re
 /// Event raised when the critic's progress changes.
 pub fn critic_progress_event<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Event<S>> {
     event_service(node, &critic_progress_event_name(), sizing, 1)
+}
+
+/// The MCAP recorder's progress: the critic's message, `weights_version` and `updates` 0
+/// (history 1: the sim sees the latest at once).
+pub fn recorder_progress_stream<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Stream<S, CriticProgressMsg>> {
+    stream(
+        node,
+        &recorder_progress_service_name(),
+        sizing,
+        1,
+        sizing.shared_nodes(),
+    )
+}
+
+/// Event raised when the MCAP recorder's progress changes.
+pub fn recorder_progress_event<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Event<S>> {
+    event_service(node, &recorder_progress_event_name(), sizing, 1)
 }
 
 /// Weights of one actor (history 1: a restarted agent gets the latest at once).

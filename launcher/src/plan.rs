@@ -445,6 +445,9 @@ impl Plan {
                 if self.realtime && swarm == 0 {
                     args.push("--realtime".into());
                 }
+                if self.record_mcap && swarm == 0 {
+                    args.push("--expect-recorder".into());
+                }
                 if !s.external.is_empty() {
                     args.extend(["--external".into(), robot_set_arg(&s.external).into()]);
                 }
@@ -1104,6 +1107,9 @@ mod tests {
         let args = text_of(&recorded, Member::Mcap);
         assert!(args.windows(2).any(|w| w == ["--namespace", "lab"]), "{args:?}");
         assert!(args.windows(2).any(|w| w == ["--mode", "eval"]), "{args:?}");
+        // The sim waits for the recorder as for the critic, so the file loses no state.
+        assert!(text_of(&recorded, Member::Sim { swarm: 0 }).contains(&"--expect-recorder".to_string()));
+        assert!(!text_of(&plain, Member::Sim { swarm: 0 }).contains(&"--expect-recorder".to_string()));
         assert!(plan(&["3", "--record", "bag"]).is_err());
     }
 

@@ -8,9 +8,13 @@ are missing (.ci/run installs them; the --ros2 run also needs eclipse-zenoh)."""
 import bisect
 import csv
 import math
+import os
 import re
+import signal
 import threading
+import time
 from collections import defaultdict
+from pathlib import Path
 
 import pytest
 
@@ -22,7 +26,7 @@ from mcap.reader import make_reader  # noqa: E402
 from mcap_ros2.decoder import DecoderFactory  # noqa: E402
 from rosbags.highlevel import AnyReader  # noqa: E402
 
-from conftest import assert_clean, launch  # noqa: E402
+from conftest import assert_clean, launch, processes_mentioning  # noqa: E402
 
 WATCHDOG_S = 300
 N = 4
@@ -126,6 +130,48 @@ def test_an_eval_run_recorded_as_mcap_matches_its_episodes(tmp_path):
     with AnyReader([run_dir / "run.mcap"]) as reader:
         decoded = sum(1 for c, _, raw in reader.messages() if reader.deserialize(raw, c.msgtype) is not None)
     assert decoded == sum(len(messages) for messages in topics.values())
+
+
+def test_a_recorder_that_stalls_loses_no_state_the_sim_waits_for_it(tmp_path):
+    """The recorder is stopped (SIGSTOP) for a second mid-run, several times the state stream's
+    buffer at the sim's pace: the sim holds within a window of it instead of running on, so
+    afterwards every state of every episode is in the file and nothing was lost."""
+    config = tmp_path / "slow_recorder.toml"
+    # The sim gives a silent reader up after a quarter of sim_silence_ms: well past the pause.
+    config.write_text("[ticks]\nsim_silence_ms = 20000\n")
+    run_dir = tmp_path / "run"
+    episodes = 12
+    swarm = launch([str(N), "--mode", "eval", "--scripted", "all", "--episodes", str(episodes), "--seed", "11",
+                    "--viewer", "off", "--config", str(config), "--record", "mcap"], run_dir)
+    try:
+        deadline = time.monotonic() + 60
+        recorder = []
+        while time.monotonic() < deadline and not (recorder and (run_dir / "episodes.csv").exists()):
+            recorder = [pid for pid in processes_mentioning(str(run_dir))
+                        if b"formation-mcap" in Path(f"/proc/{pid}/cmdline").read_bytes()]
+            time.sleep(0.05)
+        assert recorder, f"no recorder process:\n{swarm.output}"
+        os.kill(recorder[0], signal.SIGSTOP)
+        try:
+            before = len(list(csv.DictReader(open(run_dir / "episodes.csv"))))
+            time.sleep(1.0)
+            during = len(list(csv.DictReader(open(run_dir / "episodes.csv"))))
+        finally:
+            os.kill(recorder[0], signal.SIGCONT)
+        status = swarm.wait(WATCHDOG_S)
+    finally:
+        if swarm.proc.poll() is None:
+            swarm.wait(0)
+    assert status == 0, f"launcher status {status}:\n{swarm.output}"
+    assert_clean(swarm)
+    # At most a window of ticks while the recorder slept: one episode may have ended in it.
+    assert during - before <= 1, (before, during)
+    mcap_log = (run_dir / "logs" / "mcap.log").read_text()
+    assert "lost" not in mcap_log and f"of {episodes} episodes" in mcap_log, mcap_log
+    topics, _ = read_mcap(run_dir / "run.mcap")
+    rows = list(csv.DictReader(open(run_dir / "episodes.csv")))
+    states = sum(int(row["steps"]) + 1 for row in rows)
+    assert len(topics["/formation/robot_0/odom"]) == states, (len(topics["/formation/robot_0/odom"]), states)
 
 
 def surface_distance(point, markers, others, arena_m, robot_radius):

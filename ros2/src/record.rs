@@ -16,8 +16,8 @@ use formation_ipc::cli::Mode;
 use formation_ipc::services::{self, RunIdentity, SimWatch, Sizing};
 use formation_ipc::termination_requested;
 use formation_protocol::wire::{
-    FLAG_EPISODE_END, FLAG_EPISODE_START, FLAG_EVAL_EPISODE, FLAG_RUN_END, OUTCOME_ABORTED, OUTCOME_COLLISION,
-    OUTCOME_SUCCESS, OUTCOME_TIMEOUT, StateMsg,
+    CriticProgressMsg, FLAG_EPISODE_END, FLAG_EPISODE_START, FLAG_EVAL_EPISODE, FLAG_RUN_END, OUTCOME_ABORTED,
+    OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TIMEOUT, PROTOCOL_VERSION, StateMsg,
 };
 use iceoryx2::prelude::*;
 use serde::Serialize;
@@ -581,12 +581,15 @@ pub fn run(options: &Options, ready: impl FnOnce() -> Result<()>) -> Result<Reco
         .buffer_size(sizing.stream_buffer)
         .create()
         .context("mcap: state subscriber")?;
-    // The sim rings the critic's wake-up every half window and at each episode's end; the
-    // stream holds two windows, so nothing is lost between wake-ups.
+    // The sim rings the readers' wake-up every half window and at each episode's end, and
+    // never runs more than a window ahead of what `progress` acknowledges; the stream holds
+    // two windows, so nothing is lost.
     let wake = services::critic_wake_event(&node, sizing)?
         .listener_builder()
         .create()
         .context("mcap: wake-up listener")?;
+    let progress = Progress::open(&node, sizing)?;
+    progress.acknowledge(0)?;
     let path = options.run_dir.join(MCAP_FILE);
     let file = File::create(&path).with_context(|| format!("cannot create {}", path.display()))?;
     let mut obstacles = match options.obstacles {
@@ -608,7 +611,7 @@ pub fn run(options: &Options, ready: impl FnOnce() -> Result<()>) -> Result<Reco
         options,
         &states,
         obstacles.as_mut(),
-        &wake,
+        (&wake, &progress),
         &mut recorder,
         &mut sim_watch,
     );
@@ -620,16 +623,18 @@ fn record(
     options: &Options,
     states: &iceoryx2::port::subscriber::Subscriber<ipc::Service, StateMsg, ()>,
     mut obstacles: Option<&mut ObstacleFeed>,
-    wake: &iceoryx2::port::listener::Listener<ipc::Service>,
+    (wake, progress): (&iceoryx2::port::listener::Listener<ipc::Service>, &Progress),
     recorder: &mut Recorder<BufWriter<File>>,
     sim_watch: &mut SimWatch,
 ) -> Result<()> {
+    let mut acknowledged = 0;
     loop {
         services::wait_for_event(wake, WAIT_SLICE)?;
         while let Some(sample) = states.receive().context("mcap: receive state")? {
             let state = sample.payload();
             services::check_sim_protocol(&state.header, "mcap", "recorder")?;
             sim_watch.heard();
+            acknowledged = state.sequence;
             if state.header.has(FLAG_RUN_END) {
                 return Ok(());
             }
@@ -641,6 +646,8 @@ fn record(
             }
             recorder.state(state)?;
         }
+        // Also when nothing came: the sim hears the recorder is alive.
+        progress.acknowledge(acknowledged)?;
         if termination_requested() {
             return Ok(());
         }
@@ -650,6 +657,44 @@ fn record(
                 quiet.as_secs_f64()
             );
         }
+    }
+}
+
+/// The recorder's side of the sim's flow control: how far it has read the state stream.
+struct Progress {
+    publisher: iceoryx2::port::publisher::Publisher<ipc::Service, CriticProgressMsg, ()>,
+    ready: iceoryx2::port::notifier::Notifier<ipc::Service>,
+    /// Tells a restarted recorder from the one before it.
+    session: u64,
+}
+
+impl Progress {
+    fn open(node: &Node<ipc::Service>, sizing: &Sizing) -> Result<Self> {
+        Ok(Self {
+            publisher: services::recorder_progress_stream(node, sizing)?
+                .publisher_builder()
+                .create()
+                .context("mcap: progress publisher")?,
+            ready: services::recorder_progress_event(node, sizing)?
+                .notifier_builder()
+                .create()
+                .context("mcap: progress notifier")?,
+            session: rand::random_range(1..u64::MAX),
+        })
+    }
+
+    /// Tells the sim every state up to `sequence` is written.
+    fn acknowledge(&self, sequence: u64) -> Result<()> {
+        self.publisher
+            .send_copy(CriticProgressMsg {
+                protocol_version: PROTOCOL_VERSION,
+                acknowledged_sequence: sequence,
+                session: self.session,
+                ..CriticProgressMsg::default()
+            })
+            .context("mcap: progress")?;
+        self.ready.notify().context("mcap: progress notify")?;
+        Ok(())
     }
 }
 

@@ -6,16 +6,16 @@
 //! * [`lockstep`]: the process's loop: connect, play episodes tick by tick, report;
 //! * [`ports`]: the sim's ends of the services, and publishing observations and states;
 //! * [`commands`]: one tick's command wait and its bookkeeping (missed, late, malformed);
-//! * [`critic_link`]: flow control towards the critic;
+//! * [`reader_link`]: flow control towards the critic and the MCAP recorder;
 //! * [`control`]: the live control service (a new formation or goal mid-episode);
 //! * [`report`], [`plots`], [`view`]: `episodes.csv` and `summary.json`, the PNG figures,
 //!   the live Rerun view.
 
 pub mod commands;
 pub mod control;
-pub mod critic_link;
 pub mod lockstep;
 pub mod plots;
 pub mod ports;
+pub mod reader_link;
 pub mod report;
 pub mod view;

@@ -4,7 +4,7 @@
 //!
 //! [`run`] is the whole process: connect ([`SimPorts`], greetings), play episodes one tick at a
 //! time ([`Lockstep::play_episode`]), then report ([`Lockstep::finish`]). The tick's command
-//! wait and accounting is [`crate::commands`], the critic's flow control [`crate::critic_link`].
+//! wait and accounting is [`crate::commands`], the readers' flow control [`crate::reader_link`].
 //!
 //! The reality model ([`formation_core::reality`], the `[reality]` section) sits at both ends
 //! of a tick, one [`Reality`] per episode seeded by (run seed, episode) apart from the episode
@@ -53,9 +53,9 @@ use iceoryx2::prelude::*;
 
 use crate::commands::{CommandCounters, CommandRound, Settled};
 use crate::control::ControlServer;
-use crate::critic_link::{CriticLink, check_protocol};
 use crate::plots::{EpisodeTrace, episode_errors, learning_curve};
 use crate::ports::{SimPorts, Told, Transition};
+use crate::reader_link::{Reader, ReaderLink, check_protocol};
 use crate::report::{EpisodeLog, fill_episode_figures};
 
 /// How the sim runs.
@@ -75,6 +75,8 @@ pub struct SimOptions {
     pub realtime: bool,
     /// Wait for the critic at start-up and never run more than `critic_window` ticks ahead.
     pub expect_critic: bool,
+    /// Likewise for an MCAP recorder (`--record mcap`), so it loses no state.
+    pub expect_recorder: bool,
     /// Robots that run the scripted baseline (recorded in the summary).
     pub scripted: Vec<usize>,
     /// Robots played by outside processes (recorded in the summary).
@@ -166,7 +168,7 @@ where
         tap,
         log: EpisodeLog::create(&options.run_dir)?,
         round: command_round(identity, options.n_agents),
-        critic: CriticLink::default(),
+        readers: readers(&node, &sizing, options)?,
         published: 0,
         env_steps: 0,
         deadline_misses: 0,
@@ -207,6 +209,21 @@ where
     sim.finish(stop)
 }
 
+/// The links to the readers `options` expects, in the order the sim waits for them.
+fn readers<S: Service>(node: &Node<S>, sizing: &Sizing, options: &SimOptions) -> Result<Vec<ReaderLink<S>>>
+where
+    Listener<S>: FileDescriptorBased,
+{
+    [
+        (options.expect_critic, Reader::Critic),
+        (options.expect_recorder, Reader::Recorder),
+    ]
+    .into_iter()
+    .filter(|(expected, _)| *expected)
+    .map(|(_, reader)| ReaderLink::open(node, sizing, reader))
+    .collect()
+}
+
 /// The sim's state across ticks and episodes.
 struct Lockstep<'a, S: Service> {
     ports: SimPorts<S>,
@@ -216,7 +233,8 @@ struct Lockstep<'a, S: Service> {
     tap: Option<StateTap>,
     log: EpisodeLog,
     round: CommandRound,
-    critic: CriticLink,
+    /// The readers that must see every state (none without a critic).
+    readers: Vec<ReaderLink<S>>,
     /// States published so far (the sequence number of the latest).
     published: u64,
     env_steps: u64,
@@ -241,12 +259,11 @@ impl<S: Service> Lockstep<'_, S>
 where
     Listener<S>: FileDescriptorBased,
 {
-    /// Waits until every agent has greeted (and the critic, when expected).
+    /// Waits until every agent has greeted (and the critic and recorder, when expected).
     fn wait_for_peers(&mut self) -> Result<()> {
         let ticks = &self.options.config.ticks;
         let deadline = Instant::now() + Duration::from_secs(ticks.startup_timeout_s);
         let mut greeted = vec![false; self.ports.agents.len()];
-        let mut critic_ready = !self.options.expect_critic;
         loop {
             for (agent, ports) in self.ports.agents.iter().enumerate() {
                 while let Some(sample) = ports.command.receive().context("receive")? {
@@ -257,10 +274,10 @@ where
                     }
                 }
             }
-            if !critic_ready {
-                critic_ready = self.critic.drain(&self.ports, self.published)?;
+            for reader in self.readers.iter_mut().filter(|r| !r.heard()) {
+                reader.drain(self.published)?;
             }
-            if critic_ready && greeted.iter().all(|&g| g) {
+            if self.readers.iter().all(ReaderLink::heard) && greeted.iter().all(|&g| g) {
                 return Ok(());
             }
             if termination_requested() {
@@ -270,10 +287,15 @@ where
             }
             if Instant::now() >= deadline {
                 let missing: Vec<usize> = (0..greeted.len()).filter(|&a| !greeted[a]).collect();
+                let silent: String = self
+                    .readers
+                    .iter()
+                    .filter(|r| !r.heard())
+                    .map(|r| format!("and {} ", r.name()))
+                    .collect();
                 bail!(
-                    "sim: after {} s, agents {missing:?} {}have not connected (run id and --agents must match)",
+                    "sim: after {} s, agents {missing:?} {silent}have not connected (run id and --agents must match)",
                     ticks.startup_timeout_s,
-                    if critic_ready { "" } else { "and the critic " }
                 );
             }
             services::wait_for_event(&self.ports.command_ready, Duration::from_millis(50))?;
@@ -387,18 +409,18 @@ where
             .serve(world, mission, &mut self.attendance, self.options.seed, episode)
     }
 
-    /// After a tick's step: its time in the histogram, the real-time pacing, and the critic's
-    /// flow control (never more than `critic_window` ticks ahead of it).
+    /// After a tick's step: its time in the histogram, the real-time pacing, and the readers'
+    /// flow control (never more than `critic_window` ticks ahead of any).
     fn end_tick(&mut self, tick_started: Instant) -> Result<()> {
         let tick_time = tick_started.elapsed();
         self.stepping_time += tick_time;
         let _ = self.histogram.record((tick_time.as_micros() as u64).max(1));
         self.pace(tick_started);
         let options = self.options;
-        if options.expect_critic {
-            let give_up = Duration::from_millis(options.config.ticks.sim_silence_ms / 4);
-            let window = u64::from(options.config.ticks.critic_window);
-            self.critic.wait(&self.ports, self.published, window, give_up)?;
+        let give_up = Duration::from_millis(options.config.ticks.sim_silence_ms / 4);
+        let window = u64::from(options.config.ticks.critic_window);
+        for reader in &mut self.readers {
+            reader.wait(self.published, window, give_up, || self.ports.wake_critic())?;
         }
         Ok(())
     }
@@ -461,7 +483,7 @@ where
             let _dropped_when_view_is_behind = tap.try_send(Tapped { state, obstacles });
         }
         let half_window = u64::from((self.options.config.ticks.critic_window / 2).max(1));
-        if self.options.expect_critic && (header.has(FLAG_EPISODE_END) || self.published.is_multiple_of(half_window)) {
+        if !self.readers.is_empty() && (header.has(FLAG_EPISODE_END) || self.published.is_multiple_of(half_window)) {
             self.ports.wake_critic()?;
         }
         Ok(())

@@ -30,6 +30,10 @@ struct Cli {
     /// Run without a critic process (no flow control, nothing recorded but the sim's figures).
     #[arg(long)]
     no_critic: bool,
+    /// Wait for an MCAP recorder (the launcher's `--record mcap`) as for the critic: never run
+    /// more than `ticks.critic_window` states ahead of it, so its file loses nothing.
+    #[arg(long)]
+    expect_recorder: bool,
     /// Which agents run the scripted baseline, as recorded in the summary: `all` or `0,2`.
     #[arg(long, default_value = "")]
     scripted: String,
@@ -90,6 +94,7 @@ fn try_main(cli: Cli) -> Result<()> {
         seed: cli.run.seed,
         realtime: cli.realtime,
         expect_critic: !cli.no_critic,
+        expect_recorder: cli.expect_recorder,
         scripted,
         external,
         run_dir: cli.run.run_dir.clone(),

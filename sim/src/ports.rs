@@ -1,5 +1,6 @@
 //! The sim's ends of the run's services: each robot's observation stream and wake-up, the
-//! command streams and their shared wake-up, the state stream, and the critic's progress.
+//! command streams and their shared wake-up, and the state stream; the
+//! readers' progress is [`crate::reader_link`]'s.
 
 use anyhow::{Context, Result};
 use formation_core::mission::NO_SLOT;
@@ -37,12 +38,8 @@ pub struct SimPorts<S: Service> {
     pub truth: Publisher<S, TruthMsg, ()>,
     /// The episode's obstacles, once per episode.
     pub obstacles: Publisher<S, ObstaclesMsg, ()>,
-    /// Wakes the critic.
+    /// Wakes the critic (and the MCAP recorder).
     pub critic_wake: Notifier<S>,
-    /// How far the critic has consumed the stream.
-    pub critic_progress: Subscriber<S, CriticProgressMsg, ()>,
-    /// Raised when the critic's progress changes.
-    pub critic_progress_ready: Listener<S>,
 }
 
 /// What led to a published state (the velocities that acted are the world's scene's).
@@ -113,14 +110,6 @@ impl<S: Service> SimPorts<S> {
                 .notifier_builder()
                 .create()
                 .with_context(|| err("critic notifier"))?,
-            critic_progress: services::critic_progress_stream(node, sizing)?
-                .subscriber_builder()
-                .create()
-                .with_context(|| err("progress subscriber"))?,
-            critic_progress_ready: services::critic_progress_event(node, sizing)?
-                .listener_builder()
-                .create()
-                .with_context(|| err("progress listener"))?,
         })
     }
 

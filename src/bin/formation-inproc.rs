@@ -81,6 +81,7 @@ where
             seed: cli.seed,
             realtime: false,
             expect_critic: false,
+            expect_recorder: false,
             scripted: (0..cli.agents).collect(),
             external: Vec::new(),
             run_dir: cli.run_dir.clone(),
