@@ -91,7 +91,11 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True, help="the PNG to write")
     parser.add_argument("--bin-dir", default=os.environ.get("FORMATION_BIN_DIR", "target/debug"))
     parser.add_argument("--pick", type=Path, help="copy the selection rule's choice here before any held-out play")
+    parser.add_argument("--every", type=int, default=1,
+                        help="play every K-th kept checkpoint of a run (its last always), to save time")
     args = parser.parse_args()
+    if args.every < 1:
+        parser.error(f"--every must be at least 1, not {args.every}")
     if args.pick:
         chosen = pick(args.runs)
         args.pick.parent.mkdir(parents=True, exist_ok=True)
@@ -102,6 +106,7 @@ def main() -> None:
         kept = sorted((run / "checkpoints").glob("updates-*.safetensors"))
         if not kept:
             parser.error(f"{run}: no kept checkpoints (train with learn.keep_checkpoints = true)")
+        kept = [c for k, c in enumerate(kept) if k % args.every == 0 or k == len(kept) - 1]
         points = []
         for k, checkpoint in enumerate(kept):
             updates = int(re.search(r"updates-(\d+)", checkpoint.name).group(1))
