@@ -466,7 +466,13 @@ const OPEN_PATIENCE: std::time::Duration = std::time::Duration::from_secs(10);
 /// Opens (or creates) a service, retrying while iceoryx2 reports that another process is still
 /// creating it: with dozens of processes starting at once on a loaded machine, a creation can
 /// take longer than iceoryx2's own wait, and giving up then would fail the whole run.
-fn open_patiently<T, E: std::fmt::Debug>(
+///
+/// A service whose creator was killed mid-creation stays "in creation" for good (iceoryx2 0.10
+/// cleans up only the finished services of a dead node): before each retry the abandoned
+/// creations of the node's run are removed ([`remove_abandoned_creations`]), so the next open
+/// creates the service afresh instead of failing the run with `HangsInCreation`.
+fn open_patiently<S: Service, T, E: std::fmt::Debug>(
+    node: &Node<S>,
     mut open: impl FnMut() -> std::result::Result<T, E>,
     in_creation: impl Fn(&E) -> bool,
 ) -> std::result::Result<T, E> {
@@ -474,11 +480,96 @@ fn open_patiently<T, E: std::fmt::Debug>(
     loop {
         match open() {
             Err(err) if in_creation(&err) && started.elapsed() < OPEN_PATIENCE => {
-                std::thread::sleep(std::time::Duration::from_millis(50));
+                let removed = remove_abandoned_creations::<S>(node.config());
+                if removed > 0 {
+                    eprintln!(
+                        "removed {removed} iceoryx2 service(s) left in creation by a process killed while creating them"
+                    );
+                } else {
+                    std::thread::sleep(std::time::Duration::from_millis(50));
+                }
             }
             result => return result,
         }
     }
+}
+
+/// Removes the static descriptions of services of `config`'s run that a dead process left "in
+/// creation"; returns how many.
+///
+/// iceoryx2 0.10 creates a service in this order: the creator's *service tag* (a file in its
+/// node's directory), then the service's static description, still owner-writable (0600, "in
+/// creation"), which it makes read-only once written. A creator killed in between leaves the
+/// description in creation; the dead node's clean-up (run first here) removes its tag but not
+/// the description ("Trying to remove node ... from non-existing service"), and every later
+/// open of the service fails with `HangsInCreation`. A description in creation whose service
+/// no node tags any more has no live creator (a live one tagged it before creating it): it is
+/// removed. Services of the in-process `local` type have no such files: nothing happens.
+pub fn remove_abandoned_creations<S: Service>(config: &Config) -> usize {
+    // Dead nodes first: a dead creator's tag goes with its node.
+    let _listed = Node::<S>::list(config, |state| {
+        if let NodeState::Dead(view) = state {
+            let _best_effort = view.blocking_remove_stale_resources(config.global.creation_timeout);
+        }
+        CallbackProgression::Continue
+    });
+    let text = |path: &Path| String::from_utf8_lossy(path.as_bytes()).into_owned();
+    let prefix = String::from_utf8_lossy(config.global.prefix.as_bytes()).into_owned();
+    let service_suffix =
+        String::from_utf8_lossy(config.global.service.static_config_storage_suffix.as_bytes()).into_owned();
+    let tag_suffix = String::from_utf8_lossy(config.global.node.service_tag_suffix.as_bytes()).into_owned();
+    remove_abandoned_creations_in(
+        std::path::Path::new(&text(&config.global.service_dir())),
+        std::path::Path::new(&text(&config.global.node_dir())),
+        &prefix,
+        &service_suffix,
+        &tag_suffix,
+    )
+}
+
+/// Mode of a static service description that is still being written (iceoryx2-cal's file
+/// static storage, `INIT_PERMISSIONS`).
+const IN_CREATION_MODE: u32 = 0o600;
+
+fn remove_abandoned_creations_in(
+    service_dir: &std::path::Path,
+    node_dir: &std::path::Path,
+    prefix: &str,
+    service_suffix: &str,
+    tag_suffix: &str,
+) -> usize {
+    use std::os::unix::fs::PermissionsExt;
+    let Ok(entries) = std::fs::read_dir(service_dir) else {
+        return 0;
+    };
+    let mut removed = 0;
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(hash) = name
+            .strip_prefix(prefix)
+            .and_then(|rest| rest.strip_suffix(service_suffix))
+        else {
+            continue;
+        };
+        let in_creation = entry
+            .metadata()
+            .is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o777 == IN_CREATION_MODE);
+        if !in_creation {
+            continue;
+        }
+        let tag = format!("{prefix}{hash}{tag_suffix}");
+        let tagged = std::fs::read_dir(node_dir)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .any(|node| node.path().join(&tag).exists());
+        // Looked at again: a creator that finished meanwhile made it read-only.
+        let still = std::fs::metadata(entry.path()).is_ok_and(|m| m.permissions().mode() & 0o777 == IN_CREATION_MODE);
+        if !tagged && still && std::fs::remove_file(entry.path()).is_ok() {
+            removed += 1;
+        }
+    }
+    removed
 }
 
 fn publish_subscribe_in_creation(err: &PublishSubscribeOpenOrCreateError) -> bool {
@@ -519,6 +610,7 @@ where
     let service = service_name(name)?;
     let contract = sizing.contract()?;
     open_patiently(
+        node,
         || {
             node.service_builder(&service)
                 .publish_subscribe::<T>()
@@ -538,6 +630,7 @@ fn event_service<S: Service>(node: &Node<S>, name: &str, sizing: &Sizing, notifi
     let service = service_name(name)?;
     let contract = sizing.contract()?;
     open_patiently(
+        node,
         || {
             node.service_builder(&service)
                 .event()
@@ -654,6 +747,7 @@ pub fn weights_stream<S: Service>(node: &Node<S>, sizing: &Sizing, actor_index: 
     let service = service_name(&name)?;
     let contract = sizing.contract()?;
     open_patiently(
+        node,
         || {
             node.service_builder(&service)
                 .publish_subscribe::<[f32]>()
@@ -677,6 +771,7 @@ pub fn control_service<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Co
     let service = service_name(&name)?;
     let contract = sizing.contract()?;
     open_patiently(
+        node,
         || {
             node.service_builder(&service)
                 .request_response::<ControlRequest, ControlReply>()
@@ -922,6 +1017,82 @@ mod tests {
             contract.required_attributes().number_of_attributes(),
             CONTRACT_KEYS.len()
         );
+    }
+
+    /// The static descriptions of the run's services (file names in its service directory).
+    fn service_files(identity: &RunIdentity) -> Vec<std::path::PathBuf> {
+        let mut files: Vec<_> = std::fs::read_dir(identity.root_path().join("services"))
+            .map(|entries| entries.flatten().map(|e| e.path()).collect())
+            .unwrap_or_default();
+        files.sort();
+        files
+    }
+
+    #[test]
+    fn a_service_left_in_creation_by_a_killed_creator_is_created_afresh() {
+        use std::os::unix::fs::PermissionsExt;
+        let identity = RunIdentity::new(&format!("increation{}", std::process::id())).expect("id");
+        identity.remove_leftovers();
+        let sizing = Sizing::new(3, 8, 12);
+        let node = create_node::<ipc::Service>(&identity, "agent1").expect("node");
+        // Learn the description's file name, then drop the service (its file goes with it).
+        let stream = state_stream(&node, &sizing).expect("created");
+        let files = service_files(&identity);
+        assert_eq!(files.len(), 1, "{files:?}");
+        let description = files[0].clone();
+        drop(stream);
+        assert!(service_files(&identity).is_empty());
+        // What a creator killed between writing the description and finishing it leaves: the
+        // description still writable (in creation), no node's tag (its dead node was cleaned).
+        std::fs::write(&description, b"").expect("write");
+        std::fs::set_permissions(&description, std::fs::Permissions::from_mode(0o600)).expect("chmod");
+        let started = std::time::Instant::now();
+        let reopened = state_stream(&node, &sizing).expect("the abandoned creation is removed and the service created");
+        assert!(started.elapsed() < OPEN_PATIENCE, "took {:?}", started.elapsed());
+        assert_eq!(service_files(&identity), vec![description.clone()]);
+        // Finished, it is never taken for an abandoned creation; a live creator's tag keeps its
+        // description in creation too.
+        assert_eq!(remove_abandoned_creations::<ipc::Service>(node.config()), 0);
+        drop(reopened);
+        drop(node);
+        identity.remove_leftovers();
+    }
+
+    #[test]
+    fn only_descriptions_in_creation_that_no_node_tags_are_removed() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = std::env::temp_dir().join(format!("formation-abandoned-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let (services, nodes) = (dir.join("services"), dir.join("nodes"));
+        std::fs::create_dir_all(&services).expect("dir");
+        std::fs::create_dir_all(nodes.join("42")).expect("dir");
+        let put = |name: &str, mode: u32| {
+            let path = services.join(name);
+            std::fs::write(&path, b"").expect("write");
+            std::fs::set_permissions(&path, std::fs::Permissions::from_mode(mode)).expect("chmod");
+        };
+        put("fc_run_abandoned.service", 0o600);
+        put("fc_run_creating.service", 0o600); // its live creator's tag is below
+        put("fc_run_finished.service", 0o400);
+        put("fc_other_abandoned.service", 0o600); // another run's
+        std::fs::write(nodes.join("42").join("fc_run_creating.service_tag"), b"").expect("tag");
+        let removed = remove_abandoned_creations_in(&services, &nodes, "fc_run_", ".service", ".service_tag");
+        assert_eq!(removed, 1);
+        let mut left: Vec<String> = std::fs::read_dir(&services)
+            .expect("dir")
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .collect();
+        left.sort();
+        assert_eq!(
+            left,
+            [
+                "fc_other_abandoned.service",
+                "fc_run_creating.service",
+                "fc_run_finished.service"
+            ]
+        );
+        std::fs::remove_dir_all(&dir).expect("cleanup");
     }
 
     /// A pid that does not exist (a child that has been waited for).
