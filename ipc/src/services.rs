@@ -11,9 +11,13 @@ use iceoryx2::node::NodeView;
 use iceoryx2::port::listener::{Listener, ListenerWaitError};
 use iceoryx2::prelude::*;
 use iceoryx2::service::attribute::{AttributeKey, AttributeValue, AttributeVerifier};
-use iceoryx2::service::builder::event::{EventOpenError, EventOpenOrCreateError};
-use iceoryx2::service::builder::publish_subscribe::{PublishSubscribeOpenError, PublishSubscribeOpenOrCreateError};
-use iceoryx2::service::builder::request_response::{RequestResponseOpenError, RequestResponseOpenOrCreateError};
+use iceoryx2::service::builder::event::{EventCreateError, EventOpenError, EventOpenOrCreateError};
+use iceoryx2::service::builder::publish_subscribe::{
+    PublishSubscribeCreateError, PublishSubscribeOpenError, PublishSubscribeOpenOrCreateError,
+};
+use iceoryx2::service::builder::request_response::{
+    RequestResponseCreateError, RequestResponseOpenError, RequestResponseOpenOrCreateError,
+};
 use iceoryx2::service::port_factory::{event, publish_subscribe, request_response};
 
 /// What [`wait_for_events`] needs of a listener: a socket to poll (every iceoryx2 service type
@@ -464,7 +468,8 @@ pub type Control<S> = request_response::PortFactory<S, ControlRequest, (), Contr
 const OPEN_PATIENCE: std::time::Duration = std::time::Duration::from_secs(10);
 
 /// Opens (or creates) a service, retrying while iceoryx2 reports that another process is still
-/// creating it: with dozens of processes starting at once on a loaded machine, a creation can
+/// creating it (or that the service came or went during the call: `DoesNotExist` from an open or
+/// create, as when another process removed an abandoned creation meanwhile): with dozens of processes starting at once on a loaded machine, a creation can
 /// take longer than iceoryx2's own wait, and giving up then would fail the whole run.
 ///
 /// A service whose creator was killed mid-creation stays "in creation" for good (iceoryx2 0.10
@@ -575,8 +580,13 @@ fn remove_abandoned_creations_in(
 fn publish_subscribe_in_creation(err: &PublishSubscribeOpenOrCreateError) -> bool {
     matches!(
         err,
-        PublishSubscribeOpenOrCreateError::PublishSubscribeOpenError(PublishSubscribeOpenError::HangsInCreation)
-            | PublishSubscribeOpenOrCreateError::SystemInFlux
+        PublishSubscribeOpenOrCreateError::PublishSubscribeOpenError(
+            PublishSubscribeOpenError::HangsInCreation | PublishSubscribeOpenError::DoesNotExist
+        ) | PublishSubscribeOpenOrCreateError::PublishSubscribeCreateError(
+            PublishSubscribeCreateError::AlreadyExists
+                | PublishSubscribeCreateError::IsBeingCreatedByAnotherInstance
+                | PublishSubscribeCreateError::HangsInCreation
+        ) | PublishSubscribeOpenOrCreateError::SystemInFlux
     )
 }
 
@@ -643,7 +653,10 @@ fn event_service<S: Service>(node: &Node<S>, name: &str, sizing: &Sizing, notifi
         |err| {
             matches!(
                 err,
-                EventOpenOrCreateError::EventOpenError(EventOpenError::HangsInCreation)
+                EventOpenOrCreateError::EventOpenError(EventOpenError::HangsInCreation | EventOpenError::DoesNotExist)
+                    | EventOpenOrCreateError::EventCreateError(
+                        EventCreateError::AlreadyExists | EventCreateError::IsBeingCreatedByAnotherInstance
+                    )
                     | EventOpenOrCreateError::SystemInFlux
             )
         },
@@ -785,8 +798,13 @@ pub fn control_service<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Co
         |err| {
             matches!(
                 err,
-                RequestResponseOpenOrCreateError::RequestResponseOpenError(RequestResponseOpenError::HangsInCreation)
-                    | RequestResponseOpenOrCreateError::SystemInFlux
+                RequestResponseOpenOrCreateError::RequestResponseOpenError(
+                    RequestResponseOpenError::HangsInCreation | RequestResponseOpenError::DoesNotExist
+                ) | RequestResponseOpenOrCreateError::RequestResponseCreateError(
+                    RequestResponseCreateError::AlreadyExists
+                        | RequestResponseCreateError::IsBeingCreatedByAnotherInstance
+                        | RequestResponseCreateError::HangsInCreation
+                ) | RequestResponseOpenOrCreateError::SystemInFlux
             )
         },
     )
