@@ -6,19 +6,16 @@
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use formation_core::config::RunConfig;
 use formation_core::observation::Layout;
 use formation_core::run_dir::write_atomically;
 use formation_ipc::cli::Mode;
 use formation_ipc::cli::ViewerMode;
-use formation_ipc::services::{self, FileDescriptorBased, RunIdentity, Sizing};
+use formation_ipc::services::{self, FileDescriptorBased, ProgressPublisher, RunIdentity, Sizing, StreamReader};
 use formation_ipc::summary::Summary;
 use formation_model::checkpoint::FILE_NAME;
-use formation_protocol::wire::{CriticProgressMsg, PROTOCOL_VERSION};
 use iceoryx2::port::listener::Listener;
-use iceoryx2::port::notifier::Notifier;
-use iceoryx2::port::publisher::Publisher;
 use iceoryx2::prelude::*;
 
 use crate::collector::Collector;
@@ -61,7 +58,7 @@ struct SwarmLink<S: Service> {
     identity: RunIdentity,
     sizing: Sizing,
     collector: Collector<S>,
-    progress: ProgressLink<S>,
+    progress: ProgressPublisher<S>,
     sim_watch: services::SimWatch,
     paid_ticks: u64,
     last_acknowledged: u64,
@@ -84,7 +81,7 @@ where
         Ok(Self {
             identity: identity.clone(),
             collector: Collector::new(&node, &sizing, &config.env)?,
-            progress: ProgressLink::new(&node, &sizing)?,
+            progress: ProgressPublisher::open(&node, &sizing, StreamReader::Critic)?,
             sim_watch: services::SimWatch::new(
                 Duration::from_millis(config.ticks.sim_silence_ms),
                 Duration::from_secs(config.ticks.startup_timeout_s),
@@ -114,9 +111,18 @@ where
         {
             self.last_acknowledged = acknowledged;
             self.last_progress = Instant::now();
-            self.progress.publish(acknowledged, training)?;
+            self.publish_progress(acknowledged, training)?;
         }
         Ok(())
+    }
+
+    /// Sends the sim `acknowledged` with the training's weights version and updates.
+    fn publish_progress(&self, acknowledged: u64, training: Option<TrainingStatus>) -> Result<()> {
+        self.progress.publish(
+            acknowledged,
+            training.map_or(0, |t| t.weights_version),
+            training.map_or(0, |t| t.updates),
+        )
     }
 }
 
@@ -139,7 +145,7 @@ where
     };
     let mut progress = Progress::open(options)?;
     for link in &links {
-        link.progress.publish(0, trainer.as_ref().map(Trainer::status))?;
+        link.publish_progress(0, trainer.as_ref().map(Trainer::status))?;
     }
 
     loop {
@@ -236,43 +242,4 @@ fn merge_summary(
     }
     write_atomically(&summary_path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
     Ok(summary)
-}
-
-/// The critic's side of flow control: its progress (acknowledged ticks, updates, weights
-/// version) and the event that wakes a sim waiting for it.
-struct ProgressLink<S: Service> {
-    publisher: Publisher<S, CriticProgressMsg, ()>,
-    ready: Notifier<S>,
-    /// Not from the seeded generator: a restarted critic must differ from the one it replaces.
-    session: u64,
-}
-
-impl<S: Service> ProgressLink<S> {
-    fn new(node: &Node<S>, sizing: &Sizing) -> Result<Self> {
-        Ok(Self {
-            publisher: services::critic_progress_stream(node, sizing)?
-                .publisher_builder()
-                .create()
-                .context("critic: progress publisher")?,
-            ready: services::critic_progress_event(node, sizing)?
-                .notifier_builder()
-                .create()
-                .context("critic: progress notifier")?,
-            session: rand::random_range(1..u64::MAX),
-        })
-    }
-
-    fn publish(&self, acknowledged_sequence: u64, training: Option<TrainingStatus>) -> Result<()> {
-        self.publisher
-            .send_copy(CriticProgressMsg {
-                protocol_version: PROTOCOL_VERSION,
-                weights_version: training.map_or(0, |t| t.weights_version),
-                acknowledged_sequence,
-                updates: training.map_or(0, |t| t.updates),
-                session: self.session,
-            })
-            .context("critic: progress")?;
-        self.ready.notify().context("critic: progress notify")?;
-        Ok(())
-    }
 }

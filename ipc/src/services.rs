@@ -355,24 +355,41 @@ pub fn critic_wake_event_name() -> String {
     "formation/critic/wake".into()
 }
 
-/// Name of the critic's progress service (flow control).
-pub fn critic_progress_service_name() -> String {
-    "formation/critic/progress".into()
+/// A reader of the state stream that the sim's flow control waits for: the sim never runs more
+/// than `ticks.critic_window` states ahead of what each one it expects has acknowledged.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StreamReader {
+    /// The critic/replay process.
+    Critic,
+    /// The MCAP recorder (`--record mcap`).
+    Recorder,
 }
 
-/// Name of the event raised when the critic's progress changes.
-pub fn critic_progress_event_name() -> String {
-    "formation/critic/progress_ready".into()
-}
+impl StreamReader {
+    /// Who it is, for messages.
+    pub fn name(self) -> &'static str {
+        match self {
+            StreamReader::Critic => "the critic",
+            StreamReader::Recorder => "the MCAP recorder",
+        }
+    }
 
-/// Name of the MCAP recorder's progress service (flow control, as the critic's).
-pub fn recorder_progress_service_name() -> String {
-    "formation/recorder/progress".into()
-}
+    fn service_dir(self) -> &'static str {
+        match self {
+            StreamReader::Critic => "critic",
+            StreamReader::Recorder => "recorder",
+        }
+    }
 
-/// Name of the event raised when the MCAP recorder's progress changes.
-pub fn recorder_progress_event_name() -> String {
-    "formation/recorder/progress_ready".into()
+    /// Name of its progress service (flow control).
+    pub fn progress_service_name(self) -> String {
+        format!("formation/{}/progress", self.service_dir())
+    }
+
+    /// Name of the event raised when its progress changes.
+    pub fn progress_event_name(self) -> String {
+        format!("formation/{}/progress_ready", self.service_dir())
+    }
 }
 
 /// Name of actor `actor_index`'s weights service.
@@ -727,31 +744,65 @@ pub fn critic_wake_event<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<
     event_service(node, &critic_wake_event_name(), sizing, 1)
 }
 
-/// The critic's progress (history 1: the sim sees the latest at once).
-pub fn critic_progress_stream<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Stream<S, CriticProgressMsg>> {
-    stream(node, &critic_progress_service_name(), sizing, 1, sizing.shared_nodes())
+/// A reader's progress (history 1: the sim sees the latest at once). The recorder sends the
+/// critic's message with `weights_version` and `updates` 0.
+pub fn progress_stream<S: Service>(
+    node: &Node<S>,
+    sizing: &Sizing,
+    reader: StreamReader,
+) -> Result<Stream<S, CriticProgressMsg>> {
+    stream(node, &reader.progress_service_name(), sizing, 1, sizing.shared_nodes())
 }
 
-/// Event raised when the critic's progress changes.
-pub fn critic_progress_event<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Event<S>> {
-    event_service(node, &critic_progress_event_name(), sizing, 1)
+/// Event raised when a reader's progress changes.
+pub fn progress_event<S: Service>(node: &Node<S>, sizing: &Sizing, reader: StreamReader) -> Result<Event<S>> {
+    event_service(node, &reader.progress_event_name(), sizing, 1)
 }
 
-/// The MCAP recorder's progress: the critic's message, `weights_version` and `updates` 0
-/// (history 1: the sim sees the latest at once).
-pub fn recorder_progress_stream<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Stream<S, CriticProgressMsg>> {
-    stream(
-        node,
-        &recorder_progress_service_name(),
-        sizing,
-        1,
-        sizing.shared_nodes(),
-    )
+/// A reader's side of the sim's flow control: how far it has read the state stream, and the
+/// event that wakes a sim waiting for it.
+pub struct ProgressPublisher<S: Service> {
+    reader: StreamReader,
+    publisher: iceoryx2::port::publisher::Publisher<S, CriticProgressMsg, ()>,
+    ready: iceoryx2::port::notifier::Notifier<S>,
+    /// Not from a seeded generator: a restarted reader must differ from the one it replaces.
+    session: u64,
 }
 
-/// Event raised when the MCAP recorder's progress changes.
-pub fn recorder_progress_event<S: Service>(node: &Node<S>, sizing: &Sizing) -> Result<Event<S>> {
-    event_service(node, &recorder_progress_event_name(), sizing, 1)
+impl<S: Service> ProgressPublisher<S> {
+    /// Opens `reader`'s progress service and event.
+    pub fn open(node: &Node<S>, sizing: &Sizing, reader: StreamReader) -> Result<Self> {
+        Ok(Self {
+            reader,
+            publisher: progress_stream(node, sizing, reader)?
+                .publisher_builder()
+                .create()
+                .with_context(|| format!("{}: progress publisher", reader.name()))?,
+            ready: progress_event(node, sizing, reader)?
+                .notifier_builder()
+                .create()
+                .with_context(|| format!("{}: progress notifier", reader.name()))?,
+            session: rand::random_range(1..u64::MAX),
+        })
+    }
+
+    /// Tells the sim every state up to `acknowledged_sequence` is read (the critic adds its
+    /// weights version and updates; the recorder sends 0).
+    pub fn publish(&self, acknowledged_sequence: u64, weights_version: u32, updates: u64) -> Result<()> {
+        self.publisher
+            .send_copy(CriticProgressMsg {
+                protocol_version: PROTOCOL_VERSION,
+                weights_version,
+                acknowledged_sequence,
+                updates,
+                session: self.session,
+            })
+            .with_context(|| format!("{}: progress", self.reader.name()))?;
+        self.ready
+            .notify()
+            .with_context(|| format!("{}: progress notify", self.reader.name()))?;
+        Ok(())
+    }
 }
 
 /// Weights of one actor (history 1: a restarted agent gets the latest at once).

@@ -13,11 +13,11 @@ use std::time::Duration;
 use anyhow::{Context, Result, anyhow, bail};
 use formation_core::obstacles::Obstacle;
 use formation_ipc::cli::Mode;
-use formation_ipc::services::{self, RunIdentity, SimWatch, Sizing};
+use formation_ipc::services::{self, ProgressPublisher, RunIdentity, SimWatch, Sizing, StreamReader};
 use formation_ipc::termination_requested;
 use formation_protocol::wire::{
-    CriticProgressMsg, FLAG_EPISODE_END, FLAG_EPISODE_START, FLAG_EVAL_EPISODE, FLAG_RUN_END, OUTCOME_ABORTED,
-    OUTCOME_COLLISION, OUTCOME_SUCCESS, OUTCOME_TIMEOUT, PROTOCOL_VERSION, StateMsg,
+    FLAG_EPISODE_END, FLAG_EPISODE_START, FLAG_EVAL_EPISODE, FLAG_RUN_END, OUTCOME_ABORTED, OUTCOME_COLLISION,
+    OUTCOME_SUCCESS, OUTCOME_TIMEOUT, StateMsg,
 };
 use iceoryx2::prelude::*;
 use serde::Serialize;
@@ -588,8 +588,8 @@ pub fn run(options: &Options, ready: impl FnOnce() -> Result<()>) -> Result<Reco
         .listener_builder()
         .create()
         .context("mcap: wake-up listener")?;
-    let progress = Progress::open(&node, sizing)?;
-    progress.acknowledge(0)?;
+    let progress = ProgressPublisher::open(&node, sizing, StreamReader::Recorder)?;
+    progress.publish(0, 0, 0)?;
     let path = options.run_dir.join(MCAP_FILE);
     let file = File::create(&path).with_context(|| format!("cannot create {}", path.display()))?;
     let mut obstacles = match options.obstacles {
@@ -623,7 +623,10 @@ fn record(
     options: &Options,
     states: &iceoryx2::port::subscriber::Subscriber<ipc::Service, StateMsg, ()>,
     mut obstacles: Option<&mut ObstacleFeed>,
-    (wake, progress): (&iceoryx2::port::listener::Listener<ipc::Service>, &Progress),
+    (wake, progress): (
+        &iceoryx2::port::listener::Listener<ipc::Service>,
+        &ProgressPublisher<ipc::Service>,
+    ),
     recorder: &mut Recorder<BufWriter<File>>,
     sim_watch: &mut SimWatch,
 ) -> Result<()> {
@@ -647,7 +650,7 @@ fn record(
             recorder.state(state)?;
         }
         // Also when nothing came: the sim hears the recorder is alive.
-        progress.acknowledge(acknowledged)?;
+        progress.publish(acknowledged, 0, 0)?;
         if termination_requested() {
             return Ok(());
         }
@@ -657,44 +660,6 @@ fn record(
                 quiet.as_secs_f64()
             );
         }
-    }
-}
-
-/// The recorder's side of the sim's flow control: how far it has read the state stream.
-struct Progress {
-    publisher: iceoryx2::port::publisher::Publisher<ipc::Service, CriticProgressMsg, ()>,
-    ready: iceoryx2::port::notifier::Notifier<ipc::Service>,
-    /// Tells a restarted recorder from the one before it.
-    session: u64,
-}
-
-impl Progress {
-    fn open(node: &Node<ipc::Service>, sizing: &Sizing) -> Result<Self> {
-        Ok(Self {
-            publisher: services::recorder_progress_stream(node, sizing)?
-                .publisher_builder()
-                .create()
-                .context("mcap: progress publisher")?,
-            ready: services::recorder_progress_event(node, sizing)?
-                .notifier_builder()
-                .create()
-                .context("mcap: progress notifier")?,
-            session: rand::random_range(1..u64::MAX),
-        })
-    }
-
-    /// Tells the sim every state up to `sequence` is written.
-    fn acknowledge(&self, sequence: u64) -> Result<()> {
-        self.publisher
-            .send_copy(CriticProgressMsg {
-                protocol_version: PROTOCOL_VERSION,
-                acknowledged_sequence: sequence,
-                session: self.session,
-                ..CriticProgressMsg::default()
-            })
-            .context("mcap: progress")?;
-        self.ready.notify().context("mcap: progress notify")?;
-        Ok(())
     }
 }
 

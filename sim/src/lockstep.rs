@@ -41,7 +41,7 @@ use formation_core::shapes::observed_edges;
 use formation_core::stepper::{EpisodeStepper, TransportCounts};
 use formation_core::task::Outcome;
 use formation_ipc::cli::Mode;
-use formation_ipc::services::{self, FileDescriptorBased, RunIdentity, Sizing};
+use formation_ipc::services::{self, FileDescriptorBased, RunIdentity, Sizing, StreamReader};
 use formation_ipc::summary::Summary;
 use formation_ipc::switches::{ThreadSwitches, machine_switches};
 use formation_ipc::termination_requested;
@@ -55,7 +55,7 @@ use crate::commands::{CommandCounters, CommandRound, Settled};
 use crate::control::ControlServer;
 use crate::plots::{EpisodeTrace, episode_errors, learning_curve};
 use crate::ports::{SimPorts, Told, Transition};
-use crate::reader_link::{Reader, ReaderLink, check_protocol};
+use crate::reader_link::{ReaderLink, check_protocol};
 use crate::report::{EpisodeLog, fill_episode_figures};
 
 /// How the sim runs.
@@ -215,8 +215,8 @@ where
     Listener<S>: FileDescriptorBased,
 {
     [
-        (options.expect_critic, Reader::Critic),
-        (options.expect_recorder, Reader::Recorder),
+        (options.expect_critic, StreamReader::Critic),
+        (options.expect_recorder, StreamReader::Recorder),
     ]
     .into_iter()
     .filter(|(expected, _)| *expected)

@@ -5,35 +5,17 @@
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
-use formation_ipc::services::{self, FileDescriptorBased, Sizing};
+use formation_ipc::services::{self, FileDescriptorBased, Sizing, StreamReader};
 use formation_ipc::termination_requested;
 use formation_protocol::wire::{CriticProgressMsg, PROTOCOL_VERSION};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 
-/// Which reader a link follows.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Reader {
-    /// The critic/replay process.
-    Critic,
-    /// The MCAP recorder (`--record mcap`).
-    Recorder,
-}
-
-impl Reader {
-    fn name(self) -> &'static str {
-        match self {
-            Reader::Critic => "the critic",
-            Reader::Recorder => "the MCAP recorder",
-        }
-    }
-}
-
 /// What the sim knows of one reader: its session (a restarted reader starts a new one and
 /// counts from zero) and whether it is keeping up.
 pub struct ReaderLink<S: Service> {
-    reader: Reader,
+    reader: StreamReader,
     progress: Subscriber<S, CriticProgressMsg, ()>,
     progress_ready: Listener<S>,
     session: u64,
@@ -59,24 +41,14 @@ where
     Listener<S>: FileDescriptorBased,
 {
     /// Subscribes to `reader`'s progress.
-    pub fn open(node: &Node<S>, sizing: &Sizing, reader: Reader) -> Result<Self> {
-        let (progress, progress_ready) = match reader {
-            Reader::Critic => (
-                services::critic_progress_stream(node, sizing)?,
-                services::critic_progress_event(node, sizing)?,
-            ),
-            Reader::Recorder => (
-                services::recorder_progress_stream(node, sizing)?,
-                services::recorder_progress_event(node, sizing)?,
-            ),
-        };
+    pub fn open(node: &Node<S>, sizing: &Sizing, reader: StreamReader) -> Result<Self> {
         Ok(Self {
             reader,
-            progress: progress
+            progress: services::progress_stream(node, sizing, reader)?
                 .subscriber_builder()
                 .create()
                 .with_context(|| format!("sim cannot subscribe to {}'s progress", reader.name()))?,
-            progress_ready: progress_ready
+            progress_ready: services::progress_event(node, sizing, reader)?
                 .listener_builder()
                 .create()
                 .with_context(|| format!("sim cannot listen to {}'s progress", reader.name()))?,
