@@ -8,6 +8,8 @@ Rows: kinds none / forest / passage / trap x N. Worlds: ideal (no [reality]) and
   tuned    the same with configs/potential-field-KIND.toml (not for kind none; "not yet tuned"
            while the file is missing)
   planner  the privileged planner that knows the map (--team oracle)
+  solo     each robot's own planner over the map, no team plan (--team solo; the learned
+           policy's DAgger teacher)
   model    the open-arena model, models/formation.safetensors (its own observation model: it
            does not see obstacles)
   learned  the actor of --learned FILE (default models/formation-obstacles.safetensors, the
@@ -34,10 +36,11 @@ ROOT = Path(__file__).resolve().parent.parent
 KINDS = ("none", "forest", "passage", "trap")
 WORLDS = {"ideal": None, "field": "configs/reality-field-ranging.toml"}
 WORLD_TITLES = {"ideal": "Ideal world", "field": "Field preset + noisy range sensor (configs/reality-field-ranging.toml)"}
-CONTROLLERS = ("default", "tuned", "planner", "model", "learned")
+CONTROLLERS = ("default", "tuned", "planner", "solo", "model", "learned")
 TITLES = {"default": "potential field (default)", "tuned": "potential field (tuned)", "planner": "planner",
-          "model": "open-arena model", "learned": "learned"}
-TEAM = {"default": "scripted", "tuned": "scripted", "planner": "oracle", "model": "model", "learned": "model"}
+          "solo": "per-robot planner", "model": "open-arena model", "learned": "learned"}
+TEAM = {"default": "scripted", "tuned": "scripted", "planner": "oracle", "solo": "solo", "model": "model",
+        "learned": "model"}
 
 
 def tuned_config(kind: str) -> Path:

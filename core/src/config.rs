@@ -428,6 +428,19 @@ pub enum CriticArchitecture {
     Pooled,
 }
 
+/// Whom TD3+BC's imitation term pulls the actor towards (`learn.imitation_teacher`).
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum ImitationTeacher {
+    /// The scripted baseline with the run's `[baseline]` gains, on each replayed observation.
+    #[default]
+    Baseline,
+    /// The actor the run started from (`--checkpoint`), frozen: the pull keeps the actor near
+    /// its imitation start, whatever taught that (a planner that knows the map, whose command
+    /// no replayed observation can recompute).
+    Start,
+}
+
 /// Central training hyper-parameters.
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
 #[serde(deny_unknown_fields, default)]
@@ -484,6 +497,9 @@ pub struct LearnConfig {
     /// baseline's on the same replayed observation. 0 = off (plain TD3 or DDPG, the paper);
     /// the default 2.5 is TD3+BC's own.
     pub imitation_alpha: f64,
+    /// Whom the imitation term pulls towards: `baseline` (default) or `start` (the actor of
+    /// `--checkpoint`, frozen; a run with it needs a checkpoint).
+    pub imitation_teacher: ImitationTeacher,
     /// Critic-only updates at the start of a run: the actor (and its target) is held while the
     /// critics learn its value, so that a run starting from an imitated actor does not climb a
     /// random critic first. 0 = off.
@@ -541,6 +557,7 @@ impl Default for LearnConfig {
             reward_scale: 1.0,
             action_l2: 0.0,
             imitation_alpha: 2.5,
+            imitation_teacher: ImitationTeacher::Baseline,
             critic_warmup_updates: 0,
             replay_capacity: 1_000_000,
             publish_every_updates: 50,

@@ -16,6 +16,8 @@
 //! * [`world`]: one episode's true state and the step that applies the robots' commands;
 //! * [`mission`]: the mission planner: an episode's shape changes, the optimal reassignment of
 //!   robots to the new slots, and when the swarm has re-formed;
+//! * [`planner`] and [`solo_planner`]: the planners that know the map (the team's, and each
+//!   robot's own, a teacher for a decentralised student);
 //! * [`features`]: the critic's view of a scene (poses relative to the centroid);
 //! * [`pace`]: a lower bound on the steps any controller needs for an episode (the physics'
 //!   floor under steps-to-goal figures, printed by `formation-pace-floor`).
@@ -36,6 +38,7 @@ pub mod reality;
 pub mod run_dir;
 pub mod scene;
 pub mod shapes;
+pub mod solo_planner;
 pub mod stepper;
 pub mod task;
 pub mod world;

@@ -185,14 +185,14 @@ fn centre_turns(obstacles: &Obstacles, path: &mut [[f64; 2]], inflation: f64, ar
 
 /// A polyline with its arc lengths.
 #[derive(Debug, Clone)]
-struct Polyline {
+pub(crate) struct Polyline {
     points: Vec<[f64; 2]>,
     /// Arc length at each point, from 0.
     lengths: Vec<f64>,
 }
 
 impl Polyline {
-    fn new(points: Vec<[f64; 2]>) -> Self {
+    pub(crate) fn new(points: Vec<[f64; 2]>) -> Self {
         let mut lengths = Vec::with_capacity(points.len());
         let mut total = 0.0;
         for (k, p) in points.iter().enumerate() {
@@ -204,12 +204,12 @@ impl Polyline {
         Self { points, lengths }
     }
 
-    fn length(&self) -> f64 {
+    pub(crate) fn length(&self) -> f64 {
         self.lengths.last().copied().unwrap_or(0.0)
     }
 
     /// The arc length in [0, `up_to`] of the path's point nearest `p`, and that point.
-    fn project(&self, p: [f64; 2], up_to: f64) -> (f64, [f64; 2]) {
+    pub(crate) fn project(&self, p: [f64; 2], up_to: f64) -> (f64, [f64; 2]) {
         let mut best = (f64::INFINITY, 0.0, self.points[0]);
         for k in 1..self.points.len() {
             let start = self.lengths[k - 1];
@@ -229,7 +229,7 @@ impl Polyline {
     }
 
     /// The point at arc length `s`, clamped to the ends.
-    fn at(&self, s: f64) -> [f64; 2] {
+    pub(crate) fn at(&self, s: f64) -> [f64; 2] {
         let k = self.lengths.partition_point(|&l| l <= s);
         if k == 0 {
             return self.points[0];
@@ -542,15 +542,41 @@ impl Planner {
         }
     }
 
-    /// The baseline's unicycle law towards robot `agent`'s target, with repulsion from robots
-    /// and obstacle surfaces.
+    /// The baseline's unicycle law towards robot `agent`'s target ([`Tracking::command`]).
     fn track(&self, poses: &[Pose], agent: usize) -> (f64, f64) {
+        let tracking = Tracking {
+            obstacles: &self.obstacles,
+            robot_radius: self.robot_radius,
+            gains: self.gains,
+            v_max: self.v_max,
+            w_max: self.w_max,
+        };
+        tracking.command(poses, agent, self.targets[agent], self.v_max)
+    }
+}
+
+/// The tracking law both planners drive their robots with: the baseline's unicycle law towards
+/// a target, with repulsion from robots and obstacle surfaces.
+pub(crate) struct Tracking<'a> {
+    pub obstacles: &'a Obstacles,
+    pub robot_radius: f64,
+    pub gains: BaselineGains,
+    pub v_max: f64,
+    pub w_max: f64,
+}
+
+impl Tracking<'_> {
+    /// Robot `agent`'s (v, w) towards `target`: [`K_TRACK`] x the way there, at most `speed`,
+    /// plus the baseline's repulsion from robots closer than its `repulsion_range` (near
+    /// surfaces, [`NEAR_ROBOT_RANGE_M`] beyond `eps_coll_m`) and from obstacle surfaces nearer
+    /// than [`OBSTACLE_RANGE_M`]; turn towards the result, drive with its component along the
+    /// heading.
+    pub fn command(&self, poses: &[Pose], agent: usize, target: [f64; 2], speed: f64) -> (f64, f64) {
         let me = poses[agent];
-        let target = self.targets[agent];
         let mut u = [K_TRACK * (target[0] - me.x), K_TRACK * (target[1] - me.y)];
-        let speed = u[0].hypot(u[1]);
-        if speed > self.v_max {
-            u = [u[0] * self.v_max / speed, u[1] * self.v_max / speed];
+        let wanted = u[0].hypot(u[1]);
+        if wanted > speed {
+            u = [u[0] * speed / wanted, u[1] * speed / wanted];
         }
         let g = self.gains;
         let mut push_from = |q: [f64; 2], range: f64| {

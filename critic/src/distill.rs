@@ -3,7 +3,8 @@
 //! Structured Prediction to No-Regret Online Learning"), in-process and offline.
 //!
 //! The teacher is the scripted baseline with the run's `[baseline]` gains (or, among obstacles,
-//! the privileged planner that knows the map, `DistillOptions::planner_teacher`), answering from what
+//! a planner that knows the map, the team's or each robot's own,
+//! `DistillOptions::planner_teacher`), answering from what
 //! the robot was told (the noisy observation under a `[reality]`), as a scripted agent does.
 //! A student with a command head is taught the teacher's command; one with a gains head (a gain
 //! schedule, [`ActorHead::Gains`]) is taught the teacher's gains, and runs the baseline's law
@@ -37,7 +38,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
 use crate::learner::reinitialise;
-use crate::selection::{Played, TruthPlanner};
+use crate::selection::{PlannerKind, Played, TruthPlanner};
 
 /// How a distillation runs.
 #[derive(Debug, Clone)]
@@ -78,10 +79,10 @@ pub struct DistillOptions {
     pub soft_from_delay_ticks: Option<u32>,
     /// What the student outputs (a student carried on from a checkpoint has the checkpoint's).
     pub head: ActorHead,
-    /// The privileged planner that knows the map teaches instead of the scripted baseline
-    /// (command heads only): every robot's label is the planner's command for it at that tick,
-    /// planned from the true state as the sim's truth stream carries it.
-    pub planner_teacher: bool,
+    /// A planner that knows the map teaches instead of the scripted baseline (command heads
+    /// only): every robot's label is the planner's command for it at that tick, planned from
+    /// the true state as the sim's truth stream carries it. `None`: the baseline teaches.
+    pub planner_teacher: Option<PlannerKind>,
 }
 
 impl Default for DistillOptions {
@@ -102,7 +103,7 @@ impl Default for DistillOptions {
             noise_scale_m: 0.05,
             soft_from_delay_ticks: None,
             head: ActorHead::Command,
-            planner_teacher: false,
+            planner_teacher: None,
         }
     }
 }
@@ -246,7 +247,8 @@ impl Distiller {
             quiet.validate()?;
         }
         ensure!(
-            !options.planner_teacher || (options.head == ActorHead::Command && options.quiet_teacher.is_none()),
+            options.planner_teacher.is_none()
+                || (options.head == ActorHead::Command && options.quiet_teacher.is_none()),
             "the planner teaches commands only, and alone (no quiet teacher, no gains head)"
         );
         if options.head == ActorHead::Gains {
@@ -360,11 +362,11 @@ impl Distiller {
                         (ScriptedBaseline::new(&self.config.env, gains), gains.to_unit())
                     })
                     .collect();
-                let mut planner = TruthPlanner::default();
+                let mut planner = self.options.planner_teacher.map(TruthPlanner::new);
                 while game.running() {
-                    let planned = match self.options.planner_teacher {
-                        true => planner.commands(game.world(), &self.config.env, self.config.baseline),
-                        false => Vec::new(),
+                    let planned = match &mut planner {
+                        Some(planner) => planner.commands(game.world(), &self.config.env, self.config.baseline),
+                        None => Vec::new(),
                     };
                     let (env, samples, head) = (&self.config.env, &mut self.samples, self.shape.head);
                     game.step(|asked| {
@@ -439,8 +441,9 @@ impl Distiller {
     /// can carry it on with a fresh critic), with `extra` and the teacher's gains as metadata.
     pub fn save(&self, path: &Path, mut extra: HashMap<String, String>) -> Result<()> {
         let teacher = match self.options.planner_teacher {
-            true => format!("planner (tracking with {})", gains_text(&self.config.baseline)),
-            false => gains_text(&self.config.baseline),
+            Some(PlannerKind::Team) => format!("planner (tracking with {})", gains_text(&self.config.baseline)),
+            Some(PlannerKind::Solo) => format!("solo planner (tracking with {})", gains_text(&self.config.baseline)),
+            None => gains_text(&self.config.baseline),
         };
         extra.insert("distilled_from".into(), teacher);
         if let Some(quiet) = self.options.quiet_teacher {

@@ -14,7 +14,9 @@ use anyhow::{Context, Result, bail};
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{AdamW, Linear, Optimizer, ParamsAdamW, VarBuilder, VarMap};
 use formation_core::baseline::{BaselineGains, ScriptedBaseline};
-use formation_core::config::{Algorithm, CriticArchitecture, EnvConfig, LearnConfig, ObservationModel};
+use formation_core::config::{
+    Algorithm, CriticArchitecture, EnvConfig, ImitationTeacher, LearnConfig, ObservationModel,
+};
 use formation_core::features::CriticFeatures;
 use formation_core::observation::{Layout, SCAN_RAYS};
 use formation_ipc::placement;
@@ -223,8 +225,18 @@ pub struct Learner {
     /// Indexed by swarm; grown as swarms appear.
     swarm_steps: Vec<SwarmSteps>,
     rng: StdRng,
-    /// The scripted baseline and the environment it commands, when `imitation_alpha` > 0.
-    teacher: Option<(ScriptedBaseline, EnvConfig)>,
+    /// Whom the imitation term pulls towards, when `imitation_alpha` > 0.
+    teacher: Option<Teacher>,
+}
+
+/// The imitation term's teacher.
+enum Teacher {
+    /// The scripted baseline and the environment it commands.
+    Baseline(Box<(ScriptedBaseline, EnvConfig)>),
+    /// The actors as the run started, frozen (copies, never stepped).
+    Start(Vec<Actor>),
+    /// `learn.imitation_teacher = "start"` until [`Learner::freeze_start`] is called.
+    StartPending,
 }
 
 /// Re-draws every variable from `rng`, U(-1/sqrt(fan_in), 1/sqrt(fan_in)) (PyTorch's default
@@ -418,16 +430,35 @@ impl Learner {
             run_updates: 0,
             swarm_steps: Vec::new(),
             rng,
-            teacher: (config.imitation_alpha > 0.0)
-                .then(|| (ScriptedBaseline::new(env, BaselineGains::default()), env.clone())),
+            teacher: (config.imitation_alpha > 0.0).then(|| match config.imitation_teacher {
+                ImitationTeacher::Baseline => {
+                    Teacher::Baseline(Box::new((ScriptedBaseline::new(env, BaselineGains::default()), env.clone())))
+                }
+                ImitationTeacher::Start => Teacher::StartPending,
+            }),
         })
+    }
+
+    /// With `learn.imitation_teacher = "start"`: freezes a copy of the actors as they are now
+    /// (after [`Learner::load`]) as the teacher. Without the start teacher, nothing.
+    pub fn freeze_start(&mut self) -> Result<()> {
+        if matches!(self.teacher, Some(Teacher::StartPending)) {
+            let vars = VarMap::new();
+            let vb = VarBuilder::from_varmap(&vars, DType::F32, &Device::Cpu);
+            let actors = (0..self.n_actors())
+                .map(|k| Ok(Actor::new(vb.pp(format!("actor{k}")), &self.actor_shape)?))
+                .collect::<Result<Vec<_>>>()?;
+            copy_vars(&self.actor_vars, &vars)?;
+            self.teacher = Some(Teacher::Start(actors));
+        }
+        Ok(())
     }
 
     /// The teacher (with `imitation_alpha` > 0) commands with these gains: the run's
     /// `[baseline]` section. Without this, the default gains.
     pub fn with_teacher_gains(mut self, gains: BaselineGains) -> Self {
-        if let Some((baseline, env)) = &mut self.teacher {
-            *baseline = ScriptedBaseline::new(env, gains);
+        if let Some(Teacher::Baseline(teacher)) = &mut self.teacher {
+            teacher.0 = ScriptedBaseline::new(&teacher.1, gains);
         }
         self
     }
@@ -468,8 +499,18 @@ impl Learner {
     /// The teacher's normalised actions [B, N * 2] on each robot's newest observation of the
     /// batch, or `None` without a teacher.
     fn teacher_actions(&self, batch: &Batch) -> Result<Option<Tensor>> {
-        let Some((baseline, env)) = &self.teacher else {
-            return Ok(None);
+        let (baseline, env) = match &self.teacher {
+            None => return Ok(None),
+            Some(Teacher::StartPending) => bail!("the start teacher was never frozen (Learner::freeze_start)"),
+            Some(Teacher::Start(actors)) => {
+                let obs = Tensor::from_slice(
+                    &batch.observations,
+                    (batch.batch_size, batch.n_agents, batch.window_dim()),
+                    &Device::Cpu,
+                )?;
+                return Ok(Some(Self::joint_actions(actors, &obs)?.detach()));
+            }
+            Some(Teacher::Baseline(teacher)) => (&teacher.0, &teacher.1),
         };
         let window = batch.window_dim();
         let newest = (batch.history - 1) * batch.obs_dim;

@@ -27,6 +27,7 @@ use formation_core::observation::Layout;
 use formation_core::physics::Pose;
 use formation_core::planner::Replanner;
 use formation_core::reality::{Command, Reality, RealityConfig};
+use formation_core::solo_planner::SoloPlanner;
 use formation_core::stepper::{EpisodeRecord, EpisodeStepper, TransportCounts};
 use formation_core::task::Outcome;
 use formation_core::world::World;
@@ -240,14 +241,24 @@ impl Game {
     }
 }
 
-/// The privileged planner on the truth as the sim's truth stream carries it: planned at the
-/// episode's first tick and again when the formation changes, as each oracle agent plans.
-#[derive(Default)]
-pub(crate) struct TruthPlanner {
-    replanner: Replanner,
+/// A planner that knows the map, on the truth as the sim's truth stream carries it.
+pub(crate) enum TruthPlanner {
+    /// The team's planner: planned at the episode's first tick and again when the formation
+    /// changes, as each oracle agent plans.
+    Team(Box<Replanner>),
+    /// Each robot's own planner ([`SoloPlanner`]).
+    Solo(SoloPlanner),
 }
 
 impl TruthPlanner {
+    /// A fresh planner of this kind for an episode.
+    pub(crate) fn new(kind: PlannerKind) -> Self {
+        match kind {
+            PlannerKind::Team => Self::Team(Box::default()),
+            PlannerKind::Solo => Self::Solo(SoloPlanner::default()),
+        }
+    }
+
     /// Every robot's command at the world's tick.
     pub(crate) fn commands(&mut self, world: &World, env: &EnvConfig, gains: BaselineGains) -> Vec<Command> {
         let wire = |v: f64| f64::from(v as f32);
@@ -257,18 +268,23 @@ impl TruthPlanner {
             .map(|p| Pose::from([p.x as f32, p.y as f32, p.theta as f32]))
             .collect();
         let slots: Vec<[f64; 2]> = world.slots.iter().map(|s| s.map(wire)).collect();
-        self.replanner
-            .commands(
-                &poses,
-                world.goal.map(wire),
-                &slots,
-                &world.obstacles,
-                world.steps,
-                env,
-                gains,
-            )
-            .to_vec()
+        let (goal, obstacles, tick) = (world.goal.map(wire), &world.obstacles, world.steps);
+        match self {
+            Self::Team(replanner) => replanner
+                .commands(&poses, goal, &slots, obstacles, tick, env, gains)
+                .to_vec(),
+            Self::Solo(solo) => solo.commands(&poses, goal, &slots, obstacles, tick, env, gains),
+        }
     }
+}
+
+/// Which planner that knows the map.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PlannerKind {
+    /// The team's ([`formation_core::planner`]): a formation or a file along one path.
+    Team,
+    /// Each robot's own ([`formation_core::solo_planner`]).
+    Solo,
 }
 
 /// The episodes [`play`] plays: the first `count` that `seed` starts, under `reality`.
@@ -359,9 +375,10 @@ pub enum Team<'a> {
     Scripted(&'a BaselineGains),
     /// Actors (one shared, or one per robot) of `shape`, on the window they read.
     Actors(&'a mut [FrozenActor], &'a ActorShape),
-    /// The privileged planner that knows the map, tracking with these gains, on the true state
-    /// as the sim's truth stream carries it (f32), as `formation-agent --policy oracle` reads it.
-    Oracle(&'a BaselineGains),
+    /// A planner that knows the map, tracking with these gains, on the true state as the sim's
+    /// truth stream carries it (f32), as `formation-agent --policy oracle` reads it (the team's
+    /// planner is the oracle).
+    Planner(PlannerKind, &'a BaselineGains),
 }
 
 /// The `episodes.csv` rows of `episodes` of `n` robots driven by `team`, played in-process by
@@ -382,7 +399,7 @@ pub fn episode_records_watched(
 ) -> Result<Vec<EpisodeRecord>> {
     let env = &EnvConfig {
         history: match &team {
-            Team::Scripted(_) | Team::Oracle(_) => env.history,
+            Team::Scripted(_) | Team::Planner(..) => env.history,
             Team::Actors(_, shape) => shape.history,
         },
         ..env.clone()
@@ -405,7 +422,10 @@ pub fn episode_records_watched(
     let mut team = team;
     let mut games = episodes.games(env, n);
     for (episode, game) in games.iter_mut().enumerate() {
-        let mut oracle = TruthPlanner::default();
+        let mut planner = match &team {
+            Team::Planner(kind, _) => Some(TruthPlanner::new(*kind)),
+            _ => None,
+        };
         watch(episode, game.world());
         while game.running() {
             match &mut team {
@@ -416,8 +436,9 @@ pub fn episode_records_watched(
                 Team::Actors(actors, _) => {
                     game.step(|asked| actors[asked.agent % actors.len()].command(asked.window.as_flat(), env))?;
                 }
-                Team::Oracle(gains) => {
-                    let commands = oracle.commands(game.world(), env, **gains);
+                Team::Planner(_, gains) => {
+                    let planner = planner.as_mut().expect("made for the planner team");
+                    let commands = planner.commands(game.world(), env, **gains);
                     game.step(|asked| Ok(commands[asked.agent]))?;
                 }
             }

@@ -8,7 +8,7 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
-use formation_core::config::Algorithm;
+use formation_core::config::{Algorithm, ImitationTeacher};
 use formation_ipc::services::Sizing;
 use formation_model::actor::ActorShape;
 use formation_model::checkpoint::{self, BEST_FILE_NAME, FILE_NAME, SelectionScore};
@@ -89,6 +89,13 @@ impl<S: Service> Trainer<S> {
                 learner.updates()
             );
         }
+        if learn.imitation_alpha > 0.0 && learn.imitation_teacher == ImitationTeacher::Start {
+            anyhow::ensure!(
+                options.resume.is_some(),
+                "learn.imitation_teacher = \"start\" pulls the actor towards the one it starts from: pass --checkpoint"
+            );
+        }
+        learner.freeze_start()?;
         let mut data = Vec::with_capacity(swarms.len());
         for (node, sizing) in swarms {
             let mut weights = WeightsPublisher::new(node, sizing, &learner)?;

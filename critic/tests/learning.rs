@@ -3,7 +3,7 @@
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use formation_core::baseline::BaselineGains;
-use formation_core::config::{Algorithm, CriticArchitecture, EnvConfig, LearnConfig};
+use formation_core::config::{Algorithm, CriticArchitecture, EnvConfig, ImitationTeacher, LearnConfig};
 use formation_core::features::CriticFeatures;
 use formation_core::observation::Layout;
 use formation_critic::learner::{Learner, soft_update};
@@ -260,6 +260,46 @@ fn the_teacher_commands_with_the_runs_baseline_gains() {
         .expect("learner")
         .with_teacher_gains(goal_only);
     assert_ne!(error(&tuned), default_teacher, "the same actor against another teacher");
+}
+
+#[test]
+fn the_start_teacher_is_the_actor_as_frozen_and_holds_it_there() {
+    let (env, learn) = small_config(Algorithm::Td3);
+    let env = EnvConfig { history: 1, ..env };
+    let anchored = LearnConfig {
+        imitation_alpha: 0.1,
+        imitation_teacher: ImitationTeacher::Start,
+        policy_delay: 1,
+        actor_lr: 1e-3,
+        ..learn.clone()
+    };
+    let batch = random_batch(&env, 3, 64, 41);
+    let mut learner = Learner::new(3, &env, &anchored, 42).expect("learner");
+    assert!(
+        learner.imitation_error(&batch).is_err(),
+        "not frozen yet: no teacher to ask"
+    );
+    learner.freeze_start().expect("freeze");
+    let error = |learner: &Learner| learner.imitation_error(&batch).expect("error").expect("a teacher");
+    assert_eq!(error(&learner), 0.0, "the teacher is the actor as it was frozen");
+    let moved = |alpha: f64| {
+        let config = LearnConfig {
+            imitation_alpha: alpha,
+            ..anchored.clone()
+        };
+        let mut learner = Learner::new(3, &env, &config, 42).expect("learner");
+        learner.freeze_start().expect("freeze");
+        for _ in 0..200 {
+            learner.update(&batch, 0).expect("update");
+        }
+        error(&learner)
+    };
+    // The Q term moves the actor away from its start; a strong pull (small alpha) holds it near.
+    let (held, free) = (moved(0.01), moved(100.0));
+    assert!(
+        held > 0.0 && held < 0.25 * free,
+        "off the start: pulled {held}, nearly free {free}"
+    );
 }
 
 #[test]

@@ -9,17 +9,29 @@ use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use clap::Parser;
+use clap::{Parser, ValueEnum};
 use formation_core::baseline::BaselineGains;
 use formation_core::config::{RunConfig, validate_agent_count};
 use formation_core::reality::RealityConfig;
 use formation_critic::distill::{DistillOptions, Distiller, RoundReport, gain_profile};
-use formation_critic::selection::Selector;
+use formation_critic::selection::{PlannerKind, Selector};
 use formation_model::actor::ActorHead;
 use formation_model::checkpoint::{SelectionScore, SizeScore};
 use indicatif::{ProgressBar, ProgressStyle};
 
-/// Distils the scripted baseline (the config's `[baseline]` gains) into the shared actor:
+/// Who teaches the student.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Teacher {
+    /// The config's [baseline] gains (the scripted baseline; a potential field among obstacles).
+    Baseline,
+    /// The team's planner that knows the map (the launcher's oracle).
+    Planner,
+    /// Each robot's own planner over the map, no team plan.
+    Solo,
+}
+
+/// Distils a teacher (the scripted baseline with the config's `[baseline]` gains, or with
+/// --teacher a planner that knows the map) into the shared actor:
 /// each round plays episodes of every swarm size in-process, exactly as a lockstep sim plays
 /// them under the config's `[reality]`, labels every robot's window with the teacher's command,
 /// and takes gradient steps on the squared error. The teacher drives the first round; after it,
@@ -97,12 +109,13 @@ struct Cli {
     /// With --checkpoint, the checkpoint's head.
     #[arg(long, default_value = "command", value_parser = ["command", "gains"])]
     head: String,
-    /// The privileged planner that knows the map teaches (its command for each robot, from the
-    /// true state) instead of the config's [baseline]: the imitation start of a policy among
-    /// obstacles (a config with [obstacles] and env.observation = "slot_proximity_scan"; command
-    /// head only).
-    #[arg(long)]
-    planner_teacher: bool,
+    /// Who teaches: the config's [baseline] (a potential field among obstacles), the team's
+    /// planner that knows the map (`planner`, the launcher's oracle) or each robot's own planner
+    /// over the map (`solo`). A planner teaches its command for each robot from the true state:
+    /// the imitation start of a policy among obstacles (a config with [obstacles] and
+    /// env.observation = "slot_proximity_scan"; command head only).
+    #[arg(long, value_enum, default_value_t = Teacher::Baseline)]
+    teacher: Teacher,
     /// Also write the student to --out every this many rounds (unscored; its metadata says the
     /// rounds done), so an interrupted run keeps its work; 0: only at the end.
     #[arg(long, default_value_t = 50)]
@@ -172,7 +185,11 @@ fn distill_options(cli: &Cli) -> Result<DistillOptions> {
         },
         noise_scale_m: cli.noise_scale_m,
         quiet_below_m: cli.quiet_below_m,
-        planner_teacher: cli.planner_teacher,
+        planner_teacher: match cli.teacher {
+            Teacher::Baseline => None,
+            Teacher::Planner => Some(PlannerKind::Team),
+            Teacher::Solo => Some(PlannerKind::Solo),
+        },
         soft_from_delay_ticks: cli.soft_from_delay_ticks,
         head: ActorHead::from_name(&cli.head).context("--head")?,
         ..DistillOptions::default()

@@ -1,6 +1,6 @@
 //! `formation-play`: plays the episodes a lockstep evaluation with the same seed and config
 //! plays, in-process (no swarm, no IPC), with one team: the scripted baseline, the privileged
-//! planner or a checkpoint's actor, and writes each swarm size's `episodes.csv` rows and one
+//! planner, each robot's own planner or a checkpoint's actor, and writes each swarm size's `episodes.csv` rows and one
 //! summary line. What the grids in docs/RESULTS.md are measured with.
 
 use std::path::PathBuf;
@@ -14,7 +14,7 @@ use formation_core::reality::RealityConfig;
 use formation_core::stepper::EpisodeRecord;
 use formation_core::task::Outcome;
 use formation_core::world::World;
-use formation_critic::selection::{Played, Team, episode_records_watched};
+use formation_critic::selection::{PlannerKind, Played, Team, episode_records_watched};
 use formation_model::actor::FrozenActor;
 use formation_model::checkpoint;
 
@@ -26,6 +26,9 @@ enum TeamKind {
     Scripted,
     /// The privileged planner that knows the map (`--oracle all` of the launcher).
     Oracle,
+    /// Each robot's own planner over the map, no team plan (the decentralised teacher of
+    /// `formation-distill --teacher solo`).
+    Solo,
     /// The actor of --checkpoint (default: the shipped model of the world, as the launcher's eval:
     /// models/formation-obstacles.safetensors among obstacles), with its own observation model
     /// and window.
@@ -115,7 +118,7 @@ fn run(cli: Cli) -> Result<()> {
             env.history = loaded.meta.actor.history;
             Some(loaded)
         }
-        TeamKind::Scripted | TeamKind::Oracle => {
+        TeamKind::Scripted | TeamKind::Oracle | TeamKind::Solo => {
             env.scan_among_obstacles();
             if cli.checkpoint.is_some() {
                 bail!("--checkpoint is for --team model");
@@ -136,9 +139,20 @@ fn run(cli: Cli) -> Result<()> {
             }
         };
         let records = match &loaded {
-            None if cli.team == TeamKind::Oracle => {
-                episode_records_watched(&env, n, &played, Team::Oracle(&config.baseline), watch)?
-            }
+            None if cli.team == TeamKind::Oracle => episode_records_watched(
+                &env,
+                n,
+                &played,
+                Team::Planner(PlannerKind::Team, &config.baseline),
+                watch,
+            )?,
+            None if cli.team == TeamKind::Solo => episode_records_watched(
+                &env,
+                n,
+                &played,
+                Team::Planner(PlannerKind::Solo, &config.baseline),
+                watch,
+            )?,
             None => episode_records_watched(&env, n, &played, Team::Scripted(&config.baseline), watch)?,
             Some(loaded) => {
                 let shape = loaded.meta.actor.clone();
