@@ -18,12 +18,12 @@ pub struct ReaderLink<S: Service> {
     reader: StreamReader,
     progress: Subscriber<S, CriticProgressMsg, ()>,
     progress_ready: Listener<S>,
+    /// The reader's current session; 0 until it first speaks (a session is never 0).
     session: u64,
     /// States published when the current session first spoke.
     joined_at: u64,
     acknowledged: u64,
     absent: bool,
-    heard: bool,
 }
 
 /// Refuses a peer of another protocol version.
@@ -56,7 +56,6 @@ where
             joined_at: 0,
             acknowledged: 0,
             absent: false,
-            heard: false,
         })
     }
 
@@ -67,7 +66,7 @@ where
 
     /// The reader has spoken at least once.
     pub fn heard(&self) -> bool {
-        self.heard
+        self.session != 0
     }
 
     /// Reads the reader's latest progress, `published` states having gone out; true when any
@@ -95,7 +94,6 @@ where
             }
             any = true;
         }
-        self.heard |= any;
         Ok(any)
     }
 
