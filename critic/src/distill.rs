@@ -597,6 +597,8 @@ fn load_shared_actor(vars: &VarMap, path: &Path, shape: &ActorShape, config: &Ru
 #[cfg(test)]
 mod tests {
     use super::*;
+    use formation_core::config::ObservationModel;
+    use formation_core::obstacles::ObstacleKind;
 
     #[test]
     fn the_buffer_overwrites_the_oldest_and_reads_them_in_order() {
@@ -673,6 +675,47 @@ mod tests {
         let distiller = Distiller::new(&config, by_delay, None).expect("a distiller");
         assert_eq!(of(distiller.teacher_gains(0.0, 2)), of(gains_noisy));
         assert_eq!(of(distiller.teacher_gains(0.0, 1)), of(quiet));
+    }
+
+    #[test]
+    fn a_planner_teacher_labels_each_robot_with_its_command_from_the_truth() {
+        let mut config = RunConfig::default();
+        config.env.observation = ObservationModel::SlotProximityScan;
+        config.env.obstacles.kind = ObstacleKind::Forest;
+        let n = 4;
+        for kind in [PlannerKind::Team, PlannerKind::Solo] {
+            let options = DistillOptions {
+                sizes: vec![n],
+                robots_per_round: n,
+                updates_per_round: 1,
+                batch: 8,
+                capacity: 4096,
+                planner_teacher: Some(kind),
+                ..DistillOptions::default()
+            };
+            let mut distiller = Distiller::new(&config, options, None).expect("a distiller");
+            distiller.round().expect("a round the teacher drives");
+            // The first tick of the round's one episode, as the teacher saw it.
+            let played = Played {
+                seed: episode_seed(1, 0, n),
+                count: 1,
+                reality: &config.reality,
+            };
+            let game = played.games(&config.env, n).remove(0);
+            let commands = TruthPlanner::new(kind).commands(game.world(), &config.env, config.baseline);
+            for (agent, (v, w)) in commands.into_iter().enumerate() {
+                assert_eq!(
+                    distiller.samples.get(agent).1,
+                    &config.env.action_from_command(v, w)[..],
+                    "{kind:?}: robot {agent}'s first label"
+                );
+            }
+            assert!(
+                distiller.samples.len() > 10 * n,
+                "{kind:?}: {} labels",
+                distiller.samples.len()
+            );
+        }
     }
 
     #[test]

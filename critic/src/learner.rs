@@ -431,9 +431,10 @@ impl Learner {
             swarm_steps: Vec::new(),
             rng,
             teacher: (config.imitation_alpha > 0.0).then(|| match config.imitation_teacher {
-                ImitationTeacher::Baseline => {
-                    Teacher::Baseline(Box::new((ScriptedBaseline::new(env, BaselineGains::default()), env.clone())))
-                }
+                ImitationTeacher::Baseline => Teacher::Baseline(Box::new((
+                    ScriptedBaseline::new(env, BaselineGains::default()),
+                    env.clone(),
+                ))),
                 ImitationTeacher::Start => Teacher::StartPending,
             }),
         })
