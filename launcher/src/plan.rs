@@ -7,7 +7,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 use anyhow::{Context, Result, anyhow, bail, ensure};
 use clap::ValueEnum;
-use formation_core::config::{EnvConfig, FormationShape, RunConfig, extra_swarm_seed};
+use formation_core::config::{EnvConfig, FormationShape, ImitationTeacher, RunConfig, extra_swarm_seed};
 use formation_core::observation::Layout;
 use formation_core::reality::RealityConfig;
 use formation_ipc::cli::{Mode, ViewerMode, parse_robot_set, robot_set_arg};
@@ -621,6 +621,12 @@ fn read_config(args: &LaunchArgs, learned: usize) -> Result<RunConfig> {
     if args.mode == Mode::Train {
         config.learn.check_training_seeds(args.seed, args.extra_swarms.len())?;
         config.check_training_critic()?;
+        ensure!(
+            args.checkpoint.is_some()
+                || config.learn.imitation_alpha == 0.0
+                || config.learn.imitation_teacher != ImitationTeacher::Start,
+            "learn.imitation_teacher = \"start\" pulls the actor towards the one the run starts from: pass --checkpoint"
+        );
     }
     Ok(config)
 }
@@ -1297,6 +1303,10 @@ mod tests {
 
     #[test]
     fn conflicting_or_impossible_flags_are_refused_by_name() {
+        // Training towards the actor it starts from needs one to start from.
+        let anchored = repo_path("configs/obstacles-mixed-anchored.toml");
+        let start = repo_path("models/formation-obstacles.safetensors");
+        plan(&["3", "--config", &anchored, "--checkpoint", &start]).expect("a start given");
         for (args, needle) in [
             (
                 vec!["3", "--scripted", "0,2", "--external", "2"],
@@ -1314,6 +1324,7 @@ mod tests {
                 "the run (--seed 1000) would train on seed 1000",
             ),
             (vec!["3", "--seed", "6168263"], "learn.selection_seed"),
+            (vec!["3", "--config", &anchored], "learn.imitation_teacher = \"start\""),
             (
                 vec!["3", "--seed", "6160344", "--extra-swarms", "4,5"],
                 "extra swarm 1 (--seed 6160344 + 7919 x 1) would train on seed 6168263",
