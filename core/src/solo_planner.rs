@@ -54,9 +54,20 @@ struct SoloPath {
 #[derive(Debug, Clone, Default)]
 pub struct SoloPlanner {
     paths: Vec<Option<SoloPath>>,
+    /// Plan over only the obstacles within this of the robot (`None`: the whole map).
+    sight_m: Option<f64>,
 }
 
 impl SoloPlanner {
+    /// A planner whose robots plan over only the obstacles within `sight_m` of where they plan
+    /// from (what their range sensor could show), the rest of the way taken as open.
+    pub fn seeing(sight_m: f64) -> Self {
+        Self {
+            paths: Vec::new(),
+            sight_m: Some(sight_m),
+        }
+    }
+
     /// Every robot's (v, w) at `tick`: robot i heads for `goal + slots[i]` around `obstacles`
     /// in the arena of `env` for this many robots, tracking with `gains` (the baseline's turn
     /// gain and robot repulsion).
@@ -97,6 +108,8 @@ impl SoloPlanner {
                     }
                 };
                 if stale {
+                    let seen = self.sight_m.map(|sight| obstacles.within(me, sight));
+                    let obstacles = seen.as_ref().unwrap_or(obstacles);
                     let planned = SOLO_MARGINS_M
                         .iter()
                         .find_map(|margin| plan_path(obstacles, me, to, robot_radius + margin, arena))
@@ -196,6 +209,16 @@ mod tests {
     /// the per-robot planner (as the team planner's `planner_rates`): success, robot collisions,
     /// obstacle hits.
     fn solo_rates(kind: ObstacleKind, n: usize, episodes: usize, seed: u64) -> [f64; 3] {
+        solo_rates_with(SoloPlanner::default, kind, n, episodes, seed)
+    }
+
+    fn solo_rates_with(
+        planner: impl Fn() -> SoloPlanner,
+        kind: ObstacleKind,
+        n: usize,
+        episodes: usize,
+        seed: u64,
+    ) -> [f64; 3] {
         let base = EnvConfig::default();
         let nearest = min_goal_distance_m(&ObstacleConfig::default(), kind, n, &base);
         let env = EnvConfig {
@@ -221,7 +244,7 @@ mod tests {
             init.time_limit = episode_steps_with_obstacles(kind, distance, n, &env);
             init.obstacles = obstacles.clone();
             let (goal, slots) = (init.goal, init.slots.clone());
-            let mut planner = SoloPlanner::default();
+            let mut planner = planner();
             let mut world = World::new(&env, init);
             loop {
                 let commands = planner.commands(
@@ -260,6 +283,17 @@ mod tests {
         );
     }
 
+    #[test]
+    fn the_solo_planner_seeing_only_its_sensor_range_still_brings_small_teams_through_the_forest() {
+        let [success, collisions, hits] =
+            solo_rates_with(|| SoloPlanner::seeing(2.0), ObstacleKind::Forest, 4, 20, 2000);
+        assert!(success >= 0.7, "success {success}");
+        assert!(
+            collisions + hits <= 0.1,
+            "collisions {collisions}, obstacle hits {hits}"
+        );
+    }
+
     /// Prints the per-robot planner's rates by kind and team size:
     /// `cargo test -p formation-core solo_planner_report -- --ignored --nocapture`.
     #[test]
@@ -268,8 +302,9 @@ mod tests {
         for kind in ObstacleKind::KINDS {
             for n in [4, 8, 16] {
                 let [success, collisions, hits] = solo_rates(kind, n, 50, 3000);
+                let [seeing, ..] = solo_rates_with(|| SoloPlanner::seeing(2.0), kind, n, 50, 3000);
                 println!(
-                    "{kind:>8} N={n:>2}: success {success:.2}  robot collisions {collisions:.2}  obstacle hits {hits:.2}"
+                    "{kind:>8} N={n:>2}: success {success:.2}  robot collisions {collisions:.2}  obstacle hits {hits:.2}  seeing 2 m: success {seeing:.2}"
                 );
             }
         }

@@ -362,7 +362,10 @@ impl Distiller {
                         (ScriptedBaseline::new(&self.config.env, gains), gains.to_unit())
                     })
                     .collect();
-                let mut planner = self.options.planner_teacher.map(TruthPlanner::new);
+                let mut planner = self
+                    .options
+                    .planner_teacher
+                    .map(|kind| TruthPlanner::new(kind, &self.config.env));
                 while game.running() {
                     let planned = match &mut planner {
                         Some(planner) => planner.commands(game.world(), &self.config.env, self.config.baseline),
@@ -443,6 +446,11 @@ impl Distiller {
         let teacher = match self.options.planner_teacher {
             Some(PlannerKind::Team) => format!("planner (tracking with {})", gains_text(&self.config.baseline)),
             Some(PlannerKind::Solo) => format!("solo planner (tracking with {})", gains_text(&self.config.baseline)),
+            Some(PlannerKind::SoloLocal) => format!(
+                "solo planner seeing {} m (tracking with {})",
+                self.config.env.scan_range_m,
+                gains_text(&self.config.baseline)
+            ),
             None => gains_text(&self.config.baseline),
         };
         extra.insert("distilled_from".into(), teacher);
@@ -683,7 +691,7 @@ mod tests {
         config.env.observation = ObservationModel::SlotProximityScan;
         config.env.obstacles.kind = ObstacleKind::Forest;
         let n = 4;
-        for kind in [PlannerKind::Team, PlannerKind::Solo] {
+        for kind in [PlannerKind::Team, PlannerKind::Solo, PlannerKind::SoloLocal] {
             let options = DistillOptions {
                 sizes: vec![n],
                 robots_per_round: n,
@@ -702,7 +710,7 @@ mod tests {
                 reality: &config.reality,
             };
             let game = played.games(&config.env, n).remove(0);
-            let commands = TruthPlanner::new(kind).commands(game.world(), &config.env, config.baseline);
+            let commands = TruthPlanner::new(kind, &config.env).commands(game.world(), &config.env, config.baseline);
             for (agent, (v, w)) in commands.into_iter().enumerate() {
                 assert_eq!(
                     distiller.samples.get(agent).1,

@@ -251,11 +251,12 @@ pub(crate) enum TruthPlanner {
 }
 
 impl TruthPlanner {
-    /// A fresh planner of this kind for an episode.
-    pub(crate) fn new(kind: PlannerKind) -> Self {
+    /// A fresh planner of this kind for an episode in the arena of `env`.
+    pub(crate) fn new(kind: PlannerKind, env: &EnvConfig) -> Self {
         match kind {
             PlannerKind::Team => Self::Team(Box::default()),
             PlannerKind::Solo => Self::Solo(SoloPlanner::default()),
+            PlannerKind::SoloLocal => Self::Solo(SoloPlanner::seeing(env.scan_range_m)),
         }
     }
 
@@ -285,6 +286,9 @@ pub enum PlannerKind {
     Team,
     /// Each robot's own ([`formation_core::solo_planner`]).
     Solo,
+    /// Each robot's own over only the obstacles within its range sensor's reach
+    /// (`env.scan_range_m`) of where it plans from.
+    SoloLocal,
 }
 
 /// The episodes [`play`] plays: the first `count` that `seed` starts, under `reality`.
@@ -423,7 +427,7 @@ pub fn episode_records_watched(
     let mut games = episodes.games(env, n);
     for (episode, game) in games.iter_mut().enumerate() {
         let mut planner = match &team {
-            Team::Planner(kind, _) => Some(TruthPlanner::new(*kind)),
+            Team::Planner(kind, _) => Some(TruthPlanner::new(*kind, env)),
             _ => None,
         };
         watch(episode, game.world());

@@ -341,6 +341,19 @@ impl Obstacles {
         Self { list, placed }
     }
 
+    /// The obstacles whose surface lies within `range` of `p` (what a sensor of that range
+    /// there could see of them; a wall is kept whole).
+    pub fn within(&self, p: [f64; 2], range: f64) -> Self {
+        Self::new(
+            self.list
+                .iter()
+                .zip(&self.placed)
+                .filter(|(_, placed)| placed.distance_bound(p) < range && placed.distance(p) < range)
+                .map(|(obstacle, _)| *obstacle)
+                .collect(),
+        )
+    }
+
     /// The obstacles an `ObstaclesMsg` carries (its first `count`).
     pub fn from_wire(msg: &ObstaclesMsg) -> Self {
         let count = (msg.count as usize).min(MAX_OBSTACLES);

@@ -467,3 +467,34 @@ fn the_obstacle_reward_makes_passing_worth_more_than_waiting() {
         );
     }
 }
+
+#[test]
+fn within_keeps_the_obstacles_whose_surface_is_in_range_and_walls_whole() {
+    let wall = Obstacle::Wall {
+        a: [3.0, 0.0],
+        b: [3.0, 10.0],
+        thickness: 0.2,
+    };
+    let obstacles = Obstacles::new(vec![
+        Obstacle::Disc {
+            centre: [1.0, 0.0],
+            radius: 0.5,
+        },
+        Obstacle::Disc {
+            centre: [2.4, 0.0],
+            radius: 0.5,
+        },
+        wall,
+    ]);
+    // From the origin: the first disc's surface is 0.5 m away, the second's 1.9 m, the wall's 2.9 m.
+    let seen = obstacles.within([0.0, 0.0], 2.0);
+    assert_eq!(seen.list().len(), 2);
+    assert!(seen.list().iter().all(|o| !matches!(o, Obstacle::Wall { .. })));
+    let near_the_wall = obstacles.within([2.5, 9.0], 0.5);
+    assert_eq!(
+        near_the_wall.list(),
+        &[wall],
+        "the whole wall, though 0.4 m of it is in range"
+    );
+    assert!(obstacles.within([0.0, 5.0], 0.5).is_empty());
+}

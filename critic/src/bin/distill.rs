@@ -28,6 +28,8 @@ enum Teacher {
     Planner,
     /// Each robot's own planner over the map, no team plan.
     Solo,
+    /// Each robot's own planner over only the obstacles its range sensor could reach.
+    SoloLocal,
 }
 
 /// Distils a teacher (the scripted baseline with the config's `[baseline]` gains, or with
@@ -110,9 +112,10 @@ struct Cli {
     #[arg(long, default_value = "command", value_parser = ["command", "gains"])]
     head: String,
     /// Who teaches: the config's [baseline] (a potential field among obstacles), the team's
-    /// planner that knows the map (`planner`, the launcher's oracle) or each robot's own planner
-    /// over the map (`solo`). A planner teaches its command for each robot from the true state:
-    /// the imitation start of a policy among obstacles (a config with [obstacles] and
+    /// planner that knows the map (`planner`, the launcher's oracle), or each robot's own
+    /// planner over the map (`solo`) or over what its range sensor could reach of it
+    /// (`solo-local`). A planner teaches its command for each robot from the true state: the
+    /// imitation start of a policy among obstacles (a config with [obstacles] and
     /// env.observation = "slot_proximity_scan"; command head only).
     #[arg(long, value_enum, default_value_t = Teacher::Baseline)]
     teacher: Teacher,
@@ -189,6 +192,7 @@ fn distill_options(cli: &Cli) -> Result<DistillOptions> {
             Teacher::Baseline => None,
             Teacher::Planner => Some(PlannerKind::Team),
             Teacher::Solo => Some(PlannerKind::Solo),
+            Teacher::SoloLocal => Some(PlannerKind::SoloLocal),
         },
         soft_from_delay_ticks: cli.soft_from_delay_ticks,
         head: ActorHead::from_name(&cli.head).context("--head")?,

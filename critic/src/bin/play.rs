@@ -29,6 +29,8 @@ enum TeamKind {
     /// Each robot's own planner over the map, no team plan (the decentralised teacher of
     /// `formation-distill --teacher solo`).
     Solo,
+    /// Each robot's own planner over only the obstacles within its range sensor's reach.
+    SoloLocal,
     /// The actor of --checkpoint (default: the shipped model of the world, as the launcher's eval:
     /// models/formation-obstacles.safetensors among obstacles), with its own observation model
     /// and window.
@@ -118,7 +120,7 @@ fn run(cli: Cli) -> Result<()> {
             env.history = loaded.meta.actor.history;
             Some(loaded)
         }
-        TeamKind::Scripted | TeamKind::Oracle | TeamKind::Solo => {
+        TeamKind::Scripted | TeamKind::Oracle | TeamKind::Solo | TeamKind::SoloLocal => {
             env.scan_among_obstacles();
             if cli.checkpoint.is_some() {
                 bail!("--checkpoint is for --team model");
@@ -151,6 +153,13 @@ fn run(cli: Cli) -> Result<()> {
                 n,
                 &played,
                 Team::Planner(PlannerKind::Solo, &config.baseline),
+                watch,
+            )?,
+            None if cli.team == TeamKind::SoloLocal => episode_records_watched(
+                &env,
+                n,
+                &played,
+                Team::Planner(PlannerKind::SoloLocal, &config.baseline),
                 watch,
             )?,
             None => episode_records_watched(&env, n, &played, Team::Scripted(&config.baseline), watch)?,
