@@ -684,75 +684,31 @@ impl Replanner {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::formation::Episodes;
-    use crate::obstacles::{
-        Obstacle, ObstacleConfig, ObstacleKind, draw, episode_steps_with_obstacles, min_goal_distance_m, obstacle_seed,
-    };
-    use crate::task::Outcome;
+    use crate::obstacles::tests::rates_among_obstacles;
+    use crate::obstacles::{Obstacle, ObstacleKind};
     use crate::world::World;
 
     /// Plays `episodes` episodes of `n` robots among obstacles of `kind` with every robot driven
-    /// by the planner (goals at the kind's least distance and up to 1 m beyond, the kind's
-    /// time limit): success, robot collisions, obstacle hits, the episodes planned in file, and
-    /// the mean time to plan, milliseconds.
+    /// by the planner ([`rates_among_obstacles`]): success, robot collisions, obstacle hits, the
+    /// episodes planned in file, and the mean time to plan, milliseconds.
     pub(crate) fn planner_rates(kind: ObstacleKind, n: usize, episodes: usize, seed: u64) -> [f64; 5] {
-        let base = EnvConfig::default();
-        let nearest = min_goal_distance_m(&ObstacleConfig::default(), kind, n, &base);
-        let env = EnvConfig {
-            goal_min_m: nearest,
-            goal_max_m: nearest + 1.0,
-            ..base
-        };
-        let radius = robot_radius_m(&env);
-        let mut counts = [0usize; 4];
-        let mut planning = std::time::Duration::ZERO;
-        for (episode, mut init) in Episodes::new(n, &env, seed).take(episodes).enumerate() {
-            let starts: Vec<[f64; 2]> = init.poses.iter().map(|p| [p.x, p.y]).collect();
-            let seed = obstacle_seed(seed, episode as u64);
-            let obstacles = draw(
-                &ObstacleConfig::default(),
-                kind,
-                &starts,
-                init.goal,
-                &init.slots,
-                &env,
-                seed,
-            );
-            let centre = crate::task::centroid(&init.poses);
-            let distance = (init.goal[0] - centre[0]).hypot(init.goal[1] - centre[1]);
-            init.time_limit = episode_steps_with_obstacles(kind, distance, n, &env);
-            init.obstacles = obstacles.clone();
+        let (mut column, mut planning) = (0usize, std::time::Duration::ZERO);
+        let [success, collisions, hits] = rates_among_obstacles(kind, n, episodes, seed, |init, env| {
             let started = std::time::Instant::now();
             let mut planner = Planner::new(
                 &init.poses,
                 init.goal,
                 &init.slots,
-                &obstacles,
-                &env,
+                &init.obstacles,
+                env,
                 BaselineGains::default(),
             );
             planning += started.elapsed();
-            counts[3] += usize::from(planner.mode() == PlanMode::Column);
-            let mut world = World::new(&env, init);
-            loop {
-                let commands = planner.commands(&world.poses, world.steps).to_vec();
-                let outcome = world.step(&commands).outcome;
-                if world.poses.iter().any(|p| obstacles.hits_robot([p.x, p.y], radius)) {
-                    counts[2] += 1;
-                    break;
-                }
-                match outcome {
-                    Outcome::Running => continue,
-                    Outcome::Success => counts[0] += 1,
-                    Outcome::Collision => counts[1] += 1,
-                    Outcome::Timeout | Outcome::Aborted => {}
-                }
-                break;
-            }
-        }
-        let [success, collisions, hits, column] = counts.map(|c| c as f64 / episodes as f64);
+            column += usize::from(planner.mode() == PlanMode::Column);
+            move |world: &World| planner.commands(&world.poses, world.steps).to_vec()
+        });
         let planning_ms = 1e3 * planning.as_secs_f64() / episodes as f64;
-        [success, collisions, hits, column, planning_ms]
+        [success, collisions, hits, column as f64 / episodes as f64, planning_ms]
     }
 
     #[test]

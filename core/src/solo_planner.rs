@@ -198,20 +198,12 @@ fn step_clear(obstacles: &Obstacles, p: [f64; 2], clearance: f64) -> Option<[f64
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::formation::Episodes;
-    use crate::obstacles::{
-        ObstacleConfig, ObstacleKind, draw, episode_steps_with_obstacles, min_goal_distance_m, obstacle_seed,
-    };
-    use crate::task::Outcome;
+    use crate::obstacles::ObstacleKind;
+    use crate::obstacles::tests::rates_among_obstacles;
     use crate::world::World;
 
-    /// Plays `episodes` episodes of `n` robots among obstacles of `kind`, every robot driven by
-    /// the per-robot planner (as the team planner's `planner_rates`): success, robot collisions,
-    /// obstacle hits.
-    fn solo_rates(kind: ObstacleKind, n: usize, episodes: usize, seed: u64) -> [f64; 3] {
-        solo_rates_with(SoloPlanner::default, kind, n, episodes, seed)
-    }
-
+    /// Success, robot collisions and obstacle hits of `episodes` episodes of `n` robots among
+    /// obstacles of `kind`, every robot driven by a fresh `planner()` ([`rates_among_obstacles`]).
     fn solo_rates_with(
         planner: impl Fn() -> SoloPlanner,
         kind: ObstacleKind,
@@ -219,58 +211,18 @@ mod tests {
         episodes: usize,
         seed: u64,
     ) -> [f64; 3] {
-        let base = EnvConfig::default();
-        let nearest = min_goal_distance_m(&ObstacleConfig::default(), kind, n, &base);
-        let env = EnvConfig {
-            goal_min_m: nearest,
-            goal_max_m: nearest + 1.0,
-            ..base
-        };
-        let radius = robot_radius_m(&env);
-        let mut counts = [0usize; 3];
-        for (episode, mut init) in Episodes::new(n, &env, seed).take(episodes).enumerate() {
-            let starts: Vec<[f64; 2]> = init.poses.iter().map(|p| [p.x, p.y]).collect();
-            let obstacles = draw(
-                &ObstacleConfig::default(),
-                kind,
-                &starts,
-                init.goal,
-                &init.slots,
-                &env,
-                obstacle_seed(seed, episode as u64),
-            );
-            let centre = crate::task::centroid(&init.poses);
-            let distance = (init.goal[0] - centre[0]).hypot(init.goal[1] - centre[1]);
-            init.time_limit = episode_steps_with_obstacles(kind, distance, n, &env);
-            init.obstacles = obstacles.clone();
-            let (goal, slots) = (init.goal, init.slots.clone());
+        rates_among_obstacles(kind, n, episodes, seed, |init, env| {
+            let (goal, slots, obstacles, env) = (init.goal, init.slots.clone(), init.obstacles.clone(), env.clone());
             let mut planner = planner();
-            let mut world = World::new(&env, init);
-            loop {
-                let commands = planner.commands(
-                    &world.poses,
-                    goal,
-                    &slots,
-                    &obstacles,
-                    world.steps,
-                    &env,
-                    BaselineGains::default(),
-                );
-                let outcome = world.step(&commands).outcome;
-                if world.poses.iter().any(|p| obstacles.hits_robot([p.x, p.y], radius)) {
-                    counts[2] += 1;
-                    break;
-                }
-                match outcome {
-                    Outcome::Running => continue,
-                    Outcome::Success => counts[0] += 1,
-                    Outcome::Collision => counts[1] += 1,
-                    Outcome::Timeout | Outcome::Aborted => {}
-                }
-                break;
+            move |world: &World| {
+                let gains = BaselineGains::default();
+                planner.commands(&world.poses, goal, &slots, &obstacles, world.steps, &env, gains)
             }
-        }
-        counts.map(|c| c as f64 / episodes as f64)
+        })
+    }
+
+    fn solo_rates(kind: ObstacleKind, n: usize, episodes: usize, seed: u64) -> [f64; 3] {
+        solo_rates_with(SoloPlanner::default, kind, n, episodes, seed)
     }
 
     #[test]

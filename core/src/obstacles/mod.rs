@@ -826,4 +826,4 @@ pub fn episode_steps_with_obstacles(kind: ObstacleKind, goal_distance: f64, n: u
 }
 
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;

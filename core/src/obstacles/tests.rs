@@ -498,3 +498,61 @@ fn within_keeps_the_obstacles_whose_surface_is_in_range_and_walls_whole() {
     );
     assert!(obstacles.within([0.0, 5.0], 0.5).is_empty());
 }
+
+/// Plays `episodes` episodes of `n` robots among obstacles of `kind` (goals at the kind's least
+/// distance and up to 1 m beyond, the kind's time limit), every robot driven by a controller
+/// that `start` makes for each episode from its start (poses, goal, slots, obstacles) and that
+/// answers every robot's (v, w) for the world at each tick: success, robot collisions and
+/// obstacle hits, as fractions of the episodes. The planners' tests measure themselves with it.
+pub(crate) fn rates_among_obstacles<D: FnMut(&crate::world::World) -> Vec<(f64, f64)>>(
+    kind: ObstacleKind,
+    n: usize,
+    episodes: usize,
+    seed: u64,
+    mut start: impl FnMut(&EpisodeInit, &EnvConfig) -> D,
+) -> [f64; 3] {
+    use crate::task::Outcome;
+    let base = EnvConfig::default();
+    let nearest = min_goal_distance_m(&ObstacleConfig::default(), kind, n, &base);
+    let env = EnvConfig {
+        goal_min_m: nearest,
+        goal_max_m: nearest + 1.0,
+        ..base
+    };
+    let radius = robot_radius_m(&env);
+    let mut counts = [0usize; 3];
+    for (episode, mut init) in Episodes::new(n, &env, seed).take(episodes).enumerate() {
+        let starts: Vec<[f64; 2]> = init.poses.iter().map(|p| [p.x, p.y]).collect();
+        let obstacles = draw(
+            &ObstacleConfig::default(),
+            kind,
+            &starts,
+            init.goal,
+            &init.slots,
+            &env,
+            obstacle_seed(seed, episode as u64),
+        );
+        let centre = crate::task::centroid(&init.poses);
+        let distance = (init.goal[0] - centre[0]).hypot(init.goal[1] - centre[1]);
+        init.time_limit = episode_steps_with_obstacles(kind, distance, n, &env);
+        init.obstacles = obstacles.clone();
+        let mut drive = start(&init, &env);
+        let mut world = crate::world::World::new(&env, init);
+        loop {
+            let commands = drive(&world);
+            let outcome = world.step(&commands).outcome;
+            if world.poses.iter().any(|p| obstacles.hits_robot([p.x, p.y], radius)) {
+                counts[2] += 1;
+                break;
+            }
+            match outcome {
+                Outcome::Running => continue,
+                Outcome::Success => counts[0] += 1,
+                Outcome::Collision => counts[1] += 1,
+                Outcome::Timeout | Outcome::Aborted => {}
+            }
+            break;
+        }
+    }
+    counts.map(|c| c as f64 / episodes as f64)
+}

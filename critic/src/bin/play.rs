@@ -37,6 +37,18 @@ enum TeamKind {
     Model,
 }
 
+impl TeamKind {
+    /// The planner that drives every robot, for the planners.
+    fn planner(self) -> Option<PlannerKind> {
+        match self {
+            Self::Oracle => Some(PlannerKind::Team),
+            Self::Solo => Some(PlannerKind::Solo),
+            Self::SoloLocal => Some(PlannerKind::SoloLocal),
+            Self::Scripted | Self::Model => None,
+        }
+    }
+}
+
 /// Plays the episodes `scripts/run_swarm.sh N --mode eval --seed S --episodes E` plays (same
 /// config, reality and obstacles), in-process, with one team, and writes OUT/n<N>.csv (the
 /// lockstep eval's `episodes.csv` rows, but for wall time and the transport's counts) and one
@@ -120,7 +132,7 @@ fn run(cli: Cli) -> Result<()> {
             env.history = loaded.meta.actor.history;
             Some(loaded)
         }
-        TeamKind::Scripted | TeamKind::Oracle | TeamKind::Solo | TeamKind::SoloLocal => {
+        _ => {
             env.scan_among_obstacles();
             if cli.checkpoint.is_some() {
                 bail!("--checkpoint is for --team model");
@@ -141,28 +153,13 @@ fn run(cli: Cli) -> Result<()> {
             }
         };
         let records = match &loaded {
-            None if cli.team == TeamKind::Oracle => episode_records_watched(
-                &env,
-                n,
-                &played,
-                Team::Planner(PlannerKind::Team, &config.baseline),
-                watch,
-            )?,
-            None if cli.team == TeamKind::Solo => episode_records_watched(
-                &env,
-                n,
-                &played,
-                Team::Planner(PlannerKind::Solo, &config.baseline),
-                watch,
-            )?,
-            None if cli.team == TeamKind::SoloLocal => episode_records_watched(
-                &env,
-                n,
-                &played,
-                Team::Planner(PlannerKind::SoloLocal, &config.baseline),
-                watch,
-            )?,
-            None => episode_records_watched(&env, n, &played, Team::Scripted(&config.baseline), watch)?,
+            None => {
+                let team = match cli.team.planner() {
+                    Some(kind) => Team::Planner(kind, &config.baseline),
+                    None => Team::Scripted(&config.baseline),
+                };
+                episode_records_watched(&env, n, &played, team, watch)?
+            }
             Some(loaded) => {
                 let shape = loaded.meta.actor.clone();
                 let mut actors = (0..loaded.meta.n_actors)
