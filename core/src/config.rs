@@ -966,6 +966,18 @@ impl LearnConfig {
         Ok(())
     }
 
+    /// Refuses a training run whose imitation term pulls towards the actor it starts from
+    /// (`imitation_teacher = "start"`) when it starts from none (`resuming`: a `--checkpoint`).
+    pub fn check_imitation_start(&self, resuming: bool) -> Result<(), ConfigError> {
+        let pulls_to_start = self.imitation_alpha > 0.0 && self.imitation_teacher == ImitationTeacher::Start;
+        check(
+            resuming || !pulls_to_start,
+            "learn.imitation_teacher",
+            "\"start\"",
+            "it pulls the actor towards the one the run starts from: pass --checkpoint",
+        )
+    }
+
     /// Replay, weights streaming, threads, evaluation and model selection.
     fn validate_bookkeeping(&self) -> Result<(), ConfigError> {
         let l = self;

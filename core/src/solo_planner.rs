@@ -121,25 +121,15 @@ impl SoloPlanner {
                             points.insert(0, me);
                             Some(points)
                         });
-                    match planned {
-                        Some(points) => {
-                            *path = Some(SoloPath {
-                                line: Polyline::new(points),
-                                to,
-                                planned_at: tick,
-                                progress: 0.0,
-                            })
-                        }
-                        // No way found: keep the old path, else go straight.
-                        None if matches!(path, Some(p) if p.to == to) => {}
-                        None => {
-                            *path = Some(SoloPath {
-                                line: Polyline::new(vec![me, to]),
-                                to,
-                                planned_at: tick,
-                                progress: 0.0,
-                            })
-                        }
+                    // No way found: keep the old path, else go straight.
+                    let keeps_old = matches!(path, Some(p) if p.to == to);
+                    if let Some(points) = planned.or_else(|| (!keeps_old).then(|| vec![me, to])) {
+                        *path = Some(SoloPath {
+                            line: Polyline::new(points),
+                            to,
+                            planned_at: tick,
+                            progress: 0.0,
+                        });
                     }
                 }
                 let path = path.as_mut().expect("planned above");
@@ -162,11 +152,8 @@ impl SoloPlanner {
                             && dx * ax + dy * ay > YIELD_COS * d * a
                             && (aim[0] - other.x).hypot(aim[1] - other.y) < a
                     });
-                if yields {
-                    let (_, w) = tracking.command(poses, agent, aim, pace * env.v_max);
-                    return (0.0, w);
-                }
-                tracking.command(poses, agent, aim, pace * env.v_max)
+                let (v, w) = tracking.command(poses, agent, aim, pace * env.v_max);
+                (if yields { 0.0 } else { v }, w)
             })
             .collect()
     }

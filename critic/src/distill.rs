@@ -443,15 +443,17 @@ impl Distiller {
     /// Writes the student as a checkpoint of one shared actor (its target copy too, so training
     /// can carry it on with a fresh critic), with `extra` and the teacher's gains as metadata.
     pub fn save(&self, path: &Path, mut extra: HashMap<String, String>) -> Result<()> {
+        let gains = gains_text(&self.config.baseline);
         let teacher = match self.options.planner_teacher {
-            Some(PlannerKind::Team) => format!("planner (tracking with {})", gains_text(&self.config.baseline)),
-            Some(PlannerKind::Solo) => format!("solo planner (tracking with {})", gains_text(&self.config.baseline)),
-            Some(PlannerKind::SoloLocal) => format!(
-                "solo planner seeing {} m (tracking with {})",
-                self.config.env.scan_range_m,
-                gains_text(&self.config.baseline)
-            ),
-            None => gains_text(&self.config.baseline),
+            Some(PlannerKind::Team) => format!("planner (tracking with {gains})"),
+            Some(PlannerKind::Solo) => format!("solo planner (tracking with {gains})"),
+            Some(PlannerKind::SoloLocal) => {
+                format!(
+                    "solo planner seeing {} m (tracking with {gains})",
+                    self.config.env.scan_range_m
+                )
+            }
+            None => gains,
         };
         extra.insert("distilled_from".into(), teacher);
         if let Some(quiet) = self.options.quiet_teacher {

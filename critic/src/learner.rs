@@ -239,6 +239,14 @@ enum Teacher {
     StartPending,
 }
 
+/// `n` actors of `shape` built in `vars` (`actor0`, `actor1`, ...), on the CPU.
+fn actors_in(vars: &VarMap, n: usize, shape: &ActorShape) -> Result<Vec<Actor>> {
+    let vb = VarBuilder::from_varmap(vars, DType::F32, &Device::Cpu);
+    (0..n)
+        .map(|k| Ok(Actor::new(vb.pp(format!("actor{k}")), shape)?))
+        .collect()
+}
+
 /// Re-draws every variable from `rng`, U(-1/sqrt(fan_in), 1/sqrt(fan_in)) (PyTorch's default
 /// for linear layers), because candle's CPU generator cannot be seeded.
 pub(crate) fn reinitialise(vars: &VarMap, rng: &mut StdRng) -> Result<()> {
@@ -383,12 +391,7 @@ impl Learner {
             CriticArchitecture::Mlp => history * (features.dim() + n_agents * (ACTION_DIM + rays)),
             CriticArchitecture::Pooled => history * (features.token_dim() + ACTION_DIM + rays),
         };
-        let build_actors = |vars: &VarMap| -> Result<Vec<Actor>> {
-            let vb = VarBuilder::from_varmap(vars, DType::F32, &device);
-            (0..n_actors)
-                .map(|k| Ok(Actor::new(vb.pp(format!("actor{k}")), &actor_shape)?))
-                .collect()
-        };
+        let build_actors = |vars: &VarMap| actors_in(vars, n_actors, &actor_shape);
         let build_critics = |vars: &VarMap| -> Result<Vec<CriticNet>> {
             let vb = VarBuilder::from_varmap(vars, DType::F32, &device);
             (0..n_critics)
@@ -445,10 +448,7 @@ impl Learner {
     pub fn freeze_start(&mut self) -> Result<()> {
         if matches!(self.teacher, Some(Teacher::StartPending)) {
             let vars = VarMap::new();
-            let vb = VarBuilder::from_varmap(&vars, DType::F32, &Device::Cpu);
-            let actors = (0..self.n_actors())
-                .map(|k| Ok(Actor::new(vb.pp(format!("actor{k}")), &self.actor_shape)?))
-                .collect::<Result<Vec<_>>>()?;
+            let actors = actors_in(&vars, self.n_actors(), &self.actor_shape)?;
             copy_vars(&self.actor_vars, &vars)?;
             self.teacher = Some(Teacher::Start(actors));
         }

@@ -95,6 +95,7 @@ fn try_main(cli: Cli) -> Result<()> {
     if cli.run.mode == Mode::Train {
         config.learn.check_training_seeds(cli.run.seed, cli.extra_swarm.len())?;
         config.check_training_critic()?;
+        config.learn.check_imitation_start(resume.is_some())?;
     }
     if cli.check {
         if let Some(path) = &resume {

@@ -8,7 +8,7 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
-use formation_core::config::{Algorithm, ImitationTeacher};
+use formation_core::config::Algorithm;
 use formation_ipc::services::Sizing;
 use formation_model::actor::ActorShape;
 use formation_model::checkpoint::{self, BEST_FILE_NAME, FILE_NAME, SelectionScore};
@@ -87,12 +87,6 @@ impl<S: Service> Trainer<S> {
                 "critic: resumed from {} ({} updates)",
                 path.display(),
                 learner.updates()
-            );
-        }
-        if learn.imitation_alpha > 0.0 && learn.imitation_teacher == ImitationTeacher::Start {
-            anyhow::ensure!(
-                options.resume.is_some(),
-                "learn.imitation_teacher = \"start\" pulls the actor towards the one it starts from: pass --checkpoint"
             );
         }
         learner.freeze_start()?;

@@ -7,7 +7,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 use anyhow::{Context, Result, anyhow, bail, ensure};
 use clap::ValueEnum;
-use formation_core::config::{EnvConfig, FormationShape, ImitationTeacher, RunConfig, extra_swarm_seed};
+use formation_core::config::{EnvConfig, FormationShape, RunConfig, extra_swarm_seed};
 use formation_core::observation::Layout;
 use formation_core::reality::RealityConfig;
 use formation_ipc::cli::{Mode, ViewerMode, parse_robot_set, robot_set_arg};
@@ -621,12 +621,7 @@ fn read_config(args: &LaunchArgs, learned: usize) -> Result<RunConfig> {
     if args.mode == Mode::Train {
         config.learn.check_training_seeds(args.seed, args.extra_swarms.len())?;
         config.check_training_critic()?;
-        ensure!(
-            args.checkpoint.is_some()
-                || config.learn.imitation_alpha == 0.0
-                || config.learn.imitation_teacher != ImitationTeacher::Start,
-            "learn.imitation_teacher = \"start\" pulls the actor towards the one the run starts from: pass --checkpoint"
-        );
+        config.learn.check_imitation_start(args.checkpoint.is_some())?;
     }
     Ok(config)
 }
