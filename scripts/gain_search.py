@@ -33,6 +33,10 @@ OUT/front.png, OUT/search.csv and OUT/search.json; the shipped tuned potential f
       --out runs/gain-search-forest
   cp runs/gain-search-forest/tuned-forest.toml configs/potential-field-forest.toml
   cp runs/gain-search-forest/front.png docs/potential_field_forest.png
+
+With --circulating the search takes in the field's three obstacle options too (TEN gains,
+CIRCULATING_RANGES: k_circulation, obstacle_yield, brake_range_m), for the circulating, braking
+potential field (configs/potential-field-circulating-KIND.toml).
 """
 
 from __future__ import annotations
@@ -64,6 +68,11 @@ RANGES = {
 #: (core/src/baseline.rs).
 OBSTACLE_RANGES = {**RANGES, "k_obstacle": (0.3, 10.0), "obstacle_range_m": (0.2, 1.2)}
 OBSTACLE_GAINS = {**rr.DEFAULT_GAINS, "k_obstacle": 1.0, "obstacle_range_m": 0.5}
+#: With --circulating: the seven and the field's three obstacle options (core/src/baseline.rs),
+#: which start on at a set that worked in the forest (docs/OBSTACLES.md).
+CIRCULATING_RANGES = {**OBSTACLE_RANGES, "k_circulation": (0.3, 6.0), "obstacle_yield": (0.3, 20.0),
+                      "brake_range_m": (0.1, 1.0)}
+CIRCULATING_GAINS = {**OBSTACLE_GAINS, "k_circulation": 2.0, "obstacle_yield": 5.0, "brake_range_m": 0.3}
 #: The defaults' k_form, k_goal and k_turn multiplied together by these.
 SCALES = (0.35, 0.5, 0.6, 0.75, 0.9, 1.25)
 
@@ -220,10 +229,11 @@ def obstacle_report(args, kind: str, ns: list[int], results: list[dict], out: Pa
         r["obstacle_collisions"] = sum(s["obstacle_collisions"] for s in r["per_n"]) / len(ns)
     ranked = sorted(results, key=obstacle_rank_key)
     tuned = ranked[0]
+    names = list(CIRCULATING_RANGES if args.circulating else OBSTACLE_RANGES)
     score = (f"success {tuned['success']:.3f}, collisions {tuned['collisions']:.3f} (obstacle {tuned['obstacle_collisions']:.3f}), "
              f"mean steps to goal {rr.fmt_steps(None if math.isinf(tuned['steps']) else tuned['steps'])}")
     (out / f"tuned-{kind}.toml").write_text(
-        f"# Tuned potential field for '{kind}' obstacles: the scripted baseline's seven gains that scored best in\n"
+        f"# Tuned potential field for '{kind}' obstacles: the scripted baseline's {len(names)} gains that scored best in\n"
         f"# scripts/gain_search.py's search (set {tuned['set']} of {len(results)}; most successful over the N list, ties\n"
         "# by fewer obstacle + robot collisions, then fewer steps). Searched with\n"
         f"#   {shlex.join(['scripts/gain_search.py', *sys.argv[1:]])}\n"
@@ -232,7 +242,6 @@ def obstacle_report(args, kind: str, ns: list[int], results: list[dict], out: Pa
         f"# Play: formation-play --team scripted --obstacles {kind} --config THIS_FILE --n 4,8,16 --seed 1000\n"
         + rr.to_toml({"baseline": tuned["gains"]})
     )
-    names = list(OBSTACLE_RANGES)
     with open(out / "search.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["set", *names, "n", "success", "collisions", "obstacle_collisions", "steps_to_goal"])
@@ -263,6 +272,12 @@ def main() -> int:
     ap.add_argument("--obstacles", choices=("forest", "passage", "trap"),
                     help="search the potential field's seven gains among these obstacles with formation-play "
                          "instead (no --row)")
+    ap.add_argument("--circulating", action="store_true",
+                    help="with --obstacles: search the field's three obstacle options too (k_circulation, "
+                         "obstacle_yield, brake_range_m), ten gains")
+    ap.add_argument("--start", type=Path,
+                    help="a config whose [baseline] gains are the search's first set and the defaults of the "
+                         "scaled family (e.g. a tuned field to refine)")
     ap.add_argument("--n", default="3,12,32", help="swarm sizes, comma-separated (default 3,12,32)")
     ap.add_argument("--episodes", type=int, default=20, help="episodes per gain set and N (default 20)")
     ap.add_argument("--seed", type=int, default=2000, help="episode seed (default 2000; the held-out seeds are 1000 and up, below 2000)")
@@ -290,7 +305,21 @@ def main() -> int:
     ns = rr.parse_list(args.n)
     kind = args.obstacles
     name = kind or args.row
-    ranges, defaults, key = (OBSTACLE_RANGES, OBSTACLE_GAINS, obstacle_rank_key) if kind else (RANGES, rr.DEFAULT_GAINS, rank_key)
+    if args.circulating and not kind:
+        ap.error("--circulating is for the potential field among --obstacles")
+    if args.circulating:
+        ranges, defaults, key = CIRCULATING_RANGES, CIRCULATING_GAINS, obstacle_rank_key
+    elif kind:
+        ranges, defaults, key = OBSTACLE_RANGES, OBSTACLE_GAINS, obstacle_rank_key
+    else:
+        ranges, defaults, key = RANGES, rr.DEFAULT_GAINS, rank_key
+    if args.start:
+        import tomllib
+        start = tomllib.loads(args.start.read_text()).get("baseline", {})
+        unknown = sorted(set(start) - set(ranges))
+        if unknown:
+            ap.error(f"--start {args.start}: [baseline] keys {unknown} are not searched here")
+        defaults = {**defaults, **start}
     out = args.out or rr.ROOT / "runs" / f"gain-search-{name}-{time.strftime('%Y%m%d-%H%M%S')}"
     (out / "sets").mkdir(parents=True, exist_ok=True)
     reality = {} if kind else rr.rows(args.field or rr.preset_path("field"), args.lab or rr.preset_path("lab"))[args.row]

@@ -12,7 +12,10 @@
 //! * among obstacles (a model with a range sensor, `slot_proximity_scan`): a potential field,
 //!   each ray that reads r < `obstacle_range_m` pushing back along the ray by
 //!   k_obstacle (`obstacle_range_m` - r), except rays whose hit is explained by a robot the
-//!   robot tracks (its neighbours, the nearest other robot).
+//!   robot tracks (its neighbours, the nearest other robot);
+//! * three options among obstacles, off by default: circulation (every push that blocks the
+//!   robot's aim also turns it the same way, left), yielding (the formation pull weakens near
+//!   obstacles) and braking (the forward speed falls with the free distance ahead).
 //!
 //! The desired velocity u is then tracked by a unicycle: turn towards u, drive forward with
 //! the component of u along the heading (never backwards).
@@ -42,6 +45,20 @@ pub struct BaselineGains {
     pub k_obstacle: f64,
     /// Rays that read less than this push the robot away, metres.
     pub obstacle_range_m: f64,
+    /// Circulation gain, 1/s (0: off): every push from a robot or a ray whose hit lies towards
+    /// the robot's aim also pushes sideways, a quarter turn to the left of it, by this gain
+    /// times the push's shortfall times how squarely it blocks the aim. Every robot turns the
+    /// same way around every obstacle and robot, so a disc straight ahead or a robot head-on
+    /// is no longer a balance point.
+    pub k_circulation: f64,
+    /// How much a robot near obstacles lets go of its formation (0: not at all): the formation
+    /// pull is divided by 1 + `obstacle_yield` x |obstacle push|, so robots may go through a
+    /// gap in file.
+    pub obstacle_yield: f64,
+    /// Braking distance, metres (0: off): the forward speed is cut to v_max x (free distance
+    /// ahead - [`BRAKE_MARGIN_M`]) / `brake_range_m`, the free distance read from the rays whose
+    /// hit lies in the robot's path (any hit, robot or obstacle).
+    pub brake_range_m: f64,
 }
 
 impl Default for BaselineGains {
@@ -54,6 +71,9 @@ impl Default for BaselineGains {
             k_repulsion: 3.0,
             k_obstacle: 1.0,
             obstacle_range_m: 0.5,
+            k_circulation: 0.0,
+            obstacle_yield: 0.0,
+            brake_range_m: 0.0,
         }
     }
 }
@@ -61,6 +81,9 @@ impl Default for BaselineGains {
 /// How far from a tracked robot's centre a ray's hit still counts as that robot, beyond its
 /// radius, metres (the robot moved within the tick; a hit on it is not an obstacle).
 const TRACKED_HIT_SLACK_M: f64 = 0.1;
+
+/// The gap a braking robot keeps to the hit ahead, metres, beyond its radius.
+pub const BRAKE_MARGIN_M: f64 = 0.05;
 
 /// The range of each gain (in the order of [`BaselineGains::to_unit`]) that a gain-scheduling
 /// actor's output spans, log-uniformly from -1 to 1: the default gains, the searched sets' and
@@ -165,6 +188,24 @@ impl BaselineGains {
                 self.obstacle_range_m >= 0.0,
                 "must be >= 0",
             ),
+            (
+                "baseline.k_circulation",
+                self.k_circulation,
+                self.k_circulation >= 0.0,
+                "must be >= 0",
+            ),
+            (
+                "baseline.brake_range_m",
+                self.brake_range_m,
+                self.brake_range_m >= 0.0,
+                "must be >= 0",
+            ),
+            (
+                "baseline.obstacle_yield",
+                self.obstacle_yield,
+                self.obstacle_yield >= 0.0,
+                "must be >= 0",
+            ),
         ] {
             if !(value.is_finite() && ok) {
                 return Err(ConfigError::Invalid {
@@ -208,78 +249,99 @@ impl ScriptedBaseline {
     pub fn desired_velocity(&self, obs: &[f32]) -> [f64; 2] {
         let g = self.gains;
         let view = ObservationView::new(self.layout, obs);
-        let mut u = [0.0f64; 2];
-        let mut centroid = [0.0f64; 2];
-        for k in 0..NEIGHBOURS {
-            let neighbour = view.neighbour(k);
-            let q = neighbour.position;
-            let dist = q[0].hypot(q[1]).max(1e-6);
-            let unit = [q[0] / dist, q[1] / dist];
-            let pull = g.k_form * (dist - neighbour.desired);
-            let push = if dist < g.repulsion_range {
-                g.k_repulsion * (g.repulsion_range - dist)
-            } else {
-                0.0
-            };
-            u[0] += (pull - push) * unit[0];
-            u[1] += (pull - push) * unit[1];
-            centroid[0] += q[0] / (NEIGHBOURS + 1) as f64;
-            centroid[1] += q[1] / (NEIGHBOURS + 1) as f64;
-        }
-        let mut nearest_other = None;
-        if let Some(near) = view.proximity() {
-            // `near` is (1 - d/R) along the unit vector to the robot: push away inside R's
-            // share that is also inside the repulsion range.
-            let closeness = near[0].hypot(near[1]);
-            if closeness > 0.0 {
-                let dist = (1.0 - closeness) * self.proximity_range;
-                let push = g.k_repulsion * (g.repulsion_range - dist).max(0.0);
-                u[0] -= push * near[0] / closeness;
-                u[1] -= push * near[1] / closeness;
-                nearest_other = Some([near[0] / closeness * dist, near[1] / closeness * dist]);
+        let neighbours: [_; NEIGHBOURS] = std::array::from_fn(|k| view.neighbour(k));
+        let target = match view.slot() {
+            Some(slot) => slot,
+            None => {
+                // The centroid of the robot's triangle (itself at the origin).
+                let share = (NEIGHBOURS + 1) as f64;
+                let goal = view.goal();
+                let centroid = neighbours.iter().fold([0.0, 0.0], |c, n| {
+                    [c[0] + n.position[0] / share, c[1] + n.position[1] / share]
+                });
+                [goal[0] - centroid[0], goal[1] - centroid[1]]
             }
-        }
-        if let Some(scan) = view.scan() {
-            let tracked = [view.neighbour(0).position, view.neighbour(1).position];
-            let push = self.obstacle_push(scan, tracked.iter().chain(nearest_other.iter()));
+        };
+        let aim = unit(target);
+        let mut formation = [0.0f64; 2];
+        let mut u = [0.0f64; 2];
+        let nearest_other = self.nearest_other(&view);
+        let robots = neighbours.iter().map(|n| (n.position, Some(n.desired)));
+        for (q, desired) in robots.chain(nearest_other.map(|q| (q, None))) {
+            let dist = q[0].hypot(q[1]).max(1e-6);
+            let towards = [q[0] / dist, q[1] / dist];
+            if let Some(desired) = desired {
+                let pull = g.k_form * (dist - desired);
+                formation[0] += pull * towards[0];
+                formation[1] += pull * towards[1];
+            }
+            let shortfall = (g.repulsion_range - dist).max(0.0);
+            let push = self.away(towards, g.k_repulsion * shortfall, shortfall, aim);
             u[0] += push[0];
             u[1] += push[1];
         }
-        let goal = view.goal();
-        let target = match view.slot() {
-            Some(slot) => slot,
-            None => [goal[0] - centroid[0], goal[1] - centroid[1]],
-        };
+        let mut formation_share = 1.0;
+        if let Some(scan) = view.scan() {
+            let tracked = neighbours.iter().map(|n| n.position).chain(nearest_other);
+            let push = self.obstacle_push(scan, tracked, aim);
+            u[0] += push[0];
+            u[1] += push[1];
+            formation_share = 1.0 / (1.0 + g.obstacle_yield * push[0].hypot(push[1]));
+        }
         let mut to_goal = [g.k_goal * target[0], g.k_goal * target[1]];
         let speed = to_goal[0].hypot(to_goal[1]);
         if speed > self.v_max {
             to_goal = [to_goal[0] * self.v_max / speed, to_goal[1] * self.v_max / speed];
         }
-        [u[0] + to_goal[0], u[1] + to_goal[1]]
+        [
+            u[0] + formation_share * formation[0] + to_goal[0],
+            u[1] + formation_share * formation[1] + to_goal[1],
+        ]
+    }
+
+    /// The push from something in the unit direction `towards`: `strength` straight away from
+    /// it and, with circulation, `k_circulation` x `shortfall` sideways (a quarter turn to the
+    /// left of `towards`), weighted by how squarely it blocks the unit `aim`.
+    fn away(&self, towards: [f64; 2], strength: f64, shortfall: f64, aim: [f64; 2]) -> [f64; 2] {
+        let blocking = (towards[0] * aim[0] + towards[1] * aim[1]).max(0.0);
+        let sideways = self.gains.k_circulation * shortfall * blocking;
+        [
+            -strength * towards[0] - sideways * towards[1],
+            -strength * towards[1] + sideways * towards[0],
+        ]
+    }
+
+    /// Whether a ray's `hit` lies on a `tracked` robot (within its radius and some slack).
+    fn explained(&self, hit: [f64; 2], mut tracked: impl Iterator<Item = [f64; 2]>) -> bool {
+        tracked.any(|q| (hit[0] - q[0]).hypot(hit[1] - q[1]) < self.robot_radius + TRACKED_HIT_SLACK_M)
+    }
+
+    /// Where the nearest robot the robot does not track is, in its frame, when the observation
+    /// model reports one within the proximity range (as (1 - d/R) along the unit vector to it).
+    fn nearest_other(&self, view: &ObservationView) -> Option<[f64; 2]> {
+        let near = view.proximity()?;
+        let closeness = near[0].hypot(near[1]);
+        (closeness > 0.0).then(|| {
+            let dist = (1.0 - closeness) * self.proximity_range;
+            [near[0] / closeness * dist, near[1] / closeness * dist]
+        })
     }
 
     /// The potential field's push from the rays of `scan` (normalised ranges) that read less
-    /// than `obstacle_range_m`, leaving out hits within a robot's radius (and some slack) of
-    /// a `tracked` robot's centre.
-    fn obstacle_push<'a>(&self, scan: &[f32], tracked: impl Iterator<Item = &'a [f64; 2]> + Clone) -> [f64; 2] {
+    /// than `obstacle_range_m`, leaving out hits on a `tracked` robot; with circulation, also
+    /// sideways around hits that block the unit `aim`.
+    fn obstacle_push(&self, scan: &[f32], tracked: impl Iterator<Item = [f64; 2]> + Clone, aim: [f64; 2]) -> [f64; 2] {
         let g = self.gains;
         let mut push = [0.0f64; 2];
-        let rays = scan.len();
-        for (k, &reading) in scan.iter().enumerate() {
-            let range = f64::from(reading) * self.scan_range;
-            if range >= g.obstacle_range_m {
+        for (towards, range) in rays(scan, self.scan_range) {
+            if range >= g.obstacle_range_m || self.explained([range * towards[0], range * towards[1]], tracked.clone())
+            {
                 continue;
             }
-            let (s, c) = (std::f64::consts::TAU * k as f64 / rays as f64).sin_cos();
-            let hit = [range * c, range * s];
-            let explained = tracked
-                .clone()
-                .any(|q| (hit[0] - q[0]).hypot(hit[1] - q[1]) < self.robot_radius + TRACKED_HIT_SLACK_M);
-            if !explained {
-                let strength = g.k_obstacle * (g.obstacle_range_m - range);
-                push[0] -= strength * c;
-                push[1] -= strength * s;
-            }
+            let shortfall = g.obstacle_range_m - range;
+            let ray_push = self.away(towards, g.k_obstacle * shortfall, shortfall, aim);
+            push[0] += ray_push[0];
+            push[1] += ray_push[1];
         }
         push
     }
@@ -289,10 +351,48 @@ impl ScriptedBaseline {
         let u = self.desired_velocity(obs);
         let bearing = u[1].atan2(u[0]);
         let speed = u[0].hypot(u[1]);
-        let v = (speed * bearing.cos()).clamp(0.0, self.v_max);
+        let mut v = (speed * bearing.cos()).clamp(0.0, self.v_max);
+        if self.gains.brake_range_m > 0.0
+            && let Some(scan) = ObservationView::new(self.layout, obs).scan()
+        {
+            let free = self.free_distance_ahead(scan) - BRAKE_MARGIN_M;
+            v = v.min(self.v_max * (free / self.gains.brake_range_m).clamp(0.0, 1.0));
+        }
         let w = (self.gains.k_turn * bearing).clamp(-self.w_max, self.w_max);
         (v, w)
     }
+
+    /// How far the robot can drive straight ahead before its disc reaches a ray's hit (robot
+    /// or obstacle) in its path (its width plus some slack, the rays being sparse), metres;
+    /// the scan's reach when no hit lies there.
+    fn free_distance_ahead(&self, scan: &[f32]) -> f64 {
+        rays(scan, self.scan_range)
+            .filter(|&(towards, range)| {
+                towards[0] > 1e-9 && (range * towards[1]).abs() < self.robot_radius + TRACKED_HIT_SLACK_M
+            })
+            .map(|(towards, range)| (range * towards[0] - self.robot_radius).max(0.0))
+            .fold(self.scan_range, f64::min)
+    }
+}
+
+/// The unit vector along `v` (zero for a zero vector).
+fn unit(v: [f64; 2]) -> [f64; 2] {
+    let length = v[0].hypot(v[1]);
+    if length > 0.0 {
+        [v[0] / length, v[1] / length]
+    } else {
+        [0.0, 0.0]
+    }
+}
+
+/// Each ray of `scan` (normalised ranges, evenly spread from straight ahead anticlockwise) as
+/// its unit direction and its range in metres.
+fn rays(scan: &[f32], scan_range: f64) -> impl Iterator<Item = ([f64; 2], f64)> + '_ {
+    let count = scan.len() as f64;
+    scan.iter().enumerate().map(move |(k, &reading)| {
+        let (s, c) = (std::f64::consts::TAU * k as f64 / count).sin_cos();
+        ([c, s], f64::from(reading) * scan_range)
+    })
 }
 
 #[cfg(test)]
@@ -471,6 +571,166 @@ mod tests {
             shape,
             ..EnvConfig::default()
         }
+    }
+
+    /// A `slot_proximity_scan` observation: neighbours behind left and right at their desired
+    /// distances, the slot (and goal) `slot` ahead, every ray clear but `hits` (ray, metres).
+    fn scan_obs(slot: [f32; 2], hits: &[(usize, f32)]) -> (ScriptedBaseline, [f32; MAX_OBS_DIM]) {
+        let env = env_with(ObservationModel::SlotProximityScan, FormationShape::Random);
+        let layout = Layout::of(env.observation);
+        let mut obs = [0.0; MAX_OBS_DIM];
+        for (k, y) in [(0, 0.5), (1, -0.5)] {
+            let at = layout.neighbour(k);
+            obs[at..at + 5].copy_from_slice(&[-1.0, y, 1.0, 0.0, 1.25f32.sqrt()]);
+        }
+        obs[layout.goal()..layout.goal() + 2].copy_from_slice(&slot);
+        let at = layout.slot().expect("a slot");
+        obs[at..at + 2].copy_from_slice(&slot);
+        let scan = layout.scan().expect("a scan");
+        obs[scan..scan + 16].fill(1.0);
+        for &(ray, metres) in hits {
+            obs[scan + ray] = metres / env.scan_range_m as f32;
+        }
+        (ScriptedBaseline::new(&env, BaselineGains::default()), obs)
+    }
+
+    fn with_gains(baseline: &ScriptedBaseline, gains: BaselineGains) -> ScriptedBaseline {
+        ScriptedBaseline {
+            gains,
+            ..baseline.clone()
+        }
+    }
+
+    #[test]
+    fn circulation_turns_left_around_a_hit_that_blocks_the_aim_only() {
+        let (plain, ahead) = scan_obs([2.0, 0.0], &[(0, 0.3)]);
+        let circulating = with_gains(
+            &plain,
+            BaselineGains {
+                k_circulation: 2.0,
+                ..BaselineGains::default()
+            },
+        );
+        let [ux, uy] = plain.desired_velocity(&ahead);
+        let [cx, cy] = circulating.desired_velocity(&ahead);
+        // Shortfall 0.5 - 0.3 = 0.2, squarely in the aim's way: 2 x 0.2 to the left.
+        assert!(
+            (cx - ux).abs() < 1e-6 && (cy - uy - 0.4).abs() < 1e-6,
+            "{ux},{uy} -> {cx},{cy}"
+        );
+        // A hit to the right of an aim straight ahead does not block it: no sideways push.
+        let (_, right) = scan_obs([2.0, 0.0], &[(12, 0.3)]);
+        assert_eq!(circulating.desired_velocity(&right), plain.desired_velocity(&right));
+        // Every robot turns the same way: with the aim to the left, a hit there sends it left
+        // of the ray, backwards in its frame.
+        let (_, left) = scan_obs([0.0, 2.0], &[(4, 0.3)]);
+        let [px, _] = plain.desired_velocity(&left);
+        let [qx, _] = circulating.desired_velocity(&left);
+        assert!((qx - px + 0.4).abs() < 1e-6, "{px} -> {qx}");
+    }
+
+    #[test]
+    fn braking_stops_short_of_a_hit_in_the_robot_s_path_and_not_of_one_beside_it() {
+        let (plain, _) = scan_obs([2.0, 0.0], &[]);
+        let braking = with_gains(
+            &plain,
+            BaselineGains {
+                brake_range_m: 0.3,
+                ..BaselineGains::default()
+            },
+        );
+        let v_max = plain.v_max;
+        let (_, clear) = scan_obs([2.0, 0.0], &[]);
+        assert_eq!(braking.command(&clear), plain.command(&clear));
+        assert!(
+            (plain.command(&clear).0 - v_max).abs() < 1e-9,
+            "drives at full speed when clear"
+        );
+        // A hit 0.3 m ahead: 0.3 - 0.1 (radius) - 0.05 (margin) = 0.15 m free, half of 0.3.
+        let (_, ahead) = scan_obs([2.0, 0.0], &[(0, 0.3)]);
+        assert!(
+            (braking.command(&ahead).0 - 0.5 * v_max).abs() < 1e-6,
+            "{:?}",
+            braking.command(&ahead)
+        );
+        // At its margin it stops, whatever the hit is (a robot too).
+        let (_, touching) = scan_obs([2.0, 0.0], &[(0, 0.15)]);
+        assert!(braking.command(&touching).0 < 1e-6, "{:?}", braking.command(&touching));
+        // A hit straight to the left, or ahead-left beyond its width and slack, is not in its
+        // path.
+        let (_, beside) = scan_obs([2.0, 0.0], &[(4, 0.15), (2, 0.3)]);
+        assert_eq!(braking.command(&beside).0, plain.command(&beside).0);
+    }
+
+    #[test]
+    fn yielding_divides_the_formation_pull_by_the_obstacle_push() {
+        // Neighbours 0.5 m too far: a formation pull; a hit ahead at 0.3 m pushes back by 0.2.
+        let layout = Layout::of(ObservationModel::SlotProximityScan);
+        let too_far = |(baseline, mut obs): (ScriptedBaseline, [f32; MAX_OBS_DIM])| {
+            for k in 0..NEIGHBOURS {
+                obs[layout.neighbour(k) + 4] -= 0.5;
+            }
+            (baseline, obs)
+        };
+        let (plain, obs) = too_far(scan_obs([2.0, 0.0], &[(0, 0.3)]));
+        let (_, clear) = too_far(scan_obs([2.0, 0.0], &[]));
+        let yielding = with_gains(
+            &plain,
+            BaselineGains {
+                obstacle_yield: 5.0,
+                ..BaselineGains::default()
+            },
+        );
+        assert_eq!(yielding.desired_velocity(&clear), plain.desired_velocity(&clear));
+        let without_formation = with_gains(
+            &plain,
+            BaselineGains {
+                k_form: 0.0,
+                ..BaselineGains::default()
+            },
+        );
+        let rest = without_formation.desired_velocity(&obs);
+        let [fx, _] = plain.desired_velocity(&obs);
+        let [yx, _] = yielding.desired_velocity(&obs);
+        // |push| = 0.2: the pull is divided by 1 + 5 x 0.2 = 2.
+        assert!((yx - rest[0] - (fx - rest[0]) / 2.0).abs() < 1e-6, "{fx} {yx} {rest:?}");
+    }
+
+    /// The `[baseline]` gains of a shipped config file.
+    fn shipped_gains(text: &str) -> BaselineGains {
+        toml::from_str::<BaselineFile>(text)
+            .expect("a [baseline] section")
+            .baseline
+    }
+
+    /// Success, robot collisions and obstacle hits of the field with `gains` among forests,
+    /// every robot reading its own `slot_proximity_scan` observation.
+    fn forest_rates(gains: BaselineGains, n: usize, episodes: usize, seed: u64) -> [f64; 3] {
+        use crate::obstacles::ObstacleKind;
+        use crate::obstacles::tests::rates_among_obstacles;
+        let base = env_with(ObservationModel::SlotProximityScan, FormationShape::Random);
+        rates_among_obstacles(base, ObstacleKind::Forest, n, episodes, seed, |_, env| {
+            let field = ScriptedBaseline::new(env, gains);
+            move |world: &World| {
+                (0..world.n_agents())
+                    .map(|i| field.command(&world.observation(i)))
+                    .collect()
+            }
+        })
+    }
+
+    #[test]
+    fn the_circulating_braking_field_hits_no_obstacle_and_gets_through_more_forests() {
+        let tuned = shipped_gains(include_str!("../../configs/potential-field-forest.toml"));
+        let circulating = shipped_gains(include_str!("../../configs/potential-field-circulating-forest.toml"));
+        let [tuned_success, _, tuned_hits] = forest_rates(tuned, 4, 40, 2000);
+        let [success, _, hits] = forest_rates(circulating, 4, 40, 2000);
+        assert_eq!(hits, 0.0, "the braking field touched an obstacle");
+        assert!(tuned_hits > 0.0, "the plain field's hits are what braking removes");
+        assert!(
+            success > tuned_success + 0.1,
+            "circulating {success} against tuned {tuned_success}"
+        );
     }
 
     #[test]

@@ -693,20 +693,21 @@ mod tests {
     /// episodes planned in file, and the mean time to plan, milliseconds.
     pub(crate) fn planner_rates(kind: ObstacleKind, n: usize, episodes: usize, seed: u64) -> [f64; 5] {
         let (mut column, mut planning) = (0usize, std::time::Duration::ZERO);
-        let [success, collisions, hits] = rates_among_obstacles(kind, n, episodes, seed, |init, env| {
-            let started = std::time::Instant::now();
-            let mut planner = Planner::new(
-                &init.poses,
-                init.goal,
-                &init.slots,
-                &init.obstacles,
-                env,
-                BaselineGains::default(),
-            );
-            planning += started.elapsed();
-            column += usize::from(planner.mode() == PlanMode::Column);
-            move |world: &World| planner.commands(&world.poses, world.steps).to_vec()
-        });
+        let [success, collisions, hits] =
+            rates_among_obstacles(EnvConfig::default(), kind, n, episodes, seed, |init, env| {
+                let started = std::time::Instant::now();
+                let mut planner = Planner::new(
+                    &init.poses,
+                    init.goal,
+                    &init.slots,
+                    &init.obstacles,
+                    env,
+                    BaselineGains::default(),
+                );
+                planning += started.elapsed();
+                column += usize::from(planner.mode() == PlanMode::Column);
+                move |world: &World| planner.commands(&world.poses, world.steps).to_vec()
+            });
         let planning_ms = 1e3 * planning.as_secs_f64() / episodes as f64;
         [success, collisions, hits, column as f64 / episodes as f64, planning_ms]
     }

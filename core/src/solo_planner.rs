@@ -198,7 +198,7 @@ mod tests {
         episodes: usize,
         seed: u64,
     ) -> [f64; 3] {
-        rates_among_obstacles(kind, n, episodes, seed, |init, env| {
+        rates_among_obstacles(EnvConfig::default(), kind, n, episodes, seed, |init, env| {
             let (goal, slots, obstacles, env) = (init.goal, init.slots.clone(), init.obstacles.clone(), env.clone());
             let mut planner = planner();
             move |world: &World| {

@@ -44,6 +44,8 @@ def _indices(dim: int) -> _Indices:
 #: How far from a tracked robot's centre a ray's hit still counts as that robot, beyond its
 #: radius, metres (``TRACKED_HIT_SLACK_M``).
 TRACKED_HIT_SLACK_M = 0.1
+#: The gap a braking robot keeps to the hit ahead, metres, beyond its radius (``BRAKE_MARGIN_M``).
+BRAKE_MARGIN_M = 0.05
 
 
 class Baseline:
@@ -54,17 +56,25 @@ class Baseline:
     range sensor's, read only with a scan: each ray whose range is below ``obstacle_range_m``
     pushes back along the ray by ``k_obstacle (obstacle_range_m - range)``, unless its hit lies
     within ``robot_radius`` + 0.1 m of a robot the observation tracks (a neighbour, the nearest
-    other robot)."""
+    other robot).
+
+    The three obstacle options of ``[baseline]`` (0: off) are the Rust ones: ``k_circulation``
+    (every push from a robot or a ray that blocks the aim also pushes a quarter turn to the left
+    of it, by k_circulation x shortfall x how squarely it blocks), ``obstacle_yield`` (the
+    formation pull divided by 1 + obstacle_yield x |obstacle push|) and ``brake_range_m`` (the
+    forward speed cut to v_max x (free distance ahead - 0.05 m) / brake_range_m)."""
 
     def __init__(self, v_max: float = 0.5, w_max: float = 1.0, proximity_range: float = 1.0,
                  k_form: float = 1.5, k_goal: float = 0.6, k_turn: float = 2.5,
                  repulsion_range: float = 0.5, k_repulsion: float = 3.0, k_obstacle: float = 1.0,
-                 obstacle_range_m: float = 0.5, scan_range: float = 2.0, robot_radius: float = 0.1) -> None:
+                 obstacle_range_m: float = 0.5, scan_range: float = 2.0, robot_radius: float = 0.1,
+                 k_circulation: float = 0.0, obstacle_yield: float = 0.0, brake_range_m: float = 0.0) -> None:
         self.v_max, self.w_max, self.proximity_range = v_max, w_max, proximity_range
         self.k_form, self.k_goal, self.k_turn = k_form, k_goal, k_turn
         self.repulsion_range, self.k_repulsion = repulsion_range, k_repulsion
         self.k_obstacle, self.obstacle_range_m = k_obstacle, obstacle_range_m
         self.scan_range, self.robot_radius = scan_range, robot_radius
+        self.k_circulation, self.obstacle_yield, self.brake_range_m = k_circulation, obstacle_yield, brake_range_m
 
     @classmethod
     def for_run(cls, run) -> "Baseline":
@@ -75,60 +85,97 @@ class Baseline:
     def desired_velocity(self, obs: Sequence[float]) -> Tuple[float, float]:
         """The desired planar velocity in the robot's frame."""
         at = _indices(len(obs))
-        ux = uy = cx = cy = 0.0
-        tracked = []
-        for x, y, d in at.neighbours:  # neighbours (i+1) and (i+2)
-            qx, qy, desired = float(obs[x]), float(obs[y]), float(obs[d])
-            tracked.append((qx, qy))
-            dist = max(math.hypot(qx, qy), 1e-6)
-            pull = self.k_form * (dist - desired)
-            push = self.k_repulsion * (self.repulsion_range - dist) if dist < self.repulsion_range else 0.0
-            ux += (pull - push) * qx / dist
-            uy += (pull - push) * qy / dist
-            cx, cy = cx + qx / 3.0, cy + qy / 3.0
+        neighbours = [(float(obs[x]), float(obs[y]), float(obs[d])) for x, y, d in at.neighbours]
+        if at.slot is not None:  # the robot's own slot in the goal formation
+            tx, ty = float(obs[at.slot[0]]), float(obs[at.slot[1]])
+        else:  # the goal minus the centroid of the robot's triangle (exact for N = 3)
+            share = len(neighbours) + 1.0
+            tx = float(obs[at.goal[0]]) - sum(q[0] for q in neighbours) / share
+            ty = float(obs[at.goal[1]]) - sum(q[1] for q in neighbours) / share
+        aim = _unit(tx, ty)
+        fx = fy = ux = uy = 0.0
+        robots = [(qx, qy, desired) for qx, qy, desired in neighbours]  # neighbours (i+1) and (i+2)
         if at.proximity is not None:  # nearest untracked robot as (1 - d/R) * unit vector
             nx, ny = float(obs[at.proximity[0]]), float(obs[at.proximity[1]])
             closeness = math.hypot(nx, ny)
             if closeness > 0.0:
                 dist = (1.0 - closeness) * self.proximity_range
-                push = self.k_repulsion * max(self.repulsion_range - dist, 0.0)
-                ux, uy = ux - push * nx / closeness, uy - push * ny / closeness
-                tracked.append((nx / closeness * dist, ny / closeness * dist))
-        if at.scan is not None:
-            px, py = self.obstacle_push(obs[at.scan], tracked)
+                robots.append((nx / closeness * dist, ny / closeness * dist, None))
+        for qx, qy, desired in robots:
+            dist = max(math.hypot(qx, qy), 1e-6)
+            towards = (qx / dist, qy / dist)
+            if desired is not None:
+                pull = self.k_form * (dist - desired)
+                fx, fy = fx + pull * towards[0], fy + pull * towards[1]
+            shortfall = max(self.repulsion_range - dist, 0.0)
+            px, py = self._away(towards, self.k_repulsion * shortfall, shortfall, aim)
             ux, uy = ux + px, uy + py
-        if at.slot is not None:  # the robot's own slot in the goal formation
-            tx, ty = float(obs[at.slot[0]]), float(obs[at.slot[1]])
-        else:  # the goal minus the centroid of the robot's triangle (exact for N = 3)
-            tx, ty = float(obs[at.goal[0]]) - cx, float(obs[at.goal[1]]) - cy
+        formation_share = 1.0
+        if at.scan is not None:
+            px, py = self.obstacle_push(obs[at.scan], [(q[0], q[1]) for q in robots], aim)
+            ux, uy = ux + px, uy + py
+            formation_share = 1.0 / (1.0 + self.obstacle_yield * math.hypot(px, py))
         gx, gy = self.k_goal * tx, self.k_goal * ty
         speed = math.hypot(gx, gy)
         if speed > self.v_max:
             gx, gy = gx * self.v_max / speed, gy * self.v_max / speed
-        return ux + gx, uy + gy
+        return ux + formation_share * fx + gx, uy + formation_share * fy + gy
 
-    def obstacle_push(self, scan: Sequence[float], tracked: Sequence[Tuple[float, float]]) -> Tuple[float, float]:
+    def _away(self, towards, strength: float, shortfall: float, aim) -> Tuple[float, float]:
+        """``strength`` straight away from the unit direction ``towards`` and, with circulation,
+        sideways (a quarter turn to its left) by how squarely it blocks the unit ``aim``."""
+        blocking = max(towards[0] * aim[0] + towards[1] * aim[1], 0.0)
+        sideways = self.k_circulation * shortfall * blocking
+        return (-strength * towards[0] - sideways * towards[1], -strength * towards[1] + sideways * towards[0])
+
+    def obstacle_push(self, scan: Sequence[float], tracked: Sequence[Tuple[float, float]],
+                      aim: Tuple[float, float] = (1.0, 0.0)) -> Tuple[float, float]:
         """The potential field's push from the rays of ``scan`` (normalised ranges, ray k at
         2 pi k / len(scan) from the heading) that read less than ``obstacle_range_m``, leaving
-        out hits near a ``tracked`` robot's centre (robot frame)."""
+        out hits near a ``tracked`` robot's centre (robot frame); with circulation, also
+        sideways around hits that block the unit ``aim``."""
         px = py = 0.0
-        rays = len(scan)
-        for k, reading in enumerate(scan):
-            distance = float(reading) * self.scan_range
+        for (c, s), distance in _rays(scan, self.scan_range):
             if distance >= self.obstacle_range_m:
                 continue
-            c, s = math.cos(2.0 * math.pi * k / rays), math.sin(2.0 * math.pi * k / rays)
             hx, hy = distance * c, distance * s
             if any(math.hypot(hx - qx, hy - qy) < self.robot_radius + TRACKED_HIT_SLACK_M for qx, qy in tracked):
                 continue
-            strength = self.k_obstacle * (self.obstacle_range_m - distance)
-            px, py = px - strength * c, py - strength * s
+            shortfall = self.obstacle_range_m - distance
+            rx, ry = self._away((c, s), self.k_obstacle * shortfall, shortfall, aim)
+            px, py = px + rx, py + ry
         return px, py
+
+    def free_distance_ahead(self, scan: Sequence[float]) -> float:
+        """How far the robot drives straight ahead before its disc reaches a ray's hit (robot or
+        obstacle) within its radius + 0.1 m of its path, metres; the scan's reach without one."""
+        free = self.scan_range
+        for (c, s), distance in _rays(scan, self.scan_range):
+            if c > 1e-9 and abs(distance * s) < self.robot_radius + TRACKED_HIT_SLACK_M:
+                free = min(free, max(distance * c - self.robot_radius, 0.0))
+        return free
 
     def __call__(self, obs: Sequence[float]) -> Tuple[float, float]:
         """The (v, w) command, clamped to the robot's limits; never drives backwards."""
         ux, uy = self.desired_velocity(obs)
         bearing = math.atan2(uy, ux)
         v = min(max(math.hypot(ux, uy) * math.cos(bearing), 0.0), self.v_max)
+        scan = _indices(len(obs)).scan
+        if self.brake_range_m > 0.0 and scan is not None:
+            free = self.free_distance_ahead(obs[scan]) - BRAKE_MARGIN_M
+            v = min(v, self.v_max * min(max(free / self.brake_range_m, 0.0), 1.0))
         w = min(max(self.k_turn * bearing, -self.w_max), self.w_max)
         return v, w
+
+
+def _unit(x: float, y: float) -> Tuple[float, float]:
+    length = math.hypot(x, y)
+    return (x / length, y / length) if length > 0.0 else (0.0, 0.0)
+
+
+def _rays(scan: Sequence[float], scan_range: float):
+    """Each ray as its unit direction (ray k at 2 pi k / len(scan) from the heading) and its
+    range in metres."""
+    for k, reading in enumerate(scan):
+        angle = 2.0 * math.pi * k / len(scan)
+        yield (math.cos(angle), math.sin(angle)), float(reading) * scan_range

@@ -185,3 +185,47 @@ def test_the_baseline_pushes_away_from_the_obstacles_it_scans():
     hit = list(tracked)
     hit[scan.start + 0] = 0.15
     assert baseline.desired_velocity(hit) == pytest.approx(baseline.desired_velocity(tracked))
+
+
+def test_the_baseline_s_obstacle_options_match_the_rust_tests():
+    """core/src/baseline.rs's tests of k_circulation, brake_range_m and obstacle_yield, on the
+    same observations: the same answers."""
+    layout = wire.OBSERVATION_MODELS["slot_proximity_scan"]
+    scan = layout.span("scan")
+
+    def observation(slot=(2.0, 0.0), hits=(), stretch=0.0):
+        obs = [0.0] * layout.dim
+        for block, (x, y) in (("neighbour_0", (-1.0, 0.5)), ("neighbour_1", (-1.0, -0.5)),
+                              ("goal", slot), ("slot", slot)):
+            obs[layout.index(block, "x")], obs[layout.index(block, "y")] = x, y
+        for block in ("neighbour_0", "neighbour_1"):
+            obs[layout.index(block, "cos")] = 1.0
+            obs[layout.index(block, "desired")] = 1.25 ** 0.5 - stretch
+        obs[scan] = [1.0] * 16
+        for ray, metres in hits:
+            obs[scan.start + ray] = metres / 2.0
+        return obs
+
+    plain = formation_swarm.Baseline()
+    circulating = formation_swarm.Baseline(k_circulation=2.0)
+    ux, uy = plain.desired_velocity(observation(hits=[(0, 0.3)]))
+    assert circulating.desired_velocity(observation(hits=[(0, 0.3)])) == pytest.approx((ux, uy + 0.4))
+    right = observation(hits=[(12, 0.3)])
+    assert circulating.desired_velocity(right) == pytest.approx(plain.desired_velocity(right))
+    px, py = plain.desired_velocity(observation(slot=(0.0, 2.0), hits=[(4, 0.3)]))
+    assert circulating.desired_velocity(observation(slot=(0.0, 2.0), hits=[(4, 0.3)])) == pytest.approx((px - 0.4, py))
+
+    braking = formation_swarm.Baseline(brake_range_m=0.3)
+    assert braking(observation()) == pytest.approx(plain(observation()))
+    assert plain(observation())[0] == pytest.approx(0.5)
+    assert braking(observation(hits=[(0, 0.3)]))[0] == pytest.approx(0.25)
+    assert braking(observation(hits=[(0, 0.15)]))[0] == pytest.approx(0.0, abs=1e-9)
+    beside = observation(hits=[(4, 0.15), (2, 0.3)])
+    assert braking(beside)[0] == pytest.approx(plain(beside)[0])
+
+    yielding = formation_swarm.Baseline(obstacle_yield=5.0)
+    rest_x, _ = formation_swarm.Baseline(k_form=0.0).desired_velocity(observation(hits=[(0, 0.3)], stretch=0.5))
+    fx, _ = plain.desired_velocity(observation(hits=[(0, 0.3)], stretch=0.5))
+    yx, _ = yielding.desired_velocity(observation(hits=[(0, 0.3)], stretch=0.5))
+    assert yx - rest_x == pytest.approx((fx - rest_x) / 2.0)
+    assert yielding.desired_velocity(observation(stretch=0.5)) == pytest.approx(plain.desired_velocity(observation(stretch=0.5)))

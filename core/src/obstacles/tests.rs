@@ -499,12 +499,13 @@ fn within_keeps_the_obstacles_whose_surface_is_in_range_and_walls_whole() {
     assert!(obstacles.within([0.0, 5.0], 0.5).is_empty());
 }
 
-/// Plays `episodes` episodes of `n` robots among obstacles of `kind` (goals at the kind's least
-/// distance and up to 1 m beyond, the kind's time limit), every robot driven by a controller
+/// Plays `episodes` episodes of `n` robots among obstacles of `kind` in `base`'s world (goals at
+/// the kind's least distance and up to 1 m beyond, the kind's time limit), every robot driven by a controller
 /// that `start` makes for each episode from its start (poses, goal, slots, obstacles) and that
 /// answers every robot's (v, w) for the world at each tick: success, robot collisions and
 /// obstacle hits, as fractions of the episodes. The planners' tests measure themselves with it.
 pub(crate) fn rates_among_obstacles<D: FnMut(&crate::world::World) -> Vec<(f64, f64)>>(
+    base: EnvConfig,
     kind: ObstacleKind,
     n: usize,
     episodes: usize,
@@ -512,7 +513,6 @@ pub(crate) fn rates_among_obstacles<D: FnMut(&crate::world::World) -> Vec<(f64, 
     mut start: impl FnMut(&EpisodeInit, &EnvConfig) -> D,
 ) -> [f64; 3] {
     use crate::task::Outcome;
-    let base = EnvConfig::default();
     let nearest = min_goal_distance_m(&ObstacleConfig::default(), kind, n, &base);
     let env = EnvConfig {
         goal_min_m: nearest,
