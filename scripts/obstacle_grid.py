@@ -7,6 +7,8 @@ Rows: kinds none / forest / passage / trap x N. Worlds: ideal (no [reality]) and
   default  the scripted potential field with its default gains (no config)
   tuned    the same with configs/potential-field-KIND.toml (not for kind none; "not yet tuned"
            while the file is missing)
+  circulating  the circulating, braking potential field, configs/potential-field-circulating-KIND.toml
+           (the field's three obstacle options on; "not yet tuned" while the file is missing)
   planner  the privileged planner that knows the map (--team oracle)
   solo     each robot's own planner over the map, no team plan (--team solo; the learned
            policy's DAgger teacher)
@@ -36,27 +38,29 @@ ROOT = Path(__file__).resolve().parent.parent
 KINDS = ("none", "forest", "passage", "trap")
 WORLDS = {"ideal": None, "field": "configs/reality-field-ranging.toml"}
 WORLD_TITLES = {"ideal": "Ideal world", "field": "Field preset + noisy range sensor (configs/reality-field-ranging.toml)"}
-CONTROLLERS = ("default", "tuned", "planner", "solo", "model", "learned")
-TITLES = {"default": "potential field (default)", "tuned": "potential field (tuned)", "planner": "planner",
-          "solo": "per-robot planner", "model": "open-arena model", "learned": "learned"}
-TEAM = {"default": "scripted", "tuned": "scripted", "planner": "oracle", "solo": "solo", "model": "model",
-        "learned": "model"}
+CONTROLLERS = ("default", "tuned", "circulating", "planner", "solo", "model", "learned")
+TITLES = {"default": "potential field (default)", "tuned": "potential field (tuned)",
+          "circulating": "circulating field (tuned)", "planner": "planner", "solo": "per-robot planner",
+          "model": "open-arena model", "learned": "learned"}
+TEAM = {"default": "scripted", "tuned": "scripted", "circulating": "scripted", "planner": "oracle", "solo": "solo",
+        "model": "model", "learned": "model"}
 
 
-def tuned_config(kind: str) -> Path:
-    return ROOT / "configs" / f"potential-field-{kind}.toml"
+def tuned_config(kind: str, controller: str = "tuned") -> Path:
+    field = "potential-field-circulating" if controller == "circulating" else "potential-field"
+    return ROOT / "configs" / f"{field}-{kind}.toml"
 
 
 def play(args, kind: str, world: str, controller: str) -> dict[int, dict] | str:
     """One formation-play run: its line per N, or why it was not run."""
     cmd = [str(Path(args.bin_dir) / "formation-play"), "--team", TEAM[controller], "--obstacles", kind,
            "--n", args.n, "--episodes", str(args.episodes), "--seed", str(args.seed)]
-    if controller == "tuned":
+    if controller in ("tuned", "circulating"):
         if kind == "none":
             return "-"
-        if not tuned_config(kind).is_file():
+        if not tuned_config(kind, controller).is_file():
             return "not yet tuned"
-        cmd += ["--config", str(tuned_config(kind).relative_to(ROOT))]
+        cmd += ["--config", str(tuned_config(kind, controller).relative_to(ROOT))]
     if controller == "model":
         cmd += ["--checkpoint", "models/formation.safetensors"]
     if controller == "learned":

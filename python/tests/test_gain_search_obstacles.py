@@ -16,10 +16,10 @@ sys.dont_write_bytecode = True
 import gain_search  # noqa: E402
 
 
-def search(out, env=None):
+def search(out, env=None, extra=()):
     return subprocess.run(
         [sys.executable, str(SCRIPTS / "gain_search.py"), "--obstacles", "forest", "--n", "4,8", "--episodes", "3",
-         "--seed", "2000", "--sets", "3", "--refine", "2", "--out", str(out)],
+         "--seed", "2000", "--sets", "3", "--refine", "2", "--out", str(out), *extra],
         capture_output=True, text=True, timeout=600, env=env,
     )
 
@@ -59,3 +59,26 @@ def test_a_forest_search_tunes_all_seven_gains_and_refines_around_its_best(tmp_p
 def test_a_missing_formation_play_is_named(tmp_path):
     done = search(tmp_path / "search", env={**os.environ, "FORMATION_BIN_DIR": str(tmp_path / "nowhere")})
     assert done.returncode != 0 and "formation-play" in done.stderr
+
+
+def test_a_circulating_search_starts_from_the_given_field_and_tunes_all_ten_gains(tmp_path):
+    start = tmp_path / "start.toml"
+    start.write_text("[baseline]\nk_turn = 3.0\nk_circulation = 1.5\nbrake_range_m = 0.4\n")
+    out = tmp_path / "search"
+    done = search(out, extra=["--circulating", "--start", str(start)])
+    assert done.returncode == 0, done.stderr[-2000:]
+    rows = list(csv.DictReader(open(out / "search.csv")))
+    names = list(gain_search.CIRCULATING_RANGES)
+    assert len(names) == 10 and all(name in rows[0] for name in names)
+    first = {g: float(rows[0][g]) for g in names}
+    assert first == {**gain_search.CIRCULATING_GAINS, "k_turn": 3.0, "k_circulation": 1.5, "brake_range_m": 0.4}
+    tuned = tomllib.load(open(out / "tuned-forest.toml", "rb"))["baseline"]
+    assert set(tuned) == set(names)
+    assert "10 gains" in (out / "tuned-forest.toml").read_text()
+
+
+def test_start_keys_outside_the_search_are_refused(tmp_path):
+    start = tmp_path / "start.toml"
+    start.write_text("[baseline]\nk_circulation = 1.5\n")
+    done = search(tmp_path / "search", extra=["--start", str(start)])
+    assert done.returncode != 0 and "k_circulation" in done.stderr
