@@ -175,7 +175,7 @@ def with_pace(result: dict, run_dirs: list[Path], floors: dict[int, list] | None
 
 
 def plot(results: list[dict], learned: dict | None, tuned: dict, ns: list[int], title: str, path: Path,
-         floors: dict[int, list] | None = None) -> None:
+         floors: dict[int, list] | None = None, first: str = "defaults") -> None:
     """Success against mean steps to the goal, one point per gain set, per N and pooled, with the
     pace floor (no controller is faster on these episodes) as a dashed line."""
     import matplotlib
@@ -196,7 +196,7 @@ def plot(results: list[dict], learned: dict | None, tuned: dict, ns: list[int], 
             finite = [point(r) for r in results if r.get("local", False) == local and math.isfinite(point(r)[0])]
             if finite:
                 ax.scatter(*zip(*finite), c=colour, s=22, label=label)
-        for r, style in ((results[0], dict(marker="s", c="tab:gray", label="defaults")), (tuned, dict(marker="D", c="tab:green", label="tuned"))):
+        for r, style in ((results[0], dict(marker="s", c="tab:gray", label=first)), (tuned, dict(marker="D", c="tab:green", label="tuned"))):
             x, y = point(r)
             if math.isfinite(x):
                 ax.scatter([x], [y], s=60, edgecolors="k", zorder=3, **style)
@@ -251,14 +251,15 @@ def obstacle_report(args, kind: str, ns: list[int], results: list[dict], out: Pa
                             s["obstacle_collisions"], s["mean_steps_to_goal"]])
     json.dump({"obstacles": kind, "ns": ns, "episodes": args.episodes, "seed": args.seed, "results": results,
                "tuned": tuned["set"]}, open(out / "search.json", "w"), indent=1, default=str)
-    plot(results, None, tuned, ns, f"potential field among {kind} obstacles: {len(results)} gain sets, "
-         f"{args.episodes} episodes/N from seed {args.seed}", out / "front.png")
+    field, first = "circulating field" if args.circulating else "potential field", "start" if args.start else "defaults"
+    plot(results, None, tuned, ns, f"{field} among {kind} obstacles: {len(results)} gain sets, "
+         f"{args.episodes} episodes/N from seed {args.seed}", out / "front.png", first=first)
 
     print(f"### Potential field search: {kind} (N = {args.n}, {args.episodes} episodes each from seed {args.seed})\n")
     print("| rank | set | " + " | ".join(names) + " | success | collisions | obstacle collisions | steps to goal |")
     print("|---" * (len(names) + 6) + "|")
     for i, r in enumerate(ranked):
-        note = " (defaults)" if r["set"] == 0 else (" (local)" if r["local"] else "")
+        note = f" ({first})" if r["set"] == 0 else (" (local)" if r["local"] else "")
         print(f"| {i + 1} | {r['set']}{note} | " + " | ".join(str(r["gains"][g]) for g in names)
               + f" | {r['success']:.2f} | {r['collisions']:.2f} | {r['obstacle_collisions']:.2f} | "
               f"{rr.fmt_steps(None if math.isinf(r['steps']) else r['steps'])} |")
