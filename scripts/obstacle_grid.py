@@ -10,8 +10,8 @@ Rows: kinds none / forest / passage / trap x N. Worlds: ideal (no [reality]) and
   circulating  the circulating, braking potential field, configs/potential-field-circulating-KIND.toml
            (the field's three obstacle options on; "not yet tuned" while the file is missing)
   planner  the privileged planner that knows the map (--team oracle)
-  solo     each robot's own planner over the map, no team plan (--team solo; the learned
-           policy's DAgger teacher)
+  solo     each robot's own planner over the map, no team plan (--team solo; tried as a DAgger
+           teacher)
   model    the open-arena model, models/formation.safetensors (its own observation model: it
            does not see obstacles)
   learned  the actor of --learned FILE (default models/formation-obstacles.safetensors, the
