@@ -14,8 +14,9 @@ Rows: kinds none / forest / passage / trap x N. Worlds: ideal (no [reality]) and
            teacher)
   model    the open-arena model, models/formation.safetensors (its own observation model: it
            does not see obstacles)
-  learned  the actor of --learned FILE (default models/formation-obstacles.safetensors, the
-           shipped obstacle policy the launcher loads among obstacles)
+  learned  the actor of --learned FILE (default: the shipped obstacle policy of each kind, the
+           one the launcher loads: models/formation-obstacles-passage.safetensors in the passage,
+           models/formation-obstacles.safetensors otherwise)
 
   scripts/obstacle_grid.py                                  # 100 episodes a cell, N = 4, 8, 16
   scripts/obstacle_grid.py --episodes 10 --n 4 --kinds forest --out runs/obstacle-grid-try
@@ -63,7 +64,7 @@ def play(args, kind: str, world: str, controller: str) -> dict[int, dict] | str:
         cmd += ["--config", str(tuned_config(kind, controller).relative_to(ROOT))]
     if controller == "model":
         cmd += ["--checkpoint", "models/formation.safetensors"]
-    if controller == "learned":
+    if controller == "learned" and args.learned:
         cmd += ["--checkpoint", str(args.learned)]
     if WORLDS[world]:
         cmd += ["--reality", WORLDS[world]]
@@ -118,8 +119,8 @@ def main() -> None:
     parser.add_argument("--worlds", default=",".join(WORLDS))
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "obstacle-grid")
     parser.add_argument("--bin-dir", default=os.environ.get("FORMATION_BIN_DIR", "target/debug"))
-    parser.add_argument("--learned", type=Path, default=ROOT / "models" / "formation-obstacles.safetensors",
-                        help="the checkpoint the 'learned' controller plays")
+    parser.add_argument("--learned", type=Path,
+                        help="the checkpoint the 'learned' controller plays (default: each kind's shipped obstacle policy)")
     parser.add_argument("--controllers", default=",".join(CONTROLLERS),
                         help="comma-separated subset of " + ",".join(CONTROLLERS))
     args = parser.parse_args()
@@ -128,7 +129,7 @@ def main() -> None:
     unknown = [c for c in controllers if c not in CONTROLLERS]
     if unknown:
         parser.error(f"unknown controllers {unknown}: choose from {', '.join(CONTROLLERS)}")
-    if "learned" in controllers and not args.learned.is_file():
+    if "learned" in controllers and args.learned and not args.learned.is_file():
         parser.error(f"--learned {args.learned}: no such file")
     ns = [int(n) for n in args.n.split(",")]
 
@@ -140,8 +141,11 @@ def main() -> None:
     header = (f"{args.episodes} episodes a cell from seed {args.seed}. Rates are fractions of the episodes; "
               "steps to goal: mean over successful episodes; final edge error: mean |d_ij - dbar_ij| at the "
               "episode's end over all episodes.")
-    if "learned" in controllers:
+    if "learned" in controllers and args.learned:
         header += f" learned: {args.learned.resolve().relative_to(ROOT) if args.learned.resolve().is_relative_to(ROOT) else args.learned}."
+    elif "learned" in controllers:
+        header += (" learned: each kind's shipped obstacle policy (models/formation-obstacles-passage.safetensors in the"
+                   " passage, models/formation-obstacles.safetensors otherwise).")
     markdown = "\n\n".join([header, glance(results, worlds, kinds, ns, controllers)]
                            + [table(results, w, kinds, ns, controllers) for w in worlds]) + "\n"
     args.out.mkdir(parents=True, exist_ok=True)

@@ -44,7 +44,7 @@ def controllers(kind: str) -> dict[str, tuple[str, list[str]]]:
         rivals["circulating"] = ("circulating field (tuned)",
                                  ["--team", "scripted", "--config", str(circulating.relative_to(ROOT))])
     return {**rivals, "planner": ("planner", ["--team", "oracle"]),
-            "model": ("learned (models/formation-obstacles.safetensors)", ["--team", "model"])}
+            "model": ("learned (the shipped obstacle policy)", ["--team", "model"])}
 
 
 def play(args, kind: str, extra: list[str], out: Path) -> tuple[dict, dict]:

@@ -321,13 +321,15 @@ impl EnvConfig {
         self.obstacles.kind != ObstacleKind::None
     }
 
-    /// The model under `models/` an eval's learned robots load without `--checkpoint`: the
-    /// obstacle policy (it reads the range sensor) among obstacles of any kind, else the
-    /// open-arena model.
+    /// The model under `models/` an eval's learned robots load without `--checkpoint`: in the
+    /// open arena the open-arena model; among obstacles an obstacle policy (it reads the range
+    /// sensor), the passage's own for `passage` (the one that gets formations through the gap),
+    /// the forest-trained one for every other kind and for `mixed` (models/README.md).
     pub fn shipped_model_file(&self) -> &'static str {
-        match self.has_obstacles() {
-            true => "formation-obstacles.safetensors",
-            false => "formation.safetensors",
+        match self.obstacles.kind {
+            ObstacleKind::None => "formation.safetensors",
+            ObstacleKind::Passage => "formation-obstacles-passage.safetensors",
+            _ => "formation-obstacles.safetensors",
         }
     }
 

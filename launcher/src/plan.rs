@@ -888,9 +888,9 @@ fn free_local_port() -> Result<u16> {
 
 /// The model shipped with the repository for the run's world, any N and any `[reality]`
 /// ([`EnvConfig::shipped_model_file`]): in the open arena `models/formation.safetensors`
-/// (trained under randomised reality; it does not see obstacles), among obstacles of any kind
-/// `models/formation-obstacles.safetensors` (the one model that reads the range sensor; trained
-/// in the forest, models/README.md).
+/// (trained under randomised reality; it does not see obstacles), among obstacles a model that
+/// reads the range sensor: `models/formation-obstacles-passage.safetensors` in the passage,
+/// `models/formation-obstacles.safetensors` (trained in the forest) otherwise (models/README.md).
 fn shipped_model(env: &EnvConfig) -> Result<PathBuf> {
     let name = env.shipped_model_file();
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models").join(name);
@@ -1249,10 +1249,11 @@ mod tests {
         for kind in ["forest", "passage", "trap", "mixed"] {
             let plan = plan(&["4", "--mode", "eval", "--viewer", "off", "--obstacles", kind]).expect("plan");
             let model = plan.checkpoint.clone().expect("a shipped model");
-            assert!(
-                model.ends_with("models/formation-obstacles.safetensors"),
-                "{kind}: {model:?}"
-            );
+            let shipped = match kind {
+                "passage" => "models/formation-obstacles-passage.safetensors",
+                _ => "models/formation-obstacles.safetensors",
+            };
+            assert!(model.ends_with(shipped), "{kind}: {model:?}");
             assert_eq!(
                 plan.config.env.observation,
                 ObservationModel::SlotProximityScan,

@@ -32,8 +32,9 @@ enum TeamKind {
     /// Each robot's own planner over only the obstacles within its range sensor's reach.
     SoloLocal,
     /// The actor of --checkpoint (default: the shipped model of the world, as the launcher's eval:
-    /// models/formation-obstacles.safetensors among obstacles), with its own observation model
-    /// and window.
+    /// models/formation-obstacles-passage.safetensors in the passage,
+    /// models/formation-obstacles.safetensors among other obstacles), with its own observation
+    /// model and window.
     Model,
 }
 
