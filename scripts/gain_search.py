@@ -51,6 +51,7 @@ import shlex
 import subprocess
 import sys
 import time
+import tomllib
 from pathlib import Path
 
 sys.dont_write_bytecode = True  # no __pycache__ in scripts/
@@ -315,7 +316,6 @@ def main() -> int:
     else:
         ranges, defaults, key = RANGES, rr.DEFAULT_GAINS, rank_key
     if args.start:
-        import tomllib
         start = tomllib.loads(args.start.read_text()).get("baseline", {})
         unknown = sorted(set(start) - set(ranges))
         if unknown:

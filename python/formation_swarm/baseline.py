@@ -94,7 +94,7 @@ class Baseline:
             ty = float(obs[at.goal[1]]) - sum(q[1] for q in neighbours) / share
         aim = _unit(tx, ty)
         fx = fy = ux = uy = 0.0
-        robots = [(qx, qy, desired) for qx, qy, desired in neighbours]  # neighbours (i+1) and (i+2)
+        robots = list(neighbours)  # neighbours (i+1) and (i+2), then the nearest other robot
         if at.proximity is not None:  # nearest untracked robot as (1 - d/R) * unit vector
             nx, ny = float(obs[at.proximity[0]]), float(obs[at.proximity[1]])
             closeness = math.hypot(nx, ny)
