@@ -368,6 +368,76 @@ fn one_critic_trains_one_actor_on_two_swarm_sizes_at_once() {
 }
 
 #[test]
+fn training_goes_on_while_a_checkpoint_is_scored_for_longer_than_the_sims_silence_limit() {
+    // Selections of 600 forest episodes take tens of seconds, far beyond the 3 s a silent sim is
+    // waited for: the sims must not wait for the critic meanwhile (robots and critic would give
+    // them up and restart), the last checkpoint must be scored and saved before the launcher
+    // stops the critic, and updates must go on while a checkpoint is scored.
+    let dir = scratch_dir("long-selection");
+    std::fs::create_dir_all(&dir).expect("dir");
+    let config = dir.join("long-selection.toml");
+    std::fs::write(
+        &config,
+        "[env]\nobservation = \"slot_proximity_scan\"\n\n[obstacles]\nkind = \"forest\"\n\n\
+         [learn]\nwarmup_transitions = 300\nbatch_size = 32\ncheckpoint_every_s = 4\nselection_episodes = 600\n\n\
+         [ticks]\nstartup_timeout_s = 3\n",
+    )
+    .expect("write");
+    let run = run_swarm(
+        &[
+            "4",
+            "--config",
+            config.to_str().expect("utf8"),
+            "--minutes",
+            "0.4",
+            "--seed",
+            "9",
+            "--viewer",
+            "off",
+        ],
+        &dir.join("run"),
+        Duration::from_secs(600),
+    )
+    .expect("launch");
+    assert_eq!(run.status, Some(0), "launcher failed:\n{}", run.output);
+    assert!(!run.output.contains("died"), "a member died:\n{}", run.output);
+    // (updates, scored in ms) of every checkpoint the critic saved.
+    let checkpoints: Vec<(u64, u64)> = run
+        .output
+        .lines()
+        .filter_map(|line| {
+            let updates = line
+                .strip_prefix("critic: checkpoint at ")?
+                .split(' ')
+                .next()?
+                .parse()
+                .ok()?;
+            let took = line.split("scored in ").nth(1)?.split(' ').next()?.parse().ok()?;
+            Some((updates, took))
+        })
+        .collect();
+    assert!(
+        checkpoints.iter().any(|&(_, took)| took > 3_000),
+        "a selection should outlast the silence limit: {checkpoints:?}\n{}",
+        run.output
+    );
+    let summary = run.summary().expect("summary.json");
+    let updates = summary["updates"]
+        .as_u64()
+        .expect("the critic's figures in summary.json");
+    // The first checkpoint was copied when its selection started; the last holds every update.
+    let (first, _) = checkpoints[0];
+    let last = checkpoint::load(&run.run_dir.join("checkpoint.safetensors")).expect("checkpoint");
+    assert_eq!(last.meta.extra["updates"], updates.to_string(), "{checkpoints:?}");
+    assert!(
+        updates > first,
+        "no updates while the first checkpoint was scored: {checkpoints:?}"
+    );
+    assert_clean(&run);
+    std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
 fn an_eval_run_from_the_selection_seed_measures_the_selection_score() {
     // The 3-robot paper model misses a few of these episodes, so the two agree only if they
     // play the same episodes with the same actions.

@@ -196,6 +196,23 @@ impl CriticNet {
     }
 }
 
+/// Every network of a [`Learner`] at one moment ([`Learner::snapshot`]).
+pub struct LearnerSnapshot {
+    tensors: Vec<(String, Tensor)>,
+    meta: CheckpointMeta,
+}
+
+impl LearnerSnapshot {
+    /// Writes the networks to a checkpoint with the training figures `extra`.
+    pub fn save(&self, path: &Path, extra: HashMap<String, String>) -> Result<()> {
+        let meta = CheckpointMeta {
+            extra,
+            ..self.meta.clone()
+        };
+        checkpoint::save(path, &self.tensors, &meta)
+    }
+}
+
 /// Every network, its target and its optimiser.
 pub struct Learner {
     config: LearnConfig,
@@ -797,14 +814,27 @@ impl Learner {
 
     /// Writes every network (online and target) to a checkpoint.
     pub fn save(&self, path: &Path, extra: HashMap<String, String>) -> Result<()> {
-        let meta = CheckpointMeta {
-            n_agents: self.n_agents,
-            observation: self.observation,
-            n_actors: self.n_actors(),
-            actor: self.actor_shape.clone(),
-            extra,
-        };
-        checkpoint::save(path, &self.all_tensors()?, &meta)
+        self.snapshot()?.save(path, extra)
+    }
+
+    /// A copy of every network (online and target) as they are now, to save later while
+    /// training goes on.
+    pub fn snapshot(&self) -> Result<LearnerSnapshot> {
+        let tensors = self
+            .all_tensors()?
+            .into_iter()
+            .map(|(name, tensor)| Ok((name, tensor.copy()?)))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(LearnerSnapshot {
+            tensors,
+            meta: CheckpointMeta {
+                n_agents: self.n_agents,
+                observation: self.observation,
+                n_actors: self.n_actors(),
+                actor: self.actor_shape.clone(),
+                extra: HashMap::new(),
+            },
+        })
     }
 
     /// Resumes from a checkpoint written by [`Learner::save`]. A shared actor trained with

@@ -19,7 +19,7 @@ use rand::SeedableRng;
 use rand::rngs::StdRng;
 
 use crate::collector::FinishedEpisode;
-use crate::learner::{Learner, Losses};
+use crate::learner::{Learner, LearnerSnapshot, Losses};
 use crate::progress::{Rolling, TrainingStatus};
 use crate::run::CriticOptions;
 use crate::selection::Selector;
@@ -31,6 +31,16 @@ const UPDATES_BETWEEN_DRAINS: Duration = Duration::from_millis(40);
 
 /// A selection running on its own thread: the score and how long it took.
 type Selection = JoinHandle<Result<(SelectionScore, Duration)>>;
+
+/// A checkpoint being scored: the selection's thread, and the networks it scores as they were
+/// when it started, with their training figures then (saved once scored; updates go on).
+struct PendingCheckpoint {
+    selection: Selection,
+    snapshot: LearnerSnapshot,
+    meta: HashMap<String, String>,
+    /// Each swarm's actor steps then, for the log.
+    actor_steps: String,
+}
 
 /// What the trainer keeps of one swarm: its episodes, the stream of weights to its robots, and
 /// the updates its data has paid for (which its sim's flow control counts).
@@ -53,8 +63,8 @@ pub struct Trainer<S: Service> {
     best: Option<SelectionScore>,
     /// The latest checkpoint's selection score.
     latest: Option<f64>,
-    /// The selection under way, if any.
-    selecting: Option<Selection>,
+    /// The checkpoint being scored, if any.
+    selecting: Option<PendingCheckpoint>,
     last_checkpoint: Instant,
     checkpoint_every: Duration,
     /// `learn.keep_checkpoints`: every checkpoint also kept under `checkpoints/`.
@@ -147,12 +157,8 @@ impl<S: Service> Trainer<S> {
         self.swarms[swarm].replay.push(finished.episode);
     }
 
-    /// Updates still due on swarm `swarm`'s data for its `ticks` received (none while a
-    /// selection is under way).
+    /// Updates still due on swarm `swarm`'s data for its `ticks` received.
     pub fn updates_owed(&self, swarm: usize, ticks: u64) -> u64 {
-        if self.selecting.is_some() {
-            return 0;
-        }
         updates_owed(
             ticks,
             self.warmup_transitions,
@@ -171,14 +177,12 @@ impl<S: Service> Trainer<S> {
     /// (saving it once scored); returns for each swarm the ticks its updates have paid for
     /// (what the critic may acknowledge to its sim).
     pub fn train(&mut self, ticks: &[u64], rolling: &Rolling) -> Result<Vec<u64>> {
-        if let Some(selection) = self.selecting.take_if(|s| s.is_finished()) {
-            self.save_scored(joined(selection)?, rolling)?;
+        if let Some(pending) = self.selecting.take_if(|p| p.selection.is_finished()) {
+            self.save_scored(pending)?;
         }
-        if self.selecting.is_none() {
-            self.update(ticks)?;
-            if self.last_checkpoint.elapsed() >= self.checkpoint_every {
-                self.start_selection()?;
-            }
+        self.update(ticks)?;
+        if self.selecting.is_none() && self.last_checkpoint.elapsed() >= self.checkpoint_every {
+            self.start_selection(rolling)?;
         }
         Ok(self.paid_ticks(ticks))
     }
@@ -263,56 +267,79 @@ impl<S: Service> Trainer<S> {
             .collect()
     }
 
-    /// Scores the current weights on a thread of its own: updates wait for it (the weights
-    /// stay those scored) while the critic goes on reading the streams and answering its sims.
-    fn start_selection(&mut self) -> Result<()> {
+    /// Scores the current weights on a thread of its own while updates go on: the networks
+    /// are copied as they are now, and saved with their score once it comes.
+    fn start_selection(&mut self, rolling: &Rolling) -> Result<()> {
         let actors = self.actor_weights()?;
         let selector = self.selector.clone();
         let shape = self.learner.actor_shape().clone();
-        let thread = std::thread::Builder::new()
+        let selection = std::thread::Builder::new()
             .name("selection".into())
             .spawn(move || timed_score(&selector, &actors, &shape))
             .context("critic: cannot start the selection thread")?;
-        self.selecting = Some(thread);
+        self.selecting = Some(self.pending(selection, rolling)?);
         self.last_checkpoint = Instant::now();
         Ok(())
     }
 
-    /// Scores the current weights (or finishes the selection under way, whose weights they
-    /// still are) and saves them: the checkpoint at the end of a run.
-    pub fn save_checkpoint(&mut self, rolling: &Rolling) -> Result<()> {
-        let scored = match self.selecting.take() {
-            Some(selection) => joined(selection)?,
-            None => timed_score(&self.selector, &self.actor_weights()?, self.learner.actor_shape())?,
-        };
-        self.save_scored(scored, rolling)
+    /// The checkpoint `selection` scores: the networks and their figures as they are now.
+    fn pending(&self, selection: Selection, rolling: &Rolling) -> Result<PendingCheckpoint> {
+        // Each swarm's batches step the actor on a schedule of their own (learner::SwarmSteps).
+        let actor_steps: Vec<String> = (0..self.swarms.len())
+            .map(|k| format!("N={} {}", self.swarms[k].n_agents, self.learner.swarm_steps(k).actor))
+            .collect();
+        Ok(PendingCheckpoint {
+            selection,
+            snapshot: self.learner.snapshot()?,
+            meta: self.meta(rolling),
+            actor_steps: actor_steps.join(", "),
+        })
     }
 
-    /// Saves the networks as `checkpoint.safetensors` with their selection score, and as
+    /// The checkpoint at the end of a run: the one being scored, if any, is finished and saved;
+    /// then the current weights are scored and saved unless they are those.
+    pub fn save_checkpoint(&mut self, rolling: &Rolling) -> Result<()> {
+        let updates = self.learner.updates().to_string();
+        if let Some(pending) = self.selecting.take() {
+            let current = pending.meta["updates"] == updates;
+            self.save_scored(pending)?;
+            if current {
+                return Ok(());
+            }
+        }
+        let actors = self.actor_weights()?;
+        let shape = self.learner.actor_shape().clone();
+        let selector = self.selector.clone();
+        let selection = std::thread::spawn(move || timed_score(&selector, &actors, &shape));
+        let pending = self.pending(selection, rolling)?;
+        self.save_scored(pending)
+    }
+
+    /// Saves a scored checkpoint as `checkpoint.safetensors` with its selection score, and as
     /// `best.safetensors` too when it beats the best so far.
-    fn save_scored(&mut self, (score, took): (SelectionScore, Duration), rolling: &Rolling) -> Result<()> {
-        let mut meta = self.meta(rolling);
+    fn save_scored(&mut self, pending: PendingCheckpoint) -> Result<()> {
+        let (score, took) = joined(pending.selection)?;
+        let mut meta = pending.meta;
         score.to_metadata(&mut meta);
-        self.learner.save(&self.run_dir.join(FILE_NAME), meta.clone())?;
+        pending.snapshot.save(&self.run_dir.join(FILE_NAME), meta.clone())?;
         if self.keep_checkpoints {
             let kept = self.run_dir.join("checkpoints");
             std::fs::create_dir_all(&kept).with_context(|| format!("cannot create {}", kept.display()))?;
-            let name = format!("updates-{:08}.safetensors", self.learner.updates());
+            let updates: u64 = meta["updates"].parse().context("critic: updates of a checkpoint")?;
+            let name = format!("updates-{updates:08}.safetensors");
             std::fs::copy(self.run_dir.join(FILE_NAME), kept.join(&name))
                 .with_context(|| format!("cannot keep the checkpoint as {}", kept.join(&name).display()))?;
         }
         let better = score.beats(self.best.as_ref());
         if better {
-            self.learner.save(&self.run_dir.join(BEST_FILE_NAME), meta)?;
+            pending
+                .snapshot
+                .save(&self.run_dir.join(BEST_FILE_NAME), meta.clone())?;
         }
         let by_size: Vec<String> = score
             .sizes
             .iter()
             .map(|s| format!("N={} {:.2}", s.n_agents, s.success))
-            .collect();
-        // Each swarm's batches step the actor on a schedule of their own (learner::SwarmSteps).
-        let actor_steps: Vec<String> = (0..self.swarms.len())
-            .map(|k| format!("N={} {}", self.swarms[k].n_agents, self.learner.swarm_steps(k).actor))
             .collect();
         // Under a reality the score is played under it; the ideal world is reported beside it.
         let ideal = score.ideal.as_ref().map_or(String::new(), |ideal| {
@@ -324,8 +351,8 @@ impl<S: Service> Trainer<S> {
         });
         eprintln!(
             "critic: checkpoint at {} updates (actor steps {}): selection success {:.3} ({}){}, formation held {:.2}, {:.1} steps{ideal}; scored in {} ms{}",
-            self.learner.updates(),
-            actor_steps.join(", "),
+            meta["updates"],
+            pending.actor_steps,
             score.success(),
             by_size.join(", "),
             if score.reality.is_some() {

@@ -29,6 +29,9 @@ const QUICK_DEATH: Duration = Duration::from_secs(5);
 const QUICK_DEATHS_TO_GIVE_UP: u32 = 3;
 /// After the primary sim's end, how long the others get to end on its end-of-run message.
 const WIND_DOWN: Duration = Duration::from_secs(10);
+/// In training, how much longer the critic then gets to score and save its last checkpoint
+/// (its selection episodes take tens of seconds on a loaded 2-core machine).
+const CRITIC_WIND_DOWN: Duration = Duration::from_secs(180);
 /// An extra swarm's sim still running when the primary ends gets this long before Ctrl-C.
 const EXTRA_SIM_GRACE: Duration = Duration::from_secs(2);
 /// At the end, how long the run's files wait for clients still closing their ports.
@@ -422,7 +425,8 @@ impl Supervisor<'_> {
     }
 
     /// After the primary sim's end: extra sims get a moment and then Ctrl-C; every member gets
-    /// [`WIND_DOWN`] to end on the end-of-run message.
+    /// [`WIND_DOWN`] to end on the end-of-run message, and a training critic up to
+    /// [`CRITIC_WIND_DOWN`] more to score and save its last checkpoint.
     fn wind_down(&mut self) {
         let extra_sims: Vec<u32> = self
             .running
@@ -435,6 +439,13 @@ impl Supervisor<'_> {
             self.interrupt_sims();
         }
         self.wait_for_exits(Instant::now() + WIND_DOWN, |_| false);
+        if self.plan.mode == Mode::Train && self.running.contains_key(&Member::Critic) {
+            println!(
+                "waiting for the critic to score and save its last checkpoint (up to {} s)...",
+                CRITIC_WIND_DOWN.as_secs()
+            );
+            self.wait_for_exits(Instant::now() + CRITIC_WIND_DOWN, |member| member != Member::Critic);
+        }
     }
 
     /// Collects exits until `deadline`, or until only members `ignore` accepts are running.
