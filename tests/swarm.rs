@@ -425,6 +425,10 @@ fn training_goes_on_while_a_checkpoint_is_scored_for_longer_than_the_sims_silenc
     let updates = summary["updates"]
         .as_u64()
         .expect("the critic's figures in summary.json");
+    println!(
+        "checkpoints (updates, ms to score): {checkpoints:?}; transitions {} received, {} lost",
+        summary["transitions_received"], summary["lost_transitions"]
+    );
     // The first checkpoint was copied when its selection started; the last holds every update.
     let (first, _) = checkpoints[0];
     let last = checkpoint::load(&run.run_dir.join("checkpoint.safetensors")).expect("checkpoint");

@@ -275,7 +275,11 @@ impl<S: Service> Trainer<S> {
         let shape = self.learner.actor_shape().clone();
         let selection = std::thread::Builder::new()
             .name("selection".into())
-            .spawn(move || timed_score(&selector, &actors, &shape))
+            .spawn(move || {
+                // The thread that drains the streams and acknowledges ticks comes first.
+                formation_ipc::placement::run_in_the_background();
+                timed_score(&selector, &actors, &shape)
+            })
             .context("critic: cannot start the selection thread")?;
         self.selecting = Some(self.pending(selection, rolling)?);
         self.last_checkpoint = Instant::now();

@@ -113,6 +113,31 @@ pub fn widen() {
     }
 }
 
+/// Lowers the calling thread's priority to nice 10 (or leaves it lower), for background work
+/// that must not starve its process's other threads (the critic's checkpoint scoring, beside
+/// the thread that drains the streams and acknowledges ticks). A refusal is reported and
+/// changes nothing else.
+pub fn run_in_the_background() {
+    let nice = this_threads_nice().max(10);
+    // SAFETY: gettid has no preconditions; setpriority on our own thread id with a valid nice.
+    let refused = unsafe { libc::setpriority(libc::PRIO_PROCESS, libc::gettid() as libc::id_t, nice) } != 0;
+    if refused {
+        eprintln!(
+            "cannot lower this thread's priority ({}); it competes with the others as it is",
+            std::io::Error::last_os_error()
+        );
+    }
+}
+
+/// The calling thread's nice value.
+fn this_threads_nice() -> i32 {
+    // SAFETY: getpriority on our own thread id; errno is cleared first, -1 being a valid nice.
+    unsafe {
+        *libc::__errno_location() = 0;
+        libc::getpriority(libc::PRIO_PROCESS, libc::gettid() as libc::id_t)
+    }
+}
+
 /// Puts the calling thread (and those it starts) under `SCHED_BATCH`: woken, it does not
 /// preempt the thread that woke it. A refusal is reported and changes nothing else.
 fn wait_for_the_waker() {
@@ -201,6 +226,19 @@ mod tests {
         };
         assert_eq!(policy(Placement::Auto), libc::SCHED_BATCH);
         assert_eq!(policy(Placement::Off), libc::SCHED_OTHER);
+    }
+
+    #[test]
+    fn background_work_runs_at_nice_10_on_its_own_thread_only() {
+        let before = this_threads_nice();
+        let inside = std::thread::spawn(|| {
+            run_in_the_background();
+            this_threads_nice()
+        })
+        .join()
+        .expect("thread");
+        assert_eq!(inside, before.max(10));
+        assert_eq!(this_threads_nice(), before, "the spawning thread keeps its priority");
     }
 
     #[test]
