@@ -36,7 +36,9 @@ OUT/front.png, OUT/search.csv and OUT/search.json; the shipped tuned potential f
 
 With --circulating the search takes in the field's three obstacle options too (TEN gains,
 CIRCULATING_RANGES: k_circulation, obstacle_yield, brake_range_m), for the circulating, braking
-potential field (configs/potential-field-circulating-KIND.toml).
+potential field (configs/potential-field-circulating-KIND.toml). With --detouring, the detour
+reach as well (ELEVEN gains, DETOURING_RANGES: detour_range_m), for the detouring field
+(configs/potential-field-detouring-KIND.toml).
 """
 
 from __future__ import annotations
@@ -74,6 +76,9 @@ OBSTACLE_GAINS = {**rr.DEFAULT_GAINS, "k_obstacle": 1.0, "obstacle_range_m": 0.5
 CIRCULATING_RANGES = {**OBSTACLE_RANGES, "k_circulation": (0.3, 6.0), "obstacle_yield": (0.3, 20.0),
                       "brake_range_m": (0.1, 1.0)}
 CIRCULATING_GAINS = {**OBSTACLE_GAINS, "k_circulation": 2.0, "obstacle_yield": 5.0, "brake_range_m": 0.3}
+#: With --detouring: the ten and the detour reach, up to the range sensor's 2 m.
+DETOURING_RANGES = {**CIRCULATING_RANGES, "detour_range_m": (0.5, 2.0)}
+DETOURING_GAINS = {**CIRCULATING_GAINS, "detour_range_m": 2.0}
 #: The defaults' k_form, k_goal and k_turn multiplied together by these.
 SCALES = (0.35, 0.5, 0.6, 0.75, 0.9, 1.25)
 
@@ -230,7 +235,7 @@ def obstacle_report(args, kind: str, ns: list[int], results: list[dict], out: Pa
         r["obstacle_collisions"] = sum(s["obstacle_collisions"] for s in r["per_n"]) / len(ns)
     ranked = sorted(results, key=obstacle_rank_key)
     tuned = ranked[0]
-    names = list(CIRCULATING_RANGES if args.circulating else OBSTACLE_RANGES)
+    names = list(DETOURING_RANGES if args.detouring else CIRCULATING_RANGES if args.circulating else OBSTACLE_RANGES)
     score = (f"success {tuned['success']:.3f}, collisions {tuned['collisions']:.3f} (obstacle {tuned['obstacle_collisions']:.3f}), "
              f"mean steps to goal {rr.fmt_steps(None if math.isinf(tuned['steps']) else tuned['steps'])}")
     (out / f"tuned-{kind}.toml").write_text(
@@ -252,7 +257,8 @@ def obstacle_report(args, kind: str, ns: list[int], results: list[dict], out: Pa
                             s["obstacle_collisions"], s["mean_steps_to_goal"]])
     json.dump({"obstacles": kind, "ns": ns, "episodes": args.episodes, "seed": args.seed, "results": results,
                "tuned": tuned["set"]}, open(out / "search.json", "w"), indent=1, default=str)
-    field, first = "circulating field" if args.circulating else "potential field", "start" if args.start else "defaults"
+    field = "detouring field" if args.detouring else "circulating field" if args.circulating else "potential field"
+    first = "start" if args.start else "defaults"
     plot(results, None, tuned, ns, f"{field} among {kind} obstacles: {len(results)} gain sets, "
          f"{args.episodes} episodes/N from seed {args.seed}", out / "front.png", first=first)
 
@@ -277,6 +283,8 @@ def main() -> int:
     ap.add_argument("--circulating", action="store_true",
                     help="with --obstacles: search the field's three obstacle options too (k_circulation, "
                          "obstacle_yield, brake_range_m), ten gains")
+    ap.add_argument("--detouring", action="store_true",
+                    help="with --obstacles: the ten of --circulating and the detour reach (detour_range_m), eleven gains")
     ap.add_argument("--start", type=Path,
                     help="a config whose [baseline] gains are the search's first set and the defaults of the "
                          "scaled family (e.g. a tuned field to refine)")
@@ -307,9 +315,11 @@ def main() -> int:
     ns = rr.parse_list(args.n)
     kind = args.obstacles
     name = kind or args.row
-    if args.circulating and not kind:
-        ap.error("--circulating is for the potential field among --obstacles")
-    if args.circulating:
+    if (args.circulating or args.detouring) and not kind:
+        ap.error("--circulating and --detouring are for the potential field among --obstacles")
+    if args.detouring:
+        ranges, defaults, key = DETOURING_RANGES, DETOURING_GAINS, obstacle_rank_key
+    elif args.circulating:
         ranges, defaults, key = CIRCULATING_RANGES, CIRCULATING_GAINS, obstacle_rank_key
     elif kind:
         ranges, defaults, key = OBSTACLE_RANGES, OBSTACLE_GAINS, obstacle_rank_key

@@ -9,6 +9,8 @@ Rows: kinds none / forest / passage / trap x N. Worlds: ideal (no [reality]) and
            while the file is missing)
   circulating  the circulating, braking potential field, configs/potential-field-circulating-KIND.toml
            (the field's three obstacle options on; "not yet tuned" while the file is missing)
+  detouring  the detouring field, configs/potential-field-detouring-KIND.toml (the circulating
+           field that also follows a wall round when its way to the slot is blocked)
   planner  the privileged planner that knows the map (--team oracle)
   solo     each robot's own planner over the map, no team plan (--team solo; tried as a DAgger
            teacher)
@@ -39,16 +41,16 @@ ROOT = Path(__file__).resolve().parent.parent
 KINDS = ("none", "forest", "passage", "trap")
 WORLDS = {"ideal": None, "field": "configs/reality-field-ranging.toml"}
 WORLD_TITLES = {"ideal": "Ideal world", "field": "Field preset + noisy range sensor (configs/reality-field-ranging.toml)"}
-CONTROLLERS = ("default", "tuned", "circulating", "planner", "solo", "model", "learned")
+CONTROLLERS = ("default", "tuned", "circulating", "detouring", "planner", "solo", "model", "learned")
 TITLES = {"default": "potential field (default)", "tuned": "potential field (tuned)",
-          "circulating": "circulating field (tuned)", "planner": "planner", "solo": "per-robot planner",
+          "circulating": "circulating field (tuned)", "detouring": "detouring field (tuned)", "planner": "planner", "solo": "per-robot planner",
           "model": "open-arena model", "learned": "learned"}
-TEAM = {"default": "scripted", "tuned": "scripted", "circulating": "scripted", "planner": "oracle", "solo": "solo",
+TEAM = {"default": "scripted", "tuned": "scripted", "circulating": "scripted", "detouring": "scripted", "planner": "oracle", "solo": "solo",
         "model": "model", "learned": "model"}
 
 
 def tuned_config(kind: str, controller: str = "tuned") -> Path:
-    field = "potential-field-circulating" if controller == "circulating" else "potential-field"
+    field = f"potential-field-{controller}" if controller in ("circulating", "detouring") else "potential-field"
     return ROOT / "configs" / f"{field}-{kind}.toml"
 
 
@@ -56,7 +58,7 @@ def play(args, kind: str, world: str, controller: str) -> dict[int, dict] | str:
     """One formation-play run: its line per N, or why it was not run."""
     cmd = [str(Path(args.bin_dir) / "formation-play"), "--team", TEAM[controller], "--obstacles", kind,
            "--n", args.n, "--episodes", str(args.episodes), "--seed", str(args.seed)]
-    if controller in ("tuned", "circulating"):
+    if controller in ("tuned", "circulating", "detouring"):
         if kind == "none":
             return "-"
         if not tuned_config(kind, controller).is_file():

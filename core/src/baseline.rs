@@ -13,9 +13,11 @@
 //!   each ray that reads r < `obstacle_range_m` pushing back along the ray by
 //!   k_obstacle (`obstacle_range_m` - r), except rays whose hit is explained by a robot the
 //!   robot tracks (its neighbours, the nearest other robot);
-//! * three options among obstacles, off by default: circulation (every push that blocks the
+//! * four options among obstacles, off by default: circulation (every push that blocks the
 //!   robot's aim also turns it the same way, left), yielding (the formation pull weakens near
-//!   obstacles) and braking (the forward speed falls with the free distance ahead).
+//!   obstacles), braking (the forward speed falls with the free distance ahead) and detouring
+//!   (a robot whose way to its target is blocked aims at the first clear way to the left of it,
+//!   following a wall with the wall on its right until the target's way is clear again).
 //!
 //! The desired velocity u is then tracked by a unicycle: turn towards u, drive forward with
 //! the component of u along the heading (never backwards).
@@ -23,6 +25,9 @@
 use crate::config::{ConfigError, EnvConfig};
 use crate::observation::{Layout, ObservationView};
 use formation_protocol::NEIGHBOURS;
+use parry2d_f64::na::{self, Isometry2, Point2};
+use parry2d_f64::query::details::distance_segment_segment;
+use parry2d_f64::shape::Segment;
 use serde::{Deserialize, Serialize};
 
 /// Gains of the baseline, the `[baseline]` section (unknown keys rejected, missing ones keep
@@ -59,6 +64,12 @@ pub struct BaselineGains {
     /// ahead - [`BRAKE_MARGIN_M`]) / `brake_range_m`, the free distance read from the rays whose
     /// hit lies in the robot's path (any hit, robot or obstacle).
     pub brake_range_m: f64,
+    /// Detour reach, metres (0: off): when a hit that no tracked robot explains lies within
+    /// this distance in the robot's way to its target (within its radius + 0.1 m of the
+    /// straight line), the robot aims instead at the first direction, turning left from the
+    /// target, whose way is clear that far. Memoryless wall-following: it leaves a U the way
+    /// it came in and goes round a wall's end, where the field alone settles at the bottom.
+    pub detour_range_m: f64,
 }
 
 impl Default for BaselineGains {
@@ -74,6 +85,7 @@ impl Default for BaselineGains {
             k_circulation: 0.0,
             obstacle_yield: 0.0,
             brake_range_m: 0.0,
+            detour_range_m: 0.0,
         }
     }
 }
@@ -81,6 +93,14 @@ impl Default for BaselineGains {
 /// How far from a tracked robot's centre a ray's hit still counts as that robot, beyond its
 /// radius, metres (the robot moved within the tick; a hit on it is not an obstacle).
 const TRACKED_HIT_SLACK_M: f64 = 0.1;
+
+/// How many directions a detouring robot tries, evenly spread, turning left from its target's.
+const DETOUR_DIRECTIONS: usize = 64;
+
+/// Two neighbouring rays' hits closer than this are taken as one surface by a detouring
+/// robot, metres (a wall read by two rays 22.5 degrees apart up to 2 m away; a gap narrower
+/// than this is not taken).
+const DETOUR_JOIN_M: f64 = 1.0;
 
 /// The gap a braking robot keeps to the hit ahead, metres, beyond its radius.
 pub const BRAKE_MARGIN_M: f64 = 0.05;
@@ -206,6 +226,12 @@ impl BaselineGains {
                 self.obstacle_yield >= 0.0,
                 "must be >= 0",
             ),
+            (
+                "baseline.detour_range_m",
+                self.detour_range_m,
+                self.detour_range_m >= 0.0,
+                "must be >= 0",
+            ),
         ] {
             if !(value.is_finite() && ok) {
                 return Err(ConfigError::Invalid {
@@ -262,10 +288,15 @@ impl ScriptedBaseline {
                 [goal[0] - centroid[0], goal[1] - centroid[1]]
             }
         };
-        let aim = unit(target);
+        let nearest_other = self.nearest_other(&view);
+        let tracked = neighbours.iter().map(|n| n.position).chain(nearest_other);
+        let detour = view
+            .scan()
+            .filter(|_| g.detour_range_m > 0.0)
+            .and_then(|scan| self.detour(scan, tracked.clone(), target));
+        let aim = detour.unwrap_or_else(|| unit(target));
         let mut formation = [0.0f64; 2];
         let mut u = [0.0f64; 2];
-        let nearest_other = self.nearest_other(&view);
         let robots = neighbours.iter().map(|n| (n.position, Some(n.desired)));
         for (q, desired) in robots.chain(nearest_other.map(|q| (q, None))) {
             let dist = q[0].hypot(q[1]).max(1e-6);
@@ -282,17 +313,16 @@ impl ScriptedBaseline {
         }
         let mut formation_share = 1.0;
         if let Some(scan) = view.scan() {
-            let tracked = neighbours.iter().map(|n| n.position).chain(nearest_other);
             let push = self.obstacle_push(scan, tracked, aim);
             u[0] += push[0];
             u[1] += push[1];
             formation_share = 1.0 / (1.0 + g.obstacle_yield * push[0].hypot(push[1]));
         }
-        let mut to_goal = [g.k_goal * target[0], g.k_goal * target[1]];
-        let speed = to_goal[0].hypot(to_goal[1]);
-        if speed > self.v_max {
-            to_goal = [to_goal[0] * self.v_max / speed, to_goal[1] * self.v_max / speed];
+        if detour.is_some() {
+            formation_share = 0.0;
         }
+        let speed = (g.k_goal * target[0].hypot(target[1])).min(self.v_max);
+        let to_goal = [speed * aim[0], speed * aim[1]];
         [
             u[0] + formation_share * formation[0] + to_goal[0],
             u[1] + formation_share * formation[1] + to_goal[1],
@@ -346,6 +376,59 @@ impl ScriptedBaseline {
         push
     }
 
+    /// With detouring, where to aim instead of the unit direction to `target` when the way
+    /// there is blocked within the detour reach (or before the target, if nearer): the first of
+    /// [`DETOUR_DIRECTIONS`] directions, turning left from the target's, whose way is clear
+    /// that far. `None` when the target's way is clear, or when no way is.
+    ///
+    /// A way is blocked when it passes within the robot's radius + 0.1 m of what the scan sees:
+    /// each hit no `tracked` robot explains, joined to the next ray's hit when the two lie
+    /// within [`DETOUR_JOIN_M`] of each other (the rays are sparse: a wall between two of them
+    /// is not read, and the gap between their hits must not look clear).
+    fn detour(
+        &self,
+        scan: &[f32],
+        tracked: impl Iterator<Item = [f64; 2]> + Clone,
+        target: [f64; 2],
+    ) -> Option<[f64; 2]> {
+        let reach = self.gains.detour_range_m.min(target[0].hypot(target[1]));
+        let half_spacing = std::f64::consts::PI / scan.len() as f64;
+        let hits: Vec<Option<(f64, f64)>> = rays(scan, self.scan_range)
+            .enumerate()
+            .map(|(k, (towards, range))| {
+                let hit = [range * towards[0], range * towards[1]];
+                (range < self.scan_range && !self.explained(hit, tracked.clone()))
+                    .then_some((2.0 * half_spacing * k as f64, range))
+            })
+            .collect();
+        let at = |(angle, range): (f64, f64)| Point2::new(range * angle.cos(), range * angle.sin());
+        let seen: Vec<Segment> = (0..hits.len())
+            .filter_map(|k| hits[k])
+            .map(|(angle, range)| Segment::new(at((angle - half_spacing, range)), at((angle + half_spacing, range))))
+            .chain((0..hits.len()).filter_map(|k| {
+                let (a, b) = (at(hits[k]?), at(hits[(k + 1) % hits.len()]?));
+                (na::distance(&a, &b) < DETOUR_JOIN_M).then(|| Segment::new(a, b))
+            }))
+            .collect();
+        let clearance = self.robot_radius + TRACKED_HIT_SLACK_M;
+        let clear = |bearing: f64| {
+            let path = Segment::new(
+                Point2::origin(),
+                Point2::new(reach * bearing.cos(), reach * bearing.sin()),
+            );
+            seen.iter()
+                .all(|surface| distance_segment_segment(&Isometry2::identity(), &path, surface) >= clearance)
+        };
+        let bearing = target[1].atan2(target[0]);
+        if clear(bearing) {
+            return None;
+        }
+        (1..DETOUR_DIRECTIONS)
+            .map(|k| bearing + std::f64::consts::TAU * k as f64 / DETOUR_DIRECTIONS as f64)
+            .find(|&way| clear(way))
+            .map(|way| [way.cos(), way.sin()])
+    }
+
     /// The (v, w) command for the newest observation, clamped to the robot's limits.
     pub fn command(&self, obs: &[f32]) -> (f64, f64) {
         let u = self.desired_velocity(obs);
@@ -387,7 +470,7 @@ fn unit(v: [f64; 2]) -> [f64; 2] {
 
 /// Each ray of `scan` (normalised ranges, evenly spread from straight ahead anticlockwise) as
 /// its unit direction and its range in metres.
-fn rays(scan: &[f32], scan_range: f64) -> impl Iterator<Item = ([f64; 2], f64)> + '_ {
+fn rays(scan: &[f32], scan_range: f64) -> impl Iterator<Item = ([f64; 2], f64)> + Clone + '_ {
     let count = scan.len() as f64;
     scan.iter().enumerate().map(move |(k, &reading)| {
         let (s, c) = (std::f64::consts::TAU * k as f64 / count).sin_cos();
@@ -629,6 +712,57 @@ mod tests {
         assert!((qx - px + 0.4).abs() < 1e-6, "{px} -> {qx}");
     }
 
+    /// The scan of a wall across the way at `x` metres ahead, read by the rays that reach it.
+    fn wall_ahead(x: f32) -> Vec<(usize, f32)> {
+        [0usize, 1, 2, 14, 15]
+            .into_iter()
+            .map(|ray| {
+                let angle = std::f32::consts::TAU * ray as f32 / 16.0;
+                (ray, x / angle.cos())
+            })
+            .filter(|&(_, range)| range < 2.0)
+            .collect()
+    }
+
+    #[test]
+    fn detouring_aims_left_past_a_wall_s_end_and_not_between_two_of_its_hits() {
+        let (plain, _) = scan_obs([3.0, 0.0], &[]);
+        let detouring = with_gains(
+            &plain,
+            BaselineGains {
+                detour_range_m: 2.0,
+                ..BaselineGains::default()
+            },
+        );
+        let speed = plain.v_max;
+        let bearing = |u: [f64; 2]| u[1].atan2(u[0]).to_degrees();
+        // A wall 1.8 m ahead is read by rays 0 and +-1 only, hits 0.75 m apart: joined, the way
+        // between them is blocked. The hit at 22.5 degrees stands for the surface up to 33.75
+        // degrees; the first clear way (of 64, from straight ahead to the left) passes 0.2 m
+        // (radius + slack) beyond that: 8 x 5.625 degrees.
+        let (_, far_wall) = scan_obs([3.0, 0.0], &wall_ahead(1.8));
+        let u = detouring.desired_velocity(&far_wall);
+        assert!((bearing(u) - 45.0).abs() < 1e-6, "{u:?}");
+        assert!(
+            (u[0].hypot(u[1]) - speed).abs() < 1e-9,
+            "at the goal term's speed: {u:?}"
+        );
+        // The plain field aims straight through it (the wall is beyond obstacle_range_m).
+        assert!(bearing(plain.desired_velocity(&far_wall)).abs() < 1e-6);
+        // A wall 1 m ahead, read up to 45 degrees (taken to 56.25): the first way clear of that.
+        let (_, near_wall) = scan_obs([3.0, 0.0], &wall_ahead(1.0));
+        let turned = bearing(detouring.desired_velocity(&near_wall));
+        assert!((turned - 67.5).abs() < 1e-6, "{turned}");
+        // The same wall beyond the slot does not matter, nor does a hit beside the way.
+        let (_, before_the_slot) = scan_obs([0.6, 0.0], &wall_ahead(1.0));
+        assert_eq!(
+            detouring.desired_velocity(&before_the_slot),
+            plain.desired_velocity(&before_the_slot)
+        );
+        let (_, beside) = scan_obs([3.0, 0.0], &[(4, 0.3)]);
+        assert_eq!(detouring.desired_velocity(&beside), plain.desired_velocity(&beside));
+    }
+
     #[test]
     fn braking_stops_short_of_a_hit_in_the_robot_s_path_and_not_of_one_beside_it() {
         let (plain, _) = scan_obs([2.0, 0.0], &[]);
@@ -706,10 +840,20 @@ mod tests {
     /// Success, robot collisions and obstacle hits of the field with `gains` among forests,
     /// every robot reading its own `slot_proximity_scan` observation.
     fn forest_rates(gains: BaselineGains, n: usize, episodes: usize, seed: u64) -> [f64; 3] {
-        use crate::obstacles::ObstacleKind;
+        rates_among(crate::obstacles::ObstacleKind::Forest, gains, n, episodes, seed)
+    }
+
+    /// The same among obstacles of `kind`.
+    fn rates_among(
+        kind: crate::obstacles::ObstacleKind,
+        gains: BaselineGains,
+        n: usize,
+        episodes: usize,
+        seed: u64,
+    ) -> [f64; 3] {
         use crate::obstacles::tests::rates_among_obstacles;
         let base = env_with(ObservationModel::SlotProximityScan, FormationShape::Random);
-        rates_among_obstacles(base, ObstacleKind::Forest, n, episodes, seed, |_, env| {
+        rates_among_obstacles(base, kind, n, episodes, seed, |_, env| {
             let field = ScriptedBaseline::new(env, gains);
             move |world: &World| {
                 (0..world.n_agents())
@@ -730,6 +874,21 @@ mod tests {
         assert!(
             success > tuned_success + 0.1,
             "circulating {success} against tuned {tuned_success}"
+        );
+    }
+
+    #[test]
+    fn the_detouring_field_leaves_the_trap_where_the_circulating_field_stays_in_it() {
+        use crate::obstacles::ObstacleKind::Trap;
+        let circulating = shipped_gains(include_str!("../../configs/potential-field-circulating-trap.toml"));
+        let detouring = shipped_gains(include_str!("../../configs/potential-field-detouring-trap.toml"));
+        assert_eq!(circulating.detour_range_m, 0.0, "the circulating field does not detour");
+        let [stuck, ..] = rates_among(Trap, circulating, 8, 20, 2000);
+        let [success, robots, hits] = rates_among(Trap, detouring, 8, 20, 2000);
+        assert_eq!((robots, hits), (0.0, 0.0), "the detouring field collided");
+        assert!(
+            success >= stuck + 0.5,
+            "detouring {success} against circulating {stuck}"
         );
     }
 

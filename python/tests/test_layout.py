@@ -4,6 +4,7 @@ observation models it lists are checked as the Python side reads them."""
 
 import ctypes
 import json
+import math
 import re
 import subprocess
 from pathlib import Path
@@ -229,3 +230,39 @@ def test_the_baseline_s_obstacle_options_match_the_rust_tests():
     yx, _ = yielding.desired_velocity(observation(hits=[(0, 0.3)], stretch=0.5))
     assert yx - rest_x == pytest.approx((fx - rest_x) / 2.0)
     assert yielding.desired_velocity(observation(stretch=0.5)) == pytest.approx(plain.desired_velocity(observation(stretch=0.5)))
+
+
+def test_the_baseline_s_detour_matches_the_rust_test():
+    """core/src/baseline.rs's detouring test, on the same observations: the same aims."""
+    layout = wire.OBSERVATION_MODELS["slot_proximity_scan"]
+    scan = layout.span("scan")
+
+    def observation(slot, hits=()):
+        obs = [0.0] * layout.dim
+        for block, (x, y) in (("neighbour_0", (-1.0, 0.5)), ("neighbour_1", (-1.0, -0.5)),
+                              ("goal", slot), ("slot", slot)):
+            obs[layout.index(block, "x")], obs[layout.index(block, "y")] = x, y
+        for block in ("neighbour_0", "neighbour_1"):
+            obs[layout.index(block, "cos")] = 1.0
+            obs[layout.index(block, "desired")] = 1.25 ** 0.5
+        obs[scan] = [1.0] * 16
+        for ray, metres in hits:
+            obs[scan.start + ray] = metres / 2.0
+        return obs
+
+    def wall_ahead(x):
+        rays = [(ray, x / math.cos(2.0 * math.pi * ray / 16)) for ray in (0, 1, 2, 14, 15)]
+        return [(ray, r) for ray, r in rays if r < 2.0]
+
+    def bearing(u):
+        return math.degrees(math.atan2(u[1], u[0]))
+
+    plain = formation_swarm.Baseline()
+    detouring = formation_swarm.Baseline(detour_range_m=2.0)
+    u = detouring.desired_velocity(observation((3.0, 0.0), wall_ahead(1.8)))
+    assert bearing(u) == pytest.approx(45.0)
+    assert math.hypot(*u) == pytest.approx(0.5)
+    assert bearing(plain.desired_velocity(observation((3.0, 0.0), wall_ahead(1.8)))) == pytest.approx(0.0, abs=1e-9)
+    assert bearing(detouring.desired_velocity(observation((3.0, 0.0), wall_ahead(1.0)))) == pytest.approx(67.5)
+    for same in (observation((0.6, 0.0), wall_ahead(1.0)), observation((3.0, 0.0), [(4, 0.3)])):
+        assert detouring.desired_velocity(same) == pytest.approx(plain.desired_velocity(same))
