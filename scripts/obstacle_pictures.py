@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """One held-out episode per kind of obstacle (forest, passage, trap), played by the potential
 field (tuned: configs/potential-field-KIND.toml, or the default gains while that is missing), the
-circulating field (configs/potential-field-circulating-KIND.toml, when there is one), the planner
+circulating and the detouring fields (configs/potential-field-{circulating,detouring}-KIND.toml, when
+there is one), the planner
 and the shipped model, drawn on one figure per kind: docs/obstacles_KIND.png.
 
   scripts/obstacle_pictures.py                      # seed 1000, episode 0, N = 8
@@ -29,7 +30,8 @@ from matplotlib.patches import Circle, Polygon  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 KINDS = ("forest", "passage", "trap")
-COLOURS = {"field": "tab:orange", "circulating": "tab:purple", "planner": "tab:blue", "model": "tab:green"}
+COLOURS = {"field": "tab:orange", "circulating": "tab:purple", "detouring": "tab:brown", "planner": "tab:blue",
+           "model": "tab:green"}
 
 
 def controllers(kind: str) -> dict[str, tuple[str, list[str]]]:
@@ -38,11 +40,12 @@ def controllers(kind: str) -> dict[str, tuple[str, list[str]]]:
     field = ("potential field (tuned)", ["--team", "scripted", "--config", str(tuned.relative_to(ROOT))]) \
         if tuned.is_file() else ("potential field (default gains)", ["--team", "scripted"])
     # formation-play's default model among obstacles: the shipped obstacle policy.
-    circulating = ROOT / "configs" / f"potential-field-circulating-{kind}.toml"
     rivals = {"field": field}
-    if circulating.is_file():
-        rivals["circulating"] = ("circulating field (tuned)",
-                                 ["--team", "scripted", "--config", str(circulating.relative_to(ROOT))])
+    for name in ("circulating", "detouring"):
+        tuned_variant = ROOT / "configs" / f"potential-field-{name}-{kind}.toml"
+        if tuned_variant.is_file():
+            rivals[name] = (f"{name} field (tuned)",
+                            ["--team", "scripted", "--config", str(tuned_variant.relative_to(ROOT))])
     return {**rivals, "planner": ("planner", ["--team", "oracle"]),
             "model": ("learned (the shipped obstacle policy)", ["--team", "model"])}
 

@@ -82,3 +82,23 @@ def test_start_keys_outside_the_search_are_refused(tmp_path):
     start.write_text("[baseline]\nk_circulation = 1.5\n")
     done = search(tmp_path / "search", extra=["--start", str(start)])
     assert done.returncode != 0 and "k_circulation" in done.stderr
+
+
+def test_a_detouring_search_tunes_the_detour_reach_as_an_eleventh_gain(tmp_path):
+    start = tmp_path / "start.toml"
+    start.write_text("[baseline]\nk_circulation = 1.5\ndetour_range_m = 1.2\n")
+    out = tmp_path / "search"
+    done = search(out, extra=["--detouring", "--start", str(start)])
+    assert done.returncode == 0, done.stderr[-2000:]
+    rows = list(csv.DictReader(open(out / "search.csv")))
+    names = list(gain_search.DETOURING_RANGES)
+    assert len(names) == 11 and names[-1] == "detour_range_m" and all(name in rows[0] for name in names)
+    first = {g: float(rows[0][g]) for g in names}
+    assert first == {**gain_search.DETOURING_GAINS, "k_circulation": 1.5, "detour_range_m": 1.2}
+    lo, hi = gain_search.DETOURING_RANGES["detour_range_m"]
+    assert all(lo <= float(r["detour_range_m"]) <= hi for r in rows)
+    tuned = tomllib.load(open(out / "tuned-forest.toml", "rb"))["baseline"]
+    assert set(tuned) == set(names)
+    # Without --detouring the reach is not searched: a start naming it is refused.
+    refused = search(tmp_path / "plain", extra=["--circulating", "--start", str(start)])
+    assert refused.returncode != 0 and "detour_range_m" in refused.stderr
