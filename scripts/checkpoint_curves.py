@@ -9,6 +9,7 @@ updates, one line per run, beside the selection score the run measured live (tra
 
   scripts/checkpoint_curves.py runs/forest/rl-long-s1 runs/forest/rl-long-s2 --n 4 --episodes 50 \\
       --out docs/forest_learning_curves.png
+  scripts/checkpoint_curves.py runs/detour/line/rl-s1 --n 8,16 --obstacles trap --out runs/trap-curves.png
 
 Writes OUT (a PNG) and OUT with .json (every point), and prints a Markdown table.
 formation-play comes from $FORMATION_BIN_DIR (default target/debug).
@@ -36,9 +37,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def play(bin_dir: str, run: Path, checkpoint: Path, n: str, episodes: int, seed: int) -> dict[int, dict]:
+def play(bin_dir: str, run: Path, checkpoint: Path, n: str, episodes: int, seed: int,
+         obstacles: str | None = None) -> dict[int, dict]:
     cmd = [str(Path(bin_dir) / "formation-play"), "--team", "model", "--checkpoint", str(checkpoint),
            "--config", str(run / "config.toml"), "--n", n, "--episodes", str(episodes), "--seed", str(seed)]
+    if obstacles:
+        cmd += ["--obstacles", obstacles]
     out = subprocess.run(cmd, cwd=ROOT, check=True, stdout=subprocess.PIPE, text=True).stdout
     return {line["n"]: line for line in (json.loads(l) for l in out.splitlines() if l.startswith("{"))}
 
@@ -91,6 +95,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True, help="the PNG to write")
     parser.add_argument("--bin-dir", default=os.environ.get("FORMATION_BIN_DIR", "target/debug"))
     parser.add_argument("--pick", type=Path, help="copy the selection rule's choice here before any held-out play")
+    parser.add_argument("--obstacles", choices=("none", "forest", "passage", "trap", "mixed"),
+                        help="play among these obstacles instead of the run's own (e.g. one kind of a mixed run)")
     parser.add_argument("--every", type=int, default=1,
                         help="play every K-th kept checkpoint of a run (its last always), to save time")
     args = parser.parse_args()
@@ -110,13 +116,14 @@ def main() -> None:
         points = []
         for k, checkpoint in enumerate(kept):
             updates = int(re.search(r"updates-(\d+)", checkpoint.name).group(1))
-            lines = play(args.bin_dir, run, checkpoint, args.n, args.episodes, args.seed)
+            lines = play(args.bin_dir, run, checkpoint, args.n, args.episodes, args.seed, args.obstacles)
             points.append({"updates": updates, "by_n": {str(n): line for n, line in lines.items()}})
             print(f"{run.name}: {k + 1}/{len(kept)} checkpoints played", file=sys.stderr, flush=True)
         curves[str(run)] = {"held_out": points, "selection": selection_curve(run)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".json").write_text(json.dumps(
-        {"n": args.n, "episodes": args.episodes, "seed": args.seed, "runs": curves}, indent=1) + "\n")
+        {"n": args.n, "episodes": args.episodes, "seed": args.seed, "obstacles": args.obstacles, "runs": curves},
+        indent=1) + "\n")
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -134,7 +141,7 @@ def main() -> None:
         ax.set_xlabel("gradient updates")
         ax.set_ylabel("success")
         ax.set_ylim(-0.02, 1.02)
-        ax.set_title(f"N = {n}")
+        ax.set_title(f"N = {n}" + (f", {args.obstacles}" if args.obstacles else ""))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
