@@ -64,11 +64,12 @@ pub struct BaselineGains {
     /// ahead - [`BRAKE_MARGIN_M`]) / `brake_range_m`, the free distance read from the rays whose
     /// hit lies in the robot's path (any hit, robot or obstacle).
     pub brake_range_m: f64,
-    /// Detour reach, metres (0: off): when a hit that no tracked robot explains lies within
-    /// this distance in the robot's way to its target (within its radius + 0.1 m of the
-    /// straight line), the robot aims instead at the first direction, turning left from the
-    /// target, whose way is clear that far. Memoryless wall-following: it leaves a U the way
-    /// it came in and goes round a wall's end, where the field alone settles at the bottom.
+    /// Detour reach, metres (0: off): when what the scan sees (see [`ScriptedBaseline`]'s
+    /// `detour`) lies within this distance in the robot's way to its target, within its
+    /// radius plus 0.1 m of the straight line, the robot aims instead at the first direction,
+    /// turning left from the target, whose way is clear that far, and drops its formation pull
+    /// while it does. Memoryless wall-following: it leaves a U the way it came in and goes
+    /// round a wall's end, where the field alone settles at the bottom.
     pub detour_range_m: f64,
 }
 
