@@ -382,10 +382,11 @@ impl ScriptedBaseline {
     /// [`DETOUR_DIRECTIONS`] directions, turning left from the target's, whose way is clear
     /// that far. `None` when the target's way is clear, or when no way is.
     ///
-    /// A way is blocked when it passes within the robot's radius + 0.1 m of what the scan sees:
-    /// each hit no `tracked` robot explains, joined to the next ray's hit when the two lie
-    /// within [`DETOUR_JOIN_M`] of each other (the rays are sparse: a wall between two of them
-    /// is not read, and the gap between their hits must not look clear).
+    /// A way is blocked when it passes within the robot's radius + 0.1 m of what the scan sees.
+    /// The rays are sparse, so each hit no `tracked` robot explains stands for a surface across
+    /// its share of the scan (half the ray spacing either side, at its range), and two
+    /// neighbouring rays' hits within [`DETOUR_JOIN_M`] of each other are joined (a wall between
+    /// them is not read, and the gap between their hits must not look clear).
     fn detour(
         &self,
         scan: &[f32],

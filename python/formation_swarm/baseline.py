@@ -151,13 +151,17 @@ class Baseline:
         for (c, s), distance in _rays(scan, self.scan_range):
             if distance >= self.obstacle_range_m:
                 continue
-            hx, hy = distance * c, distance * s
-            if any(math.hypot(hx - qx, hy - qy) < self.robot_radius + TRACKED_HIT_SLACK_M for qx, qy in tracked):
+            if self._explained(distance * c, distance * s, tracked):
                 continue
             shortfall = self.obstacle_range_m - distance
             rx, ry = self._away((c, s), self.k_obstacle * shortfall, shortfall, aim)
             px, py = px + rx, py + ry
         return px, py
+
+    def _explained(self, hx: float, hy: float, tracked: Sequence[Tuple[float, float]]) -> bool:
+        """Whether a ray's hit (robot frame) lies on a ``tracked`` robot (within its radius and
+        some slack)."""
+        return any(math.hypot(hx - qx, hy - qy) < self.robot_radius + TRACKED_HIT_SLACK_M for qx, qy in tracked)
 
     def detour(self, scan: Sequence[float], tracked: Sequence[Tuple[float, float]],
                target: Tuple[float, float]) -> Optional[Tuple[float, float]]:
@@ -172,9 +176,8 @@ class Baseline:
         half = math.pi / len(scan)
         hits = []
         for k, ((c, s), distance) in enumerate(_rays(scan, self.scan_range)):
-            hx, hy = distance * c, distance * s
-            explained = any(math.hypot(hx - qx, hy - qy) < self.robot_radius + TRACKED_HIT_SLACK_M for qx, qy in tracked)
-            hits.append((2.0 * half * k, distance) if distance < self.scan_range and not explained else None)
+            seen_here = distance < self.scan_range and not self._explained(distance * c, distance * s, tracked)
+            hits.append((2.0 * half * k, distance) if seen_here else None)
 
         def at(angle, distance):
             return distance * math.cos(angle), distance * math.sin(angle)

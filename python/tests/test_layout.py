@@ -188,25 +188,29 @@ def test_the_baseline_pushes_away_from_the_obstacles_it_scans():
     assert baseline.desired_velocity(hit) == pytest.approx(baseline.desired_velocity(tracked))
 
 
+def scan_observation(slot=(2.0, 0.0), hits=(), stretch=0.0):
+    """The Rust tests' `scan_obs`: a `slot_proximity_scan` observation with neighbours behind left
+    and right at their desired distances less `stretch`, the slot (and goal) at `slot`, every ray
+    clear but `hits` (ray, metres; the scan reads 2 m)."""
+    layout = wire.OBSERVATION_MODELS["slot_proximity_scan"]
+    scan = layout.span("scan")
+    obs = [0.0] * layout.dim
+    for block, (x, y) in (("neighbour_0", (-1.0, 0.5)), ("neighbour_1", (-1.0, -0.5)),
+                          ("goal", slot), ("slot", slot)):
+        obs[layout.index(block, "x")], obs[layout.index(block, "y")] = x, y
+    for block in ("neighbour_0", "neighbour_1"):
+        obs[layout.index(block, "cos")] = 1.0
+        obs[layout.index(block, "desired")] = 1.25 ** 0.5 - stretch
+    obs[scan] = [1.0] * 16
+    for ray, metres in hits:
+        obs[scan.start + ray] = metres / 2.0
+    return obs
+
+
 def test_the_baseline_s_obstacle_options_match_the_rust_tests():
     """core/src/baseline.rs's tests of k_circulation, brake_range_m and obstacle_yield, on the
     same observations: the same answers."""
-    layout = wire.OBSERVATION_MODELS["slot_proximity_scan"]
-    scan = layout.span("scan")
-
-    def observation(slot=(2.0, 0.0), hits=(), stretch=0.0):
-        obs = [0.0] * layout.dim
-        for block, (x, y) in (("neighbour_0", (-1.0, 0.5)), ("neighbour_1", (-1.0, -0.5)),
-                              ("goal", slot), ("slot", slot)):
-            obs[layout.index(block, "x")], obs[layout.index(block, "y")] = x, y
-        for block in ("neighbour_0", "neighbour_1"):
-            obs[layout.index(block, "cos")] = 1.0
-            obs[layout.index(block, "desired")] = 1.25 ** 0.5 - stretch
-        obs[scan] = [1.0] * 16
-        for ray, metres in hits:
-            obs[scan.start + ray] = metres / 2.0
-        return obs
-
+    observation = scan_observation
     plain = formation_swarm.Baseline()
     circulating = formation_swarm.Baseline(k_circulation=2.0)
     ux, uy = plain.desired_velocity(observation(hits=[(0, 0.3)]))
@@ -234,21 +238,7 @@ def test_the_baseline_s_obstacle_options_match_the_rust_tests():
 
 def test_the_baseline_s_detour_matches_the_rust_test():
     """core/src/baseline.rs's detouring test, on the same observations: the same aims."""
-    layout = wire.OBSERVATION_MODELS["slot_proximity_scan"]
-    scan = layout.span("scan")
-
-    def observation(slot, hits=()):
-        obs = [0.0] * layout.dim
-        for block, (x, y) in (("neighbour_0", (-1.0, 0.5)), ("neighbour_1", (-1.0, -0.5)),
-                              ("goal", slot), ("slot", slot)):
-            obs[layout.index(block, "x")], obs[layout.index(block, "y")] = x, y
-        for block in ("neighbour_0", "neighbour_1"):
-            obs[layout.index(block, "cos")] = 1.0
-            obs[layout.index(block, "desired")] = 1.25 ** 0.5
-        obs[scan] = [1.0] * 16
-        for ray, metres in hits:
-            obs[scan.start + ray] = metres / 2.0
-        return obs
+    observation = scan_observation
 
     def wall_ahead(x):
         rays = [(ray, x / math.cos(2.0 * math.pi * ray / 16)) for ray in (0, 1, 2, 14, 15)]
