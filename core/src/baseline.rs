@@ -24,6 +24,7 @@
 
 use crate::config::{ConfigError, EnvConfig};
 use crate::observation::{Layout, ObservationView};
+use crate::range_sensor::{free_distance_ahead, rays};
 use formation_protocol::NEIGHBOURS;
 use parry2d_f64::na::{self, Isometry2, Point2};
 use parry2d_f64::query::details::distance_segment_segment;
@@ -440,23 +441,12 @@ impl ScriptedBaseline {
         if self.gains.brake_range_m > 0.0
             && let Some(scan) = ObservationView::new(self.layout, obs).scan()
         {
-            let free = self.free_distance_ahead(scan) - BRAKE_MARGIN_M;
+            let free =
+                free_distance_ahead(scan, self.scan_range, self.robot_radius, TRACKED_HIT_SLACK_M) - BRAKE_MARGIN_M;
             v = v.min(self.v_max * (free / self.gains.brake_range_m).clamp(0.0, 1.0));
         }
         let w = (self.gains.k_turn * bearing).clamp(-self.w_max, self.w_max);
         (v, w)
-    }
-
-    /// How far the robot can drive straight ahead before its disc reaches a ray's hit (robot
-    /// or obstacle) in its path (its width plus some slack, the rays being sparse), metres;
-    /// the scan's reach when no hit lies there.
-    fn free_distance_ahead(&self, scan: &[f32]) -> f64 {
-        rays(scan, self.scan_range)
-            .filter(|&(towards, range)| {
-                towards[0] > 1e-9 && (range * towards[1]).abs() < self.robot_radius + TRACKED_HIT_SLACK_M
-            })
-            .map(|(towards, range)| (range * towards[0] - self.robot_radius).max(0.0))
-            .fold(self.scan_range, f64::min)
     }
 }
 
@@ -468,16 +458,6 @@ fn unit(v: [f64; 2]) -> [f64; 2] {
     } else {
         [0.0, 0.0]
     }
-}
-
-/// Each ray of `scan` (normalised ranges, evenly spread from straight ahead anticlockwise) as
-/// its unit direction and its range in metres.
-fn rays(scan: &[f32], scan_range: f64) -> impl Iterator<Item = ([f64; 2], f64)> + Clone + '_ {
-    let count = scan.len() as f64;
-    scan.iter().enumerate().map(move |(k, &reading)| {
-        let (s, c) = (std::f64::consts::TAU * k as f64 / count).sin_cos();
-        ([c, s], f64::from(reading) * scan_range)
-    })
 }
 
 #[cfg(test)]

@@ -114,6 +114,28 @@ impl RangeSensor {
     }
 }
 
+/// Each ray of a normalised `scan` (ranges / `scan_range`, evenly spread from straight ahead
+/// anticlockwise, as [`RangeSensor::scan`] reads them) as its unit direction and its range in
+/// metres.
+pub fn rays(scan: &[f32], scan_range: f64) -> impl Iterator<Item = ([f64; 2], f64)> + Clone + '_ {
+    let count = scan.len() as f64;
+    scan.iter().enumerate().map(move |(k, &reading)| {
+        let (s, c) = (std::f64::consts::TAU * k as f64 / count).sin_cos();
+        ([c, s], f64::from(reading) * scan_range)
+    })
+}
+
+/// How far a robot of `robot_radius` can drive straight ahead before its disc reaches a hit of
+/// the normalised `scan` that lies in its path (within `robot_radius + slack` of its line, the
+/// slack standing for the surface between sparse rays), metres; `scan_range` when no hit lies
+/// there.
+pub fn free_distance_ahead(scan: &[f32], scan_range: f64, robot_radius: f64, slack: f64) -> f64 {
+    rays(scan, scan_range)
+        .filter(|&(towards, range)| towards[0] > 1e-9 && (range * towards[1]).abs() < robot_radius + slack)
+        .map(|(towards, range)| (range * towards[0] - robot_radius).max(0.0))
+        .fold(scan_range, f64::min)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

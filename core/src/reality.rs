@@ -375,11 +375,17 @@ impl Actuator {
 
     /// One tick: `in_use` enters the delay line and the oldest queued command is tracked; a
     /// braking robot tracks rest directly (its watchdog sits at the motors) and queues rest.
-    fn step(&mut self, in_use: Command, brake: bool) -> Command {
+    /// `speed_cap` caps the forward speed tracked (a collision monitor at the motors; the
+    /// queue keeps the commands as sent).
+    fn step(&mut self, in_use: Command, brake: bool, speed_cap: f64) -> Command {
         let queued = if brake { (0.0, 0.0) } else { in_use };
         self.queue.push_back(queued);
         let delayed = self.queue.pop_front().unwrap_or(queued);
-        let target = if brake { (0.0, 0.0) } else { delayed };
+        let target = if brake {
+            (0.0, 0.0)
+        } else {
+            (delayed.0.min(speed_cap), delayed.1)
+        };
         self.acting = (
             approach(self.acting.0, target.0, self.linear_step),
             approach(self.acting.1, target.1, self.angular_step),
@@ -591,19 +597,32 @@ impl Reality {
     /// acting velocity moves towards the command of `delay` ticks before, within the limits.
     /// With every key off this returns `in_use` unchanged.
     pub fn actuate(&mut self, agent: usize, tick: u32, in_use: Command, present: bool) -> Command {
+        self.actuate_within(agent, tick, in_use, present, f64::INFINITY)
+    }
+
+    /// [`Reality::actuate`] with the forward speed the motors track capped at `speed_cap`, m/s:
+    /// what a collision monitor at the motors allows this tick.
+    pub fn actuate_within(
+        &mut self,
+        agent: usize,
+        tick: u32,
+        in_use: Command,
+        present: bool,
+        speed_cap: f64,
+    ) -> Command {
         let dead = !present || self.controller_failed(agent, tick);
         let actuator = &mut self.robots[agent].actuator;
         if dead {
             match self.dead_robot {
                 DeadRobot::Hold => {
                     let last = actuator.last_alive;
-                    actuator.step(last, false)
+                    actuator.step(last, false, speed_cap)
                 }
-                DeadRobot::Stop => actuator.step((0.0, 0.0), true),
+                DeadRobot::Stop => actuator.step((0.0, 0.0), true, speed_cap),
             }
         } else {
             actuator.last_alive = in_use;
-            actuator.step(in_use, false)
+            actuator.step(in_use, false, speed_cap)
         }
     }
 

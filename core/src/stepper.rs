@@ -24,13 +24,22 @@
 use formation_protocol::MAX_OBS_DIM;
 use serde::Serialize;
 
+use crate::baseline::BRAKE_MARGIN_M;
 use crate::config::EnvConfig;
 use crate::formation::EpisodeInit;
 use crate::mission::{Attendance, Away, Call, Heard, Mission, NO_SLOT, team_seed};
-use crate::observation::Layout;
+use crate::observation::{Layout, ObservationView};
+use crate::obstacles::robot_radius_m;
+use crate::range_sensor::free_distance_ahead;
 use crate::reality::{Command, Reality, RealityConfig};
 use crate::task::{Conditions, Outcome, StepResult};
 use crate::world::World;
+
+/// How far beyond its radius either side of a robot's line a hit counts as in its way for the
+/// collision monitor, metres: the surface between two sparse rays (a forest disc of 0.15 m read
+/// by the ray beside its nearest point), and narrow enough that a robot inside the passage's
+/// narrowest gap (0.35 m) is not stopped by the gap's sides.
+const MONITOR_SLACK_M: f64 = 0.05;
 
 /// One episode, stepped by the rules of a tick.
 #[derive(Debug, Clone)]
@@ -168,7 +177,10 @@ impl EpisodeStepper {
                 command
             };
             self.applied[agent] = self.world.env.clamp_command(command.0, command.1);
-            self.acting[agent] = self.reality.actuate(agent, tick, command, present(agent));
+            let speed_cap = self.monitored_speed(agent);
+            self.acting[agent] = self
+                .reality
+                .actuate_within(agent, tick, command, present(agent), speed_cap);
         }
         let result = self
             .mission
@@ -183,6 +195,22 @@ impl EpisodeStepper {
             result.outcome == Outcome::Running,
         );
         result
+    }
+
+    /// The forward speed robot `agent`'s collision monitor allows this tick (`[obstacles]
+    /// collision_monitor_m`): `v_max` times the free distance its told scan shows ahead, less
+    /// [`BRAKE_MARGIN_M`], over the monitor's range (clamped to [0, 1]); unbounded when the
+    /// monitor is off or the robot observes no scan.
+    fn monitored_speed(&self, agent: usize) -> f64 {
+        let env = &self.world.env;
+        let range = env.obstacles.collision_monitor_m;
+        match ObservationView::new(self.layout, &self.told[agent]).scan() {
+            Some(scan) if range > 0.0 => {
+                let free = free_distance_ahead(scan, env.scan_range_m, robot_radius_m(env), MONITOR_SLACK_M);
+                env.v_max * ((free - BRAKE_MARGIN_M) / range).clamp(0.0, 1.0)
+            }
+            _ => f64::INFINITY,
+        }
     }
 
     /// After the step of a running episode (rule 4): a controller that failed at this tick

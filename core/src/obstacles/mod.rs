@@ -129,6 +129,13 @@ pub struct ObstacleConfig {
     pub trap_depth_m: Spread,
     /// `trap`: how much wider than the formation the U is inside, on each side, metres.
     pub trap_margin_m: Spread,
+    /// Each robot's collision monitor (as a mobile base's safety layer, e.g. Nav2's
+    /// `collision_monitor`): at its motors, the forward speed is capped at `v_max` times the
+    /// free distance its own scan shows ahead (less a margin) over this range, metres; 0 is
+    /// off. It reads the scan the robot is told, so it acts only for a robot that observes its
+    /// range sensor (`slot_proximity_scan`, as every controller among obstacles does but the
+    /// open-arena model), whatever drives it ([`crate::stepper`]). Default 0.5.
+    pub collision_monitor_m: f64,
 }
 
 impl Default for ObstacleConfig {
@@ -141,6 +148,7 @@ impl Default for ObstacleConfig {
             wall_thickness_m: Spread::fixed(0.1),
             trap_depth_m: Spread::range(1.0, 1.5),
             trap_margin_m: Spread::range(0.3, 0.6),
+            collision_monitor_m: 0.5,
         }
     }
 }
@@ -208,7 +216,16 @@ impl ObstacleConfig {
             "obstacles.trap_margin_m",
             |v| v >= 0.0,
             "must be >= 0",
-        )
+        )?;
+        if self.collision_monitor_m.is_finite() && self.collision_monitor_m >= 0.0 {
+            Ok(())
+        } else {
+            Err(ConfigError::Invalid {
+                field: "obstacles.collision_monitor_m",
+                value: self.collision_monitor_m.to_string(),
+                reason: "must be >= 0 (0 is off)",
+            })
+        }
     }
 }
 

@@ -65,6 +65,7 @@ fn the_section_defaults_to_none_takes_ranges_and_refuses_bad_values_naming_the_k
         ("wall_thickness_m = -0.1", "obstacles.wall_thickness_m"),
         ("trap_depth_m = nan", "obstacles.trap_depth_m"),
         ("trap_margin_m = -0.2", "obstacles.trap_margin_m"),
+        ("collision_monitor_m = -0.5", "obstacles.collision_monitor_m"),
     ] {
         let config = parse(&format!("[obstacles]\n{text}\n")).expect(text);
         let message = config.validate().expect_err(text).to_string();
@@ -375,6 +376,68 @@ fn episodes_carry_their_obstacles_and_driving_into_one_ends_the_episode_counted_
         }
     }
     assert!(hits >= 3, "{hits} of 5 straight drives hit the wall");
+}
+
+/// Every robot of `stepper`'s episode drives at full speed straight for its own slot, told its
+/// observation each tick, to the episode's end; returns the closest any robot's disc came to an
+/// obstacle, metres (negative inside one).
+fn drive_straight_for_the_slots(stepper: &mut crate::stepper::EpisodeStepper) -> f64 {
+    let mut closest = f64::INFINITY;
+    while stepper.running() {
+        stepper.tell();
+        let world = stepper.world();
+        let radius = robot_radius_m(&world.env);
+        for p in &world.poses {
+            closest = closest.min(world.obstacles.distance([p.x, p.y]) - radius);
+        }
+        let commands: Vec<(f64, f64)> = world
+            .poses
+            .iter()
+            .zip(&world.slots)
+            .map(|(p, s)| {
+                let bearing = (world.goal[1] + s[1] - p.y).atan2(world.goal[0] + s[0] - p.x) - p.theta;
+                let bearing = bearing.sin().atan2(bearing.cos());
+                (world.env.v_max * bearing.cos().max(0.0), 2.0 * bearing)
+            })
+            .collect();
+        stepper.step(&commands, |_| true);
+    }
+    closest
+}
+
+#[test]
+fn the_collision_monitor_stops_straight_drives_short_of_the_wall_they_hit_without_it() {
+    use crate::config::ObservationModel;
+    use crate::reality::RealityConfig;
+    use crate::stepper::EpisodeStepper;
+    let with_monitor = |collision_monitor_m: f64| EnvConfig {
+        observation: ObservationModel::SlotProximityScan,
+        obstacles: ObstacleConfig {
+            kind: ObstacleKind::Passage,
+            collision_monitor_m,
+            ..ObstacleConfig::default()
+        },
+        ..EnvConfig::default()
+    };
+    let (mut hits_without, mut hits_with) = (0, 0);
+    for (episode, init) in Episodes::new(4, &with_monitor(0.0), 3).take(5).enumerate() {
+        for (monitor, hits) in [(0.0, &mut hits_without), (0.5, &mut hits_with)] {
+            let env = with_monitor(monitor);
+            let mut stepper = EpisodeStepper::new(&env, &RealityConfig::default(), 3, episode as u32, init.clone());
+            let closest = drive_straight_for_the_slots(&mut stepper);
+            if stepper.last().conditions.obstacle_collision {
+                *hits += 1;
+            } else if monitor > 0.0 {
+                // Stopped at the wall, not before it: within the margin and a tick's travel.
+                assert!(closest < 0.12, "episode {episode}: stayed {closest:.3} m from the wall");
+            }
+        }
+    }
+    assert!(
+        hits_without >= 3,
+        "{hits_without} of 5 straight drives hit the wall without a monitor"
+    );
+    assert_eq!(hits_with, 0, "the monitor let {hits_with} of 5 drives hit the wall");
 }
 
 /// Discounted return of `rewards` (the first at t = 0).
