@@ -353,17 +353,7 @@ fn episodes_carry_their_obstacles_and_driving_into_one_ends_the_episode_counted_
         // Every robot heads straight for its own slot: the wall is in the way.
         let mut stepper = EpisodeStepper::new(&env, &RealityConfig::default(), 3, episode as u32, init);
         while stepper.running() {
-            let world = stepper.world();
-            let commands: Vec<(f64, f64)> = world
-                .poses
-                .iter()
-                .zip(&world.slots)
-                .map(|(p, s)| {
-                    let bearing = (world.goal[1] + s[1] - p.y).atan2(world.goal[0] + s[0] - p.x) - p.theta;
-                    let bearing = bearing.sin().atan2(bearing.cos());
-                    (env.v_max * bearing.cos().max(0.0), 2.0 * bearing)
-                })
-                .collect();
+            let commands = straight_for_the_slots(stepper.world());
             stepper.step(&commands, |_| true);
         }
         let record = stepper.record(episode as u32, TransportCounts::default());
@@ -390,19 +380,25 @@ fn drive_straight_for_the_slots(stepper: &mut crate::stepper::EpisodeStepper) ->
         for p in &world.poses {
             closest = closest.min(world.obstacles.distance([p.x, p.y]) - radius);
         }
-        let commands: Vec<(f64, f64)> = world
-            .poses
-            .iter()
-            .zip(&world.slots)
-            .map(|(p, s)| {
-                let bearing = (world.goal[1] + s[1] - p.y).atan2(world.goal[0] + s[0] - p.x) - p.theta;
-                let bearing = bearing.sin().atan2(bearing.cos());
-                (world.env.v_max * bearing.cos().max(0.0), 2.0 * bearing)
-            })
-            .collect();
+        let commands = straight_for_the_slots(world);
         stepper.step(&commands, |_| true);
     }
     closest
+}
+
+/// Each robot's command at full speed straight for its own slot (turning towards it; no speed
+/// while it faces away).
+fn straight_for_the_slots(world: &crate::world::World) -> Vec<(f64, f64)> {
+    world
+        .poses
+        .iter()
+        .zip(&world.slots)
+        .map(|(p, s)| {
+            let bearing = (world.goal[1] + s[1] - p.y).atan2(world.goal[0] + s[0] - p.x) - p.theta;
+            let bearing = bearing.sin().atan2(bearing.cos());
+            (world.env.v_max * bearing.cos().max(0.0), 2.0 * bearing)
+        })
+        .collect()
 }
 
 #[test]
