@@ -24,7 +24,7 @@
 
 use crate::config::{ConfigError, EnvConfig};
 use crate::observation::{Layout, ObservationView};
-use crate::range_sensor::{free_distance_ahead, rays};
+use crate::range_sensor::{braking_speed, rays};
 use formation_protocol::NEIGHBOURS;
 use parry2d_f64::na::{self, Isometry2, Point2};
 use parry2d_f64::query::details::distance_segment_segment;
@@ -62,8 +62,8 @@ pub struct BaselineGains {
     /// gap in file.
     pub obstacle_yield: f64,
     /// Braking distance, metres (0: off): the forward speed is cut to v_max x (free distance
-    /// ahead - [`BRAKE_MARGIN_M`]) / `brake_range_m`, the free distance read from the rays whose
-    /// hit lies in the robot's path (any hit, robot or obstacle).
+    /// ahead - [`crate::range_sensor::BRAKE_MARGIN_M`]) / `brake_range_m`, the free distance
+    /// read from the rays whose hit lies in the robot's path (any hit, robot or obstacle).
     pub brake_range_m: f64,
     /// Detour reach, metres (0: off): when what the scan sees (see [`ScriptedBaseline`]'s
     /// `detour`) lies within this distance in the robot's way to its target, within its
@@ -103,9 +103,6 @@ const DETOUR_DIRECTIONS: usize = 64;
 /// robot, metres (a wall read by two rays 22.5 degrees apart up to 2 m away; a gap narrower
 /// than this is not taken).
 const DETOUR_JOIN_M: f64 = 1.0;
-
-/// The gap a braking robot keeps to the hit ahead, metres, beyond its radius.
-pub const BRAKE_MARGIN_M: f64 = 0.05;
 
 /// The range of each gain (in the order of [`BaselineGains::to_unit`]) that a gain-scheduling
 /// actor's output spans, log-uniformly from -1 to 1: the default gains, the searched sets' and
@@ -441,9 +438,14 @@ impl ScriptedBaseline {
         if self.gains.brake_range_m > 0.0
             && let Some(scan) = ObservationView::new(self.layout, obs).scan()
         {
-            let free =
-                free_distance_ahead(scan, self.scan_range, self.robot_radius, TRACKED_HIT_SLACK_M) - BRAKE_MARGIN_M;
-            v = v.min(self.v_max * (free / self.gains.brake_range_m).clamp(0.0, 1.0));
+            v = v.min(braking_speed(
+                scan,
+                self.scan_range,
+                self.robot_radius,
+                TRACKED_HIT_SLACK_M,
+                self.gains.brake_range_m,
+                self.v_max,
+            ));
         }
         let w = (self.gains.k_turn * bearing).clamp(-self.w_max, self.w_max);
         (v, w)

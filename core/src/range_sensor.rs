@@ -125,11 +125,30 @@ pub fn rays(scan: &[f32], scan_range: f64) -> impl Iterator<Item = ([f64; 2], f6
     })
 }
 
+/// The gap a braking robot keeps to the hit ahead, metres, beyond its radius.
+pub const BRAKE_MARGIN_M: f64 = 0.05;
+
+/// The top forward speed of a robot of `robot_radius` that brakes before the hits of the
+/// normalised `scan` in its path (within `robot_radius + slack` of its line): `v_max` times
+/// (the free distance ahead - [`BRAKE_MARGIN_M`]) / `brake_range`, clamped to [0, 1]. The
+/// potential field's brake and the collision monitor both read it.
+pub fn braking_speed(
+    scan: &[f32],
+    scan_range: f64,
+    robot_radius: f64,
+    slack: f64,
+    brake_range: f64,
+    v_max: f64,
+) -> f64 {
+    let free = free_distance_ahead(scan, scan_range, robot_radius, slack) - BRAKE_MARGIN_M;
+    v_max * (free / brake_range).clamp(0.0, 1.0)
+}
+
 /// How far a robot of `robot_radius` can drive straight ahead before its disc reaches a hit of
 /// the normalised `scan` that lies in its path (within `robot_radius + slack` of its line, the
 /// slack standing for the surface between sparse rays), metres; `scan_range` when no hit lies
 /// there.
-pub fn free_distance_ahead(scan: &[f32], scan_range: f64, robot_radius: f64, slack: f64) -> f64 {
+fn free_distance_ahead(scan: &[f32], scan_range: f64, robot_radius: f64, slack: f64) -> f64 {
     rays(scan, scan_range)
         .filter(|&(towards, range)| towards[0] > 1e-9 && (range * towards[1]).abs() < robot_radius + slack)
         .map(|(towards, range)| (range * towards[0] - robot_radius).max(0.0))

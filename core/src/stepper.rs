@@ -24,13 +24,12 @@
 use formation_protocol::MAX_OBS_DIM;
 use serde::Serialize;
 
-use crate::baseline::BRAKE_MARGIN_M;
 use crate::config::EnvConfig;
 use crate::formation::EpisodeInit;
 use crate::mission::{Attendance, Away, Call, Heard, Mission, NO_SLOT, team_seed};
 use crate::observation::{Layout, ObservationView};
 use crate::obstacles::robot_radius_m;
-use crate::range_sensor::free_distance_ahead;
+use crate::range_sensor::braking_speed;
 use crate::reality::{Command, Reality, RealityConfig};
 use crate::task::{Conditions, Outcome, StepResult};
 use crate::world::World;
@@ -198,19 +197,26 @@ impl EpisodeStepper {
     }
 
     /// The forward speed robot `agent`'s collision monitor allows this tick (`[obstacles]
-    /// collision_monitor_m`): `v_max` times the free distance its told scan shows ahead, less
-    /// [`BRAKE_MARGIN_M`], over the monitor's range (clamped to [0, 1]); unbounded when the
-    /// monitor is off or the robot observes no scan.
+    /// collision_monitor_m`): a brake over the monitor's range on its told scan
+    /// ([`braking_speed`]); unbounded when the monitor is off or the robot observes no scan.
     fn monitored_speed(&self, agent: usize) -> f64 {
         let env = &self.world.env;
         let range = env.obstacles.collision_monitor_m;
-        match ObservationView::new(self.layout, &self.told[agent]).scan() {
-            Some(scan) if range > 0.0 => {
-                let free = free_distance_ahead(scan, env.scan_range_m, robot_radius_m(env), MONITOR_SLACK_M);
-                env.v_max * ((free - BRAKE_MARGIN_M) / range).clamp(0.0, 1.0)
-            }
-            _ => f64::INFINITY,
+        if range <= 0.0 {
+            return f64::INFINITY;
         }
+        ObservationView::new(self.layout, &self.told[agent])
+            .scan()
+            .map_or(f64::INFINITY, |scan| {
+                braking_speed(
+                    scan,
+                    env.scan_range_m,
+                    robot_radius_m(env),
+                    MONITOR_SLACK_M,
+                    range,
+                    env.v_max,
+                )
+            })
     }
 
     /// After the step of a running episode (rule 4): a controller that failed at this tick
