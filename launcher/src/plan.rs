@@ -890,7 +890,7 @@ fn free_local_port() -> Result<u16> {
 /// ([`EnvConfig::shipped_model_file`]): in the open arena `models/formation.safetensors`
 /// (trained under randomised reality; it does not see obstacles), among obstacles a model that
 /// reads the range sensor: `models/formation-obstacles-passage.safetensors` in the passage,
-/// `models/formation-obstacles.safetensors` (trained in the forest) otherwise (models/README.md).
+/// `models/formation-obstacles.safetensors` (trained in mixed episodes) otherwise (models/README.md).
 fn shipped_model(env: &EnvConfig) -> Result<PathBuf> {
     let name = env.shipped_model_file();
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models").join(name);
