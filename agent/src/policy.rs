@@ -23,7 +23,7 @@ pub trait Policy: Send {
 
 impl Policy for ScriptedBaseline {
     fn command(&mut self, history: &ObservationHistory) -> Result<(f64, f64)> {
-        Ok(ScriptedBaseline::command(self, history.latest()))
+        Ok(self.command_in(history.as_flat()))
     }
 
     fn version(&self) -> u32 {

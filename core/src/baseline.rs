@@ -17,12 +17,17 @@
 //!   robot's aim also turns it the same way, left), yielding (the formation pull weakens near
 //!   obstacles), braking (the forward speed falls with the free distance ahead) and detouring
 //!   (a robot whose way to its target is blocked aims at the first clear way to the left of it,
-//!   following a wall with the wall on its right until the target's way is clear again).
+//!   following a wall with the wall on its right until the target's way is clear again);
+//! * a fifth, gap search (module [`crate::gap_search`]), for a wall with one gap: a robot whose
+//!   way is barred by a straight wall sweeps along it until its scan shows the gap, lines up and
+//!   drives through. It reads the window of observations, not only the newest
+//!   ([`ScriptedBaseline::command_in`]).
 //!
 //! The desired velocity u is then tracked by a unicycle: turn towards u, drive forward with
 //! the component of u along the heading (never backwards).
 
 use crate::config::{ConfigError, EnvConfig};
+use crate::gap_search;
 use crate::observation::{Layout, ObservationView};
 use crate::range_sensor::{braking_speed, rays};
 use formation_protocol::NEIGHBOURS;
@@ -72,6 +77,12 @@ pub struct BaselineGains {
     /// while it does. Memoryless wall-following: it leaves a U the way it came in and goes
     /// round a wall's end, where the field alone settles at the bottom.
     pub detour_range_m: f64,
+    /// Gap search band, metres (0: off): a robot whose way is barred by a straight wall looks
+    /// for the wall's gap instead of detouring (module [`crate::gap_search`]): through a gap its
+    /// scan shows, else sweeping along the wall, on in the way it moves and back once this far
+    /// past the straight line through the goal. Needs a window of observations
+    /// ([`ScriptedBaseline::command_in`]) to tell which way it moves.
+    pub gap_search_m: f64,
 }
 
 impl Default for BaselineGains {
@@ -88,6 +99,7 @@ impl Default for BaselineGains {
             obstacle_yield: 0.0,
             brake_range_m: 0.0,
             detour_range_m: 0.0,
+            gap_search_m: 0.0,
         }
     }
 }
@@ -103,6 +115,13 @@ const DETOUR_DIRECTIONS: usize = 64;
 /// robot, metres (a wall read by two rays 22.5 degrees apart up to 2 m away; a gap narrower
 /// than this is not taken).
 const DETOUR_JOIN_M: f64 = 1.0;
+
+/// The slack either side of a robot's path within which its brake reads hits when it searches
+/// for gaps, metres: the collision monitor's, narrow enough for the narrowest gap.
+const GAP_BRAKE_SLACK_M: f64 = 0.05;
+
+/// A gap-searching robot's repulsion range, at most, metres: robots queue close at a gap.
+const GAP_REPULSION_M: f64 = 0.4;
 
 /// The range of each gain (in the order of [`BaselineGains::to_unit`]) that a gain-scheduling
 /// actor's output spans, log-uniformly from -1 to 1: the default gains, the searched sets' and
@@ -231,6 +250,12 @@ impl BaselineGains {
                 self.detour_range_m >= 0.0,
                 "must be >= 0",
             ),
+            (
+                "baseline.gap_search_m",
+                self.gap_search_m,
+                self.gap_search_m >= 0.0,
+                "must be >= 0",
+            ),
         ] {
             if !(value.is_finite() && ok) {
                 return Err(ConfigError::Invalid {
@@ -272,6 +297,12 @@ impl ScriptedBaseline {
 
     /// The desired planar velocity in the robot's frame.
     pub fn desired_velocity(&self, obs: &[f32]) -> [f64; 2] {
+        self.desired_velocity_after(obs, &[])
+    }
+
+    /// The desired planar velocity for the newest observation `obs`, given the window's
+    /// `earlier` ones (flat, oldest first; gap search reads them).
+    fn desired_velocity_after(&self, obs: &[f32], earlier: &[f32]) -> [f64; 2] {
         let g = self.gains;
         let view = ObservationView::new(self.layout, obs);
         let neighbours: [_; NEIGHBOURS] = std::array::from_fn(|k| view.neighbour(k));
@@ -293,7 +324,10 @@ impl ScriptedBaseline {
             .scan()
             .filter(|_| g.detour_range_m > 0.0)
             .and_then(|scan| self.detour(scan, tracked.clone(), target));
-        let aim = detour.unwrap_or_else(|| unit(target));
+        let searching = (g.gap_search_m > 0.0)
+            .then(|| self.gap_search(&view, tracked.clone(), earlier))
+            .flatten();
+        let aim = searching.or(detour).unwrap_or_else(|| unit(target));
         let mut formation = [0.0f64; 2];
         let mut u = [0.0f64; 2];
         let robots = neighbours.iter().map(|n| (n.position, Some(n.desired)));
@@ -305,13 +339,18 @@ impl ScriptedBaseline {
                 formation[0] += pull * towards[0];
                 formation[1] += pull * towards[1];
             }
-            let shortfall = (g.repulsion_range - dist).max(0.0);
+            let range = if searching.is_some() {
+                g.repulsion_range.min(GAP_REPULSION_M)
+            } else {
+                g.repulsion_range
+            };
+            let shortfall = (range - dist).max(0.0);
             let push = self.away(towards, g.k_repulsion * shortfall, shortfall, aim);
             u[0] += push[0];
             u[1] += push[1];
         }
         let mut formation_share = 1.0;
-        if let Some(scan) = view.scan() {
+        if let Some(scan) = view.scan().filter(|_| searching.is_none()) {
             let push = self.obstacle_push(scan, tracked, aim);
             u[0] += push[0];
             u[1] += push[1];
@@ -429,9 +468,97 @@ impl ScriptedBaseline {
             .map(|way| [way.cos(), way.sin()])
     }
 
+    /// With gap search, where a robot whose way is barred aims: on through a gap it is in
+    /// ([`gap_search::in_a_gap`]), else by the straight wall its scan shows
+    /// ([`gap_search::aim`]); `None` when it sees no such wall.
+    fn gap_search(
+        &self,
+        view: &ObservationView,
+        tracked: impl Iterator<Item = [f64; 2]> + Clone,
+        earlier: &[f32],
+    ) -> Option<[f64; 2]> {
+        let scan = view.scan()?;
+        let hits = |rays: &[([f64; 2], f64, bool)]| -> Vec<[f64; 2]> {
+            rays.iter()
+                .filter(|(_, range, on_tracked)| *range < self.scan_range && !on_tracked)
+                .map(|&(towards, range, _)| [range * towards[0], range * towards[1]])
+                .collect()
+        };
+        let now = self.labelled_rays(scan, tracked.clone());
+        let goal = view.goal();
+        if let Some(through) = gap_search::in_a_gap(&hits(&now), goal) {
+            return Some(through);
+        }
+        let wall = gap_search::Wall::seen(&hits(&now), goal)?;
+        let lateral = wall.lateral(goal);
+        // Each earlier observation's lateral position and the gap it showed, if any, as the
+        // gap's lateral position (the same in every frame), newest first.
+        let then: Vec<Option<(f64, Option<f64>)>> = earlier
+            .chunks_exact(self.layout.dim())
+            .rev()
+            .map(|obs| {
+                let then = ObservationView::new(self.layout, obs);
+                let tracked_then = (0..NEIGHBOURS)
+                    .map(|k| then.neighbour(k).position)
+                    .chain(self.nearest_other(&then));
+                let rays_then = self.labelled_rays(then.scan()?, tracked_then);
+                let wall_then = gap_search::Wall::seen(&hits(&rays_then), then.goal())?;
+                let lateral_then = wall_then.lateral(then.goal());
+                let gap_then = wall_then.gap(&rays_then, self.scan_range, self.robot_radius);
+                Some((lateral_then, gap_then.map(|centre| lateral_then + centre)))
+            })
+            .collect();
+        // The newest scan's gap, else the newest earlier one's, from where the robot is now.
+        let gap = wall
+            .gap(&now, self.scan_range, self.robot_radius)
+            .or_else(|| then.iter().flatten().find_map(|(_, gap)| gap.map(|at| at - lateral)));
+        let lateral_before = then.get(gap_search::LOOK_BACK - 1).copied().flatten().map(|(l, _)| l);
+        let robots: Vec<[f64; 2]> = tracked.collect();
+        Some(gap_search::aim(
+            &wall,
+            gap,
+            lateral,
+            lateral_before,
+            self.gains.gap_search_m,
+            &robots,
+        ))
+    }
+
+    /// Each ray of `scan` as its unit direction, the range it reads (metres) and whether its hit
+    /// lies on a `tracked` robot.
+    fn labelled_rays(
+        &self,
+        scan: &[f32],
+        tracked: impl Iterator<Item = [f64; 2]> + Clone,
+    ) -> Vec<([f64; 2], f64, bool)> {
+        rays(scan, self.scan_range)
+            .map(|(towards, range)| {
+                (
+                    towards,
+                    range,
+                    self.explained([range * towards[0], range * towards[1]], tracked.clone()),
+                )
+            })
+            .collect()
+    }
+
+    /// The (v, w) command for the newest observation of `window` (H observations of the
+    /// layout's size, oldest first, as [`crate::observation`]'s windows): gap search reads the
+    /// older ones too; everything else reads the newest alone.
+    pub fn command_in(&self, window: &[f32]) -> (f64, f64) {
+        let dim = self.layout.dim();
+        let newest = window.len() / dim - 1;
+        let (earlier, obs) = window[..(newest + 1) * dim].split_at(newest * dim);
+        self.command_after(obs, earlier)
+    }
+
     /// The (v, w) command for the newest observation, clamped to the robot's limits.
     pub fn command(&self, obs: &[f32]) -> (f64, f64) {
-        let u = self.desired_velocity(obs);
+        self.command_after(obs, &[])
+    }
+
+    fn command_after(&self, obs: &[f32], earlier: &[f32]) -> (f64, f64) {
+        let u = self.desired_velocity_after(obs, earlier);
         let bearing = u[1].atan2(u[0]);
         let speed = u[0].hypot(u[1]);
         let mut v = (speed * bearing.cos()).clamp(0.0, self.v_max);
@@ -442,7 +569,11 @@ impl ScriptedBaseline {
                 scan,
                 self.scan_range,
                 self.robot_radius,
-                TRACKED_HIT_SLACK_M,
+                if self.gains.gap_search_m > 0.0 {
+                    GAP_BRAKE_SLACK_M
+                } else {
+                    TRACKED_HIT_SLACK_M
+                },
                 self.gains.brake_range_m,
                 self.v_max,
             ));

@@ -26,6 +26,7 @@ pub mod baseline;
 pub mod config;
 pub mod features;
 pub mod formation;
+pub mod gap_search;
 pub mod layout;
 pub mod mission;
 pub mod observation;

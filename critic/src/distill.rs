@@ -376,7 +376,7 @@ impl Distiller {
                         let (teacher, unit_gains) = &teachers[asked.agent];
                         let (v, w) = match planned.get(asked.agent) {
                             Some(&command) => command,
-                            None => teacher.command(asked.window.latest()),
+                            None => teacher.command_in(asked.window.as_flat()),
                         };
                         let action = env.action_from_command(v, w);
                         if asked.present {
@@ -524,7 +524,7 @@ pub fn teacher_samples(config: &RunConfig, n: usize, seed: u64, count: usize) ->
     for mut game in played.games(env, n) {
         while game.running() {
             game.step(|asked| {
-                let (v, w) = teacher.command(asked.window.latest());
+                let (v, w) = teacher.command_in(asked.window.as_flat());
                 if asked.present {
                     samples.push(asked.window.as_flat(), &env.action_from_command(v, w));
                 }

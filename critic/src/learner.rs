@@ -531,12 +531,11 @@ impl Learner {
             Some(Teacher::Baseline(teacher)) => (&teacher.0, &teacher.1),
         };
         let window = batch.window_dim();
-        let newest = (batch.history - 1) * batch.obs_dim;
         let actions: Vec<f32> = batch
             .observations
             .chunks_exact(window)
             .flat_map(|robot_window| {
-                let (v, w) = baseline.command(&robot_window[newest..newest + batch.obs_dim]);
+                let (v, w) = baseline.command_in(robot_window);
                 env.action_from_command(v, w)
             })
             .collect();

@@ -375,7 +375,8 @@ pub fn play(
 
 /// Who drives every robot of an in-process play.
 pub enum Team<'a> {
-    /// The scripted baseline with these gains, on the newest observation (as a scripted agent).
+    /// The scripted baseline with these gains, on the window (as a scripted agent: gap search
+    /// reads an older observation, everything else the newest).
     Scripted(&'a BaselineGains),
     /// Actors (one shared, or one per robot) of `shape`, on the window they read.
     Actors(&'a mut [FrozenActor], &'a ActorShape),
@@ -435,7 +436,7 @@ pub fn episode_records_watched(
             match &mut team {
                 Team::Scripted(_) => {
                     let baseline = baseline.as_ref().expect("made for the scripted team");
-                    game.step(|asked| Ok(baseline.command(asked.window.latest())))?;
+                    game.step(|asked| Ok(baseline.command_in(asked.window.as_flat())))?;
                 }
                 Team::Actors(actors, _) => {
                     game.step(|asked| actors[asked.agent % actors.len()].command(asked.window.as_flat(), env))?;

@@ -250,3 +250,34 @@ fn with_shape_changes_an_episode_is_played_through_its_changes_and_succeeds_only
     .expect("play");
     assert!(plain.mean_steps < scored.mean_steps, "{plain:?} vs {scored:?}");
 }
+
+/// Successes of `config`'s scripted baseline in the first `count` passage episodes of 4 robots
+/// from the search seed 2000 (neither held out nor the tests' others).
+fn passage_successes(config: &str, count: usize) -> usize {
+    use formation_core::config::RunConfig;
+    use formation_core::obstacles::ObstacleKind;
+    use formation_core::task::Outcome;
+    use formation_critic::selection::{Team, episode_records};
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../configs")
+        .join(config);
+    let mut config = RunConfig::from_toml_file(&path).expect("the config");
+    config.env.obstacles.kind = ObstacleKind::Passage;
+    let reality = RealityConfig::default();
+    let played = Played {
+        seed: 2000,
+        count,
+        reality: &reality,
+    };
+    let records = episode_records(&config.env, 4, &played, Team::Scripted(&config.baseline)).expect("play");
+    records.iter().filter(|r| r.outcome == Outcome::Success).count()
+}
+
+#[test]
+fn the_gap_searching_field_gets_through_passages_where_the_detouring_field_stalls() {
+    let searching = passage_successes("potential-field-gap-passage.toml", 20);
+    let detouring = passage_successes("obstacles-detouring.toml", 20);
+    println!("passage, N = 4, 20 episodes: gap search {searching}, detouring {detouring}");
+    assert!(searching >= 10, "the gap-searching field got through {searching} of 20");
+    assert!(detouring <= 2, "the detouring field got through {detouring} of 20");
+}
