@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """One held-out episode per kind of obstacle (forest, passage, trap), played by the potential
 field (tuned: configs/potential-field-KIND.toml, or the default gains while that is missing), the
-circulating and the detouring fields (configs/potential-field-{circulating,detouring}-KIND.toml, when
-there is one), the planner
+circulating, detouring and gap-searching fields (configs/potential-field-{circulating,detouring,gap}-KIND.toml,
+when there is one), the planner
 and the shipped model, drawn on one figure per kind: docs/obstacles_KIND.png.
 
   scripts/obstacle_pictures.py                      # seed 1000, episode 0, N = 8
@@ -30,8 +30,11 @@ from matplotlib.patches import Circle, Polygon  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 KINDS = ("forest", "passage", "trap")
-COLOURS = {"field": "tab:orange", "circulating": "tab:purple", "detouring": "tab:brown", "planner": "tab:blue",
-           "model": "tab:green"}
+COLOURS = {"field": "tab:orange", "circulating": "tab:purple", "detouring": "tab:brown", "gap": "tab:red",
+           "planner": "tab:blue", "model": "tab:green"}
+#: The hand-written variants of the potential field drawn where a config of theirs exists.
+VARIANTS = {"circulating": "circulating field (tuned)", "detouring": "detouring field (tuned)",
+            "gap": "gap-searching field"}
 
 
 def controllers(kind: str) -> dict[str, tuple[str, list[str]]]:
@@ -41,11 +44,10 @@ def controllers(kind: str) -> dict[str, tuple[str, list[str]]]:
         if tuned.is_file() else ("potential field (default gains)", ["--team", "scripted"])
     # formation-play's default model among obstacles: the shipped obstacle policy.
     rivals = {"field": field}
-    for name in ("circulating", "detouring"):
+    for name, legend in VARIANTS.items():
         tuned_variant = ROOT / "configs" / f"potential-field-{name}-{kind}.toml"
         if tuned_variant.is_file():
-            rivals[name] = (f"{name} field (tuned)",
-                            ["--team", "scripted", "--config", str(tuned_variant.relative_to(ROOT))])
+            rivals[name] = (legend, ["--team", "scripted", "--config", str(tuned_variant.relative_to(ROOT))])
     return {**rivals, "planner": ("planner", ["--team", "oracle"]),
             "model": ("learned (the shipped obstacle policy)", ["--team", "model"])}
 
