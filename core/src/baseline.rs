@@ -319,7 +319,7 @@ impl ScriptedBaseline {
             }
         };
         let nearest_other = self.nearest_other(&view);
-        let tracked = neighbours.iter().map(|n| n.position).chain(nearest_other);
+        let tracked = self.tracked(&view);
         let detour = view
             .scan()
             .filter(|_| g.detour_range_m > 0.0)
@@ -382,6 +382,14 @@ impl ScriptedBaseline {
     /// Whether a ray's `hit` lies on a `tracked` robot (within its radius and some slack).
     fn explained(&self, hit: [f64; 2], mut tracked: impl Iterator<Item = [f64; 2]>) -> bool {
         tracked.any(|q| (hit[0] - q[0]).hypot(hit[1] - q[1]) < self.robot_radius + TRACKED_HIT_SLACK_M)
+    }
+
+    /// The robots the robot tracks, in its frame: its neighbours and the nearest other robot
+    /// when the observation model reports one.
+    fn tracked<'a>(&'a self, view: &'a ObservationView) -> impl Iterator<Item = [f64; 2]> + Clone + 'a {
+        (0..NEIGHBOURS)
+            .map(|k| view.neighbour(k).position)
+            .chain(self.nearest_other(view))
     }
 
     /// Where the nearest robot the robot does not track is, in its frame, when the observation
@@ -478,18 +486,13 @@ impl ScriptedBaseline {
         earlier: &[f32],
     ) -> Option<[f64; 2]> {
         let scan = view.scan()?;
-        let hits = |rays: &[([f64; 2], f64, bool)]| -> Vec<[f64; 2]> {
-            rays.iter()
-                .filter(|(_, range, on_tracked)| *range < self.scan_range && !on_tracked)
-                .map(|&(towards, range, _)| [range * towards[0], range * towards[1]])
-                .collect()
-        };
         let now = self.labelled_rays(scan, tracked.clone());
+        let hits = gap_search::surface_hits(&now, self.scan_range);
         let goal = view.goal();
-        if let Some(through) = gap_search::in_a_gap(&hits(&now), goal) {
+        if let Some(through) = gap_search::in_a_gap(&hits, goal) {
             return Some(through);
         }
-        let wall = gap_search::Wall::seen(&hits(&now), goal)?;
+        let wall = gap_search::Wall::seen(&hits, goal)?;
         let lateral = wall.lateral(goal);
         // Each earlier observation's lateral position and the gap it showed, if any, as the
         // gap's lateral position (the same in every frame), newest first.
@@ -498,11 +501,9 @@ impl ScriptedBaseline {
             .rev()
             .map(|obs| {
                 let then = ObservationView::new(self.layout, obs);
-                let tracked_then = (0..NEIGHBOURS)
-                    .map(|k| then.neighbour(k).position)
-                    .chain(self.nearest_other(&then));
-                let rays_then = self.labelled_rays(then.scan()?, tracked_then);
-                let wall_then = gap_search::Wall::seen(&hits(&rays_then), then.goal())?;
+                let rays_then = self.labelled_rays(then.scan()?, self.tracked(&then));
+                let hits_then = gap_search::surface_hits(&rays_then, self.scan_range);
+                let wall_then = gap_search::Wall::seen(&hits_then, then.goal())?;
                 let lateral_then = wall_then.lateral(then.goal());
                 let gap_then = wall_then.gap(&rays_then, self.scan_range, self.robot_radius);
                 Some((lateral_then, gap_then.map(|centre| lateral_then + centre)))

@@ -159,10 +159,8 @@ impl Wall {
                     .then_some(at * (towards[0] * along[0] + towards[1] * along[1]))
             })
             .min_by(|a, b| a.abs().total_cmp(&b.abs()))?;
-        let on_line: Vec<f64> = rays
-            .iter()
-            .filter(|(_, range, tracked)| !tracked && *range < scan_range)
-            .map(|&(towards, range, _)| [range * towards[0], range * towards[1]])
+        let on_line: Vec<f64> = surface_hits(rays, scan_range)
+            .into_iter()
             .filter(|hit| self.offset(*hit).abs() < ON_THE_LINE_M)
             .map(|hit| hit[0] * along[0] + hit[1] * along[1])
             .collect();
@@ -173,6 +171,15 @@ impl Wall {
             _ => through,
         })
     }
+}
+
+/// The points (robot frame) where `rays` (unit direction, range read, whether the hit is a
+/// tracked robot) hit something other than a tracked robot within `scan_range`.
+pub fn surface_hits(rays: &[([f64; 2], f64, bool)], scan_range: f64) -> Vec<[f64; 2]> {
+    rays.iter()
+        .filter(|&&(_, range, tracked)| range < scan_range && !tracked)
+        .map(|&(towards, range, _)| [range * towards[0], range * towards[1]])
+        .collect()
 }
 
 /// Where a robot in a gap's mouth aims (unit, robot frame), or `None` when it is not in one:
