@@ -29,7 +29,7 @@
 use crate::config::{ConfigError, EnvConfig};
 use crate::gap_search;
 use crate::observation::{Layout, ObservationView};
-use crate::range_sensor::{braking_speed, rays};
+use crate::range_sensor::{braking_speed, nearest_in_path, rays};
 use formation_protocol::NEIGHBOURS;
 use parry2d_f64::na::{self, Isometry2, Point2};
 use parry2d_f64::query::details::distance_segment_segment;
@@ -563,23 +563,37 @@ impl ScriptedBaseline {
         let bearing = u[1].atan2(u[0]);
         let speed = u[0].hypot(u[1]);
         let mut v = (speed * bearing.cos()).clamp(0.0, self.v_max);
+        let mut w = (self.gains.k_turn * bearing).clamp(-self.w_max, self.w_max);
         if self.gains.brake_range_m > 0.0
             && let Some(scan) = ObservationView::new(self.layout, obs).scan()
         {
+            let searching = self.gains.gap_search_m > 0.0;
+            let slack = if searching {
+                GAP_BRAKE_SLACK_M
+            } else {
+                TRACKED_HIT_SLACK_M
+            };
+            let wanted = v;
             v = v.min(braking_speed(
                 scan,
                 self.scan_range,
                 self.robot_radius,
-                if self.gains.gap_search_m > 0.0 {
-                    GAP_BRAKE_SLACK_M
-                } else {
-                    TRACKED_HIT_SLACK_M
-                },
+                slack,
                 self.gains.brake_range_m,
                 self.v_max,
             ));
+            // A searching robot stopped by a hit its disc would pass (one beside its line, in
+            // the slack, as a gap's side is to a robot in the mouth a little off its middle)
+            // turns away from it until the way is clear, instead of waiting for good.
+            if searching
+                && wanted > 0.0
+                && v == 0.0
+                && let Some((_, hit)) = nearest_in_path(scan, self.scan_range, self.robot_radius, slack)
+                && hit[1].abs() >= self.robot_radius
+            {
+                w = -hit[1].signum() * self.w_max;
+            }
         }
-        let w = (self.gains.k_turn * bearing).clamp(-self.w_max, self.w_max);
         (v, w)
     }
 }
@@ -910,6 +924,36 @@ mod tests {
         // path.
         let (_, beside) = scan_obs([2.0, 0.0], &[(4, 0.15), (2, 0.3)]);
         assert_eq!(braking.command(&beside).0, plain.command(&beside).0);
+    }
+
+    #[test]
+    fn a_searching_robot_stopped_by_a_hit_beside_its_line_turns_away_from_it() {
+        let (plain, _) = scan_obs([2.0, 0.0], &[]);
+        // No push from the hits: the turn is the brake's alone.
+        let braking = BaselineGains {
+            brake_range_m: 0.3,
+            k_obstacle: 0.0,
+            ..BaselineGains::default()
+        };
+        let searching = with_gains(
+            &plain,
+            BaselineGains {
+                gap_search_m: 1.8,
+                ..braking
+            },
+        );
+        let w_max = plain.w_max;
+        // 0.17 m out on the ray 45 degrees left: 0.12 m beside the robot's line (past its
+        // radius, within the slack) and 0.02 m from its disc ahead: it stops.
+        let (_, left) = scan_obs([2.0, 0.0], &[(2, 0.17)]);
+        assert_eq!(searching.command(&left), (0.0, -w_max), "turns right, away from it");
+        let (_, right) = scan_obs([2.0, 0.0], &[(14, 0.17)]);
+        assert_eq!(searching.command(&right), (0.0, w_max), "turns left, away from it");
+        // Without gap search it waits, facing its goal.
+        assert_eq!(with_gains(&plain, braking).command(&left), (0.0, 0.0));
+        // A hit its disc would reach, straight ahead, is no reason to turn.
+        let (_, ahead) = scan_obs([2.0, 0.0], &[(0, 0.14)]);
+        assert_eq!(searching.command(&ahead), (0.0, 0.0));
     }
 
     #[test]

@@ -17,6 +17,10 @@
 //!   moved over the last [`LOOK_BACK`] ticks, and back once it is `gap_search_m` past the
 //!   straight line through the goal (the way, on which the wall's gap is centred within a known
 //!   offset); when it has not been moving along the wall, towards that line.
+//!
+//! The baseline's brake (`ScriptedBaseline::command_in`) adds one rule for a searching robot:
+//! stopped by a hit beside its line, it turns away from that hit (a gap's corner stops a robot
+//! a few centimetres off the mouth's middle, and it cannot back out).
 
 use std::f64::consts::PI;
 

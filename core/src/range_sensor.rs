@@ -149,10 +149,20 @@ pub fn braking_speed(
 /// slack standing for the surface between sparse rays), metres; `scan_range` when no hit lies
 /// there.
 fn free_distance_ahead(scan: &[f32], scan_range: f64, robot_radius: f64, slack: f64) -> f64 {
+    nearest_in_path(scan, scan_range, robot_radius, slack).map_or(scan_range, |(free, _)| free)
+}
+
+/// The hit of the normalised `scan` in a robot's path (within `robot_radius + slack` of its
+/// line, ahead of it) that its disc would reach first: how far the robot can drive before it
+/// does (metres, at least 0) and the hit (robot frame). `None` when no hit lies there.
+pub fn nearest_in_path(scan: &[f32], scan_range: f64, robot_radius: f64, slack: f64) -> Option<(f64, [f64; 2])> {
     rays(scan, scan_range)
         .filter(|&(towards, range)| towards[0] > 1e-9 && (range * towards[1]).abs() < robot_radius + slack)
-        .map(|(towards, range)| (range * towards[0] - robot_radius).max(0.0))
-        .fold(scan_range, f64::min)
+        .map(|(towards, range)| {
+            let hit = [range * towards[0], range * towards[1]];
+            ((hit[0] - robot_radius).max(0.0), hit)
+        })
+        .min_by(|a, b| a.0.total_cmp(&b.0))
 }
 
 #[cfg(test)]
