@@ -20,7 +20,8 @@
 //!   following a wall with the wall on its right until the target's way is clear again);
 //! * a fifth, gap search (module [`crate::gap_search`]), for a wall with one gap: a robot whose
 //!   way is barred by a straight wall sweeps along it until its scan shows the gap, lines up and
-//!   drives through. It reads the window of observations, not only the newest
+//!   drives through; one its brake stops by a hit beside its line (a gap's corner) turns away
+//!   from it. It reads the window of observations, not only the newest
 //!   ([`ScriptedBaseline::command_in`]).
 //!
 //! The desired velocity u is then tracked by a unicycle: turn towards u, drive forward with
