@@ -30,7 +30,7 @@
 use crate::config::{ConfigError, EnvConfig};
 use crate::gap_search;
 use crate::observation::{Layout, ObservationView};
-use crate::range_sensor::{braking_speed, nearest_in_path, rays};
+use crate::range_sensor::{nearest_in_path, rays, speed_before};
 use formation_protocol::NEIGHBOURS;
 use parry2d_f64::na::{self, Isometry2, Point2};
 use parry2d_f64::query::details::distance_segment_segment;
@@ -575,21 +575,16 @@ impl ScriptedBaseline {
                 TRACKED_HIT_SLACK_M
             };
             let wanted = v;
-            v = v.min(braking_speed(
-                scan,
-                self.scan_range,
-                self.robot_radius,
-                slack,
-                self.gains.brake_range_m,
-                self.v_max,
-            ));
+            let ahead = nearest_in_path(scan, self.scan_range, self.robot_radius, slack);
+            let free = ahead.map_or(self.scan_range, |(free, _)| free);
+            v = v.min(speed_before(free, self.gains.brake_range_m, self.v_max));
             // A searching robot stopped by a hit its disc would pass (one beside its line, in
             // the slack, as a gap's side is to a robot in the mouth a little off its middle)
             // turns away from it until the way is clear, instead of waiting for good.
             if searching
                 && wanted > 0.0
                 && v == 0.0
-                && let Some((_, hit)) = nearest_in_path(scan, self.scan_range, self.robot_radius, slack)
+                && let Some((_, hit)) = ahead
                 && hit[1].abs() >= self.robot_radius
             {
                 w = -hit[1].signum() * self.w_max;

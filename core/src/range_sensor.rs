@@ -140,8 +140,18 @@ pub fn braking_speed(
     brake_range: f64,
     v_max: f64,
 ) -> f64 {
-    let free = free_distance_ahead(scan, scan_range, robot_radius, slack) - BRAKE_MARGIN_M;
-    v_max * (free / brake_range).clamp(0.0, 1.0)
+    speed_before(
+        free_distance_ahead(scan, scan_range, robot_radius, slack),
+        brake_range,
+        v_max,
+    )
+}
+
+/// The top forward speed of a braking robot that can drive `free` metres before it touches
+/// what is in its path ([`nearest_in_path`]): `v_max` times (`free` - [`BRAKE_MARGIN_M`]) /
+/// `brake_range`, clamped to [0, 1].
+pub fn speed_before(free: f64, brake_range: f64, v_max: f64) -> f64 {
+    v_max * ((free - BRAKE_MARGIN_M) / brake_range).clamp(0.0, 1.0)
 }
 
 /// How far a robot of `robot_radius` can drive straight ahead before its disc reaches a hit of
