@@ -83,6 +83,32 @@ pub struct DistillOptions {
     /// only): every robot's label is the planner's command for it at that tick, planned from
     /// the true state as the sim's truth stream carries it. `None`: the baseline teaches.
     pub planner_teacher: Option<PlannerKind>,
+    /// How the student's distance to its labels is measured.
+    pub loss: ImitationLoss,
+}
+
+/// The student's error to its labels, per output.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum ImitationLoss {
+    /// The squared error: the student learns the teacher's mean answer for what it sees.
+    #[default]
+    Squared,
+    /// The absolute error: the student learns the teacher's median answer, so where the teacher
+    /// answers one of two ways (stop or go, left or right) it takes the more frequent one
+    /// instead of a mean between them.
+    Absolute,
+}
+
+impl ImitationLoss {
+    /// The mean error of a batch's `outputs` to its `labels` (rows are samples), one per output.
+    pub fn per_output(self, outputs: &Tensor, labels: &Tensor) -> candle_core::Result<Tensor> {
+        let error = (outputs - labels)?;
+        match self {
+            Self::Squared => error.sqr()?,
+            Self::Absolute => error.abs()?,
+        }
+        .mean(0)
+    }
 }
 
 impl Default for DistillOptions {
@@ -104,6 +130,7 @@ impl Default for DistillOptions {
             soft_from_delay_ticks: None,
             head: ActorHead::Command,
             planner_teacher: None,
+            loss: ImitationLoss::Squared,
         }
     }
 }
@@ -194,8 +221,10 @@ pub struct RoundReport {
     pub round: usize,
     /// Samples in the buffer.
     pub samples: usize,
-    /// Mean squared error of the round's gradient steps (outputs in [-1, 1]).
+    /// Mean error ([`DistillOptions::loss`]) of the round's gradient steps (outputs in [-1, 1]).
     pub loss: f64,
+    /// The same error for each output alone (the command head: v, then w; the gains head: its five gains).
+    pub loss_per_output: Vec<f64>,
     /// The learning rate of the round.
     pub lr: f64,
     /// Each size's episodes the student drove.
@@ -406,20 +435,25 @@ impl Distiller {
         }
         let lr = self.learning_rate();
         self.optimiser.set_learning_rate(lr);
-        let mut loss_sum = 0.0;
+        let updates = self.options.updates_per_round.max(1) as f64;
+        let mut loss_sum = vec![0.0; self.shape.head.outputs()];
         for _ in 0..self.options.updates_per_round {
             let len = self.samples.len();
             let rows: Vec<usize> = (0..self.options.batch).map(|_| self.rng.random_range(0..len)).collect();
             let (windows, labels) = self.samples.batch(rows.into_iter(), &self.device)?;
-            let loss = (self.actor.forward(&windows)? - labels)?.sqr()?.mean_all()?;
-            self.optimiser.backward_step(&loss)?;
-            loss_sum += f64::from(loss.to_scalar::<f32>()?);
+            let per_output = self.options.loss.per_output(&self.actor.forward(&windows)?, &labels)?;
+            self.optimiser.backward_step(&per_output.mean_all()?)?;
+            for (sum, loss) in loss_sum.iter_mut().zip(per_output.to_vec1::<f32>()?) {
+                *sum += f64::from(loss);
+            }
         }
         self.round += 1;
+        let loss_per_output: Vec<f64> = loss_sum.iter().map(|sum| sum / updates).collect();
         Ok(RoundReport {
             round: self.round,
             samples: self.samples.len(),
-            loss: loss_sum / self.options.updates_per_round.max(1) as f64,
+            loss: loss_per_output.iter().sum::<f64>() / loss_per_output.len() as f64,
+            loss_per_output,
             lr,
             student: scores,
         })
@@ -607,6 +641,35 @@ fn load_shared_actor(vars: &VarMap, path: &Path, shape: &ActorShape, config: &Ru
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_absolute_error_takes_the_more_frequent_of_two_answers_where_the_squared_takes_their_mean() {
+        // One window, answered +1 three times and -1 once (as a teacher that stops or goes on
+        // windows a student cannot tell apart); a constant student fitted by plain descent.
+        let labels = Tensor::new(&[[1.0_f32], [1.0], [1.0], [-1.0]], &Device::Cpu).expect("labels");
+        let fit = |loss: ImitationLoss| {
+            let student = candle_core::Var::zeros((1, 1), DType::F32, &Device::Cpu).expect("a student");
+            let mut descent = candle_nn::SGD::new(vec![student.clone()], 0.01).expect("descent");
+            for _ in 0..500 {
+                let outputs = student.as_tensor().broadcast_as((4, 1)).expect("outputs");
+                let error = loss
+                    .per_output(&outputs, &labels)
+                    .expect("error")
+                    .mean_all()
+                    .expect("mean");
+                descent.backward_step(&error).expect("a step");
+            }
+            student
+                .as_tensor()
+                .flatten_all()
+                .expect("flat")
+                .to_vec1::<f32>()
+                .expect("value")[0]
+        };
+        let (mean, median) = (fit(ImitationLoss::Squared), fit(ImitationLoss::Absolute));
+        assert!((mean - 0.5).abs() < 0.02, "squared: {mean}");
+        assert!(median > 0.95, "absolute: {median}");
+    }
     use formation_core::config::ObservationModel;
     use formation_core::obstacles::ObstacleKind;
 

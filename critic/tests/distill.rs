@@ -50,6 +50,22 @@ fn a_few_rounds_bring_a_fresh_student_close_to_its_teacher_under_the_field_prese
     assert!(reports[1..].iter().any(|r| r.student[0].success.is_some()));
     assert!(reports.windows(2).all(|w| w[1].samples > w[0].samples));
     assert!(reports[9].lr < reports[0].lr);
+    // The round's error is the mean of its per-output errors (v, w), each of them falling too.
+    for report in &reports {
+        let [v, w] = report.loss_per_output[..] else {
+            panic!("{:?}", report.loss_per_output)
+        };
+        assert!(
+            (report.loss - (v + w) / 2.0).abs() < 1e-9 * report.loss.max(1.0),
+            "{report:?}"
+        );
+    }
+    for output in 0..2 {
+        assert!(
+            reports[9].loss_per_output[output] < reports[0].loss_per_output[output],
+            "{reports:?}"
+        );
+    }
 }
 
 #[test]

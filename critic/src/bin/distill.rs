@@ -13,7 +13,7 @@ use clap::{Parser, ValueEnum};
 use formation_core::baseline::BaselineGains;
 use formation_core::config::{RunConfig, validate_agent_count};
 use formation_core::reality::RealityConfig;
-use formation_critic::distill::{DistillOptions, Distiller, RoundReport, gain_profile};
+use formation_critic::distill::{DistillOptions, Distiller, ImitationLoss, RoundReport, gain_profile};
 use formation_critic::selection::{PlannerKind, Selector};
 use formation_model::actor::ActorHead;
 use formation_model::checkpoint::{SelectionScore, SizeScore};
@@ -119,6 +119,11 @@ struct Cli {
     /// env.observation = "slot_proximity_scan"; command head only).
     #[arg(long, value_enum, default_value_t = Teacher::Baseline)]
     teacher: Teacher,
+    /// The student's error to its labels: `squared` learns the teacher's mean answer for what
+    /// it sees; `absolute` its median, so where the teacher answers one of two ways for windows
+    /// the student cannot tell apart (stop or go, left or right) it takes the more frequent one.
+    #[arg(long, value_enum, default_value_t = ImitationLoss::Squared)]
+    loss: ImitationLoss,
     /// Also write the student to --out every this many rounds (unscored; its metadata says the
     /// rounds done), so an interrupted run keeps its work; 0: only at the end.
     #[arg(long, default_value_t = 50)]
@@ -196,6 +201,7 @@ fn distill_options(cli: &Cli) -> Result<DistillOptions> {
         },
         soft_from_delay_ticks: cli.soft_from_delay_ticks,
         head: ActorHead::from_name(&cli.head).context("--head")?,
+        loss: cli.loss,
         ..DistillOptions::default()
     })
 }
@@ -250,6 +256,9 @@ fn student_metadata(
     }
     if !config.reality.is_ideal() {
         extra.insert("reality".into(), config.reality.one_line());
+    }
+    if cli.loss == ImitationLoss::Absolute {
+        extra.insert("distill_loss".into(), "absolute".into());
     }
     if distiller.shape().head == ActorHead::Gains {
         record_gain_profiles(cli, config, distiller, &mut extra)?;
@@ -336,10 +345,16 @@ fn describe(report: &RoundReport) -> String {
             None => format!("N={} -", s.n_agents),
         })
         .collect();
+    let per_output: Vec<String> = report
+        .loss_per_output
+        .iter()
+        .map(|loss| format!("{loss:.2e}"))
+        .collect();
     format!(
-        "{} samples, loss {:.2e}, lr {:.1e}, student success {}",
+        "{} samples, loss {:.2e} (per output {}), lr {:.1e}, student success {}",
         report.samples,
         report.loss,
+        per_output.join(" / "),
         report.lr,
         student.join(" ")
     )
