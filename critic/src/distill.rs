@@ -641,6 +641,8 @@ fn load_shared_actor(vars: &VarMap, path: &Path, shape: &ActorShape, config: &Ru
 #[cfg(test)]
 mod tests {
     use super::*;
+    use formation_core::config::ObservationModel;
+    use formation_core::obstacles::ObstacleKind;
 
     #[test]
     fn the_absolute_error_takes_the_more_frequent_of_two_answers_where_the_squared_takes_their_mean() {
@@ -670,8 +672,6 @@ mod tests {
         assert!((mean - 0.5).abs() < 0.02, "squared: {mean}");
         assert!(median > 0.95, "absolute: {median}");
     }
-    use formation_core::config::ObservationModel;
-    use formation_core::obstacles::ObstacleKind;
 
     #[test]
     fn the_buffer_overwrites_the_oldest_and_reads_them_in_order() {

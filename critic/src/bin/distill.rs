@@ -257,8 +257,10 @@ fn student_metadata(
     if !config.reality.is_ideal() {
         extra.insert("reality".into(), config.reality.one_line());
     }
-    if cli.loss == ImitationLoss::Absolute {
-        extra.insert("distill_loss".into(), "absolute".into());
+    if cli.loss != ImitationLoss::default()
+        && let Some(name) = cli.loss.to_possible_value()
+    {
+        extra.insert("distill_loss".into(), name.get_name().into());
     }
     if distiller.shape().head == ActorHead::Gains {
         record_gain_profiles(cli, config, distiller, &mut extra)?;
