@@ -36,8 +36,9 @@ enum Teacher {
 /// --teacher a planner that knows the map) into the shared actor:
 /// each round plays episodes of every swarm size in-process, exactly as a lockstep sim plays
 /// them under the config's `[reality]`, labels every robot's window with the teacher's command,
-/// and takes gradient steps on the squared error. The teacher drives the first round; after it,
-/// the student drives most episodes (DAgger), so it learns the way back from its own mistakes.
+/// and takes gradient steps on the error to those labels (--loss). The teacher drives the first
+/// round; after it, the student drives most episodes (DAgger), so it learns the way back from its
+/// own mistakes.
 /// At the end the student is scored by model selection (learn.selection_*, under the reality
 /// and in the ideal world) and saved with that score.
 ///
