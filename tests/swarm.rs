@@ -305,7 +305,7 @@ fn a_gain_schedule_drives_as_the_baseline_s_law_with_the_gains_it_outputs() {
 }
 
 #[test]
-fn one_critic_trains_one_actor_on_two_swarm_sizes_at_once() {
+fn one_critic_trains_one_actor_on_two_swarm_sizes_at_once_for_the_updates_asked() {
     let dir = scratch_dir("two-sizes");
     std::fs::create_dir_all(&dir).expect("dir");
     let config = dir.join("two-sizes.toml");
@@ -324,8 +324,8 @@ fn one_critic_trains_one_actor_on_two_swarm_sizes_at_once() {
             "4",
             "--config",
             config.to_str().expect("utf8"),
-            "--minutes",
-            "0.4",
+            "--updates",
+            "300",
             "--seed",
             "5",
             "--viewer",
@@ -338,7 +338,13 @@ fn one_critic_trains_one_actor_on_two_swarm_sizes_at_once() {
     assert_eq!(run.status, Some(0), "launcher failed:\n{}", run.output);
     let summary = run.summary().expect("summary.json");
     assert!(summary["episodes"].as_u64().expect("episodes") > 0, "{summary}");
-    assert!(summary["updates"].as_u64().expect("updates") > 0, "{summary}");
+    // --updates ends the run by itself, after exactly that many updates.
+    assert_eq!(summary["updates"].as_u64(), Some(300), "{summary}");
+    assert!(
+        run.output.contains("the critic has done its 300 updates"),
+        "{}",
+        run.output
+    );
     let extra = run.run_dir.join("swarm-1-n4/summary.json");
     let extra: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&extra).expect("the extra swarm's summary")).expect("json");
@@ -346,6 +352,7 @@ fn one_critic_trains_one_actor_on_two_swarm_sizes_at_once() {
     assert!(extra["episodes"].as_u64().expect("episodes") > 0, "{extra}");
     let last = checkpoint::load(&run.run_dir.join("checkpoint.safetensors")).expect("checkpoint");
     assert_eq!(last.meta.extra["swarm_sizes"], "3,4");
+    assert_eq!(last.meta.extra["updates"], "300");
     // The last checkpoint is also kept, named by its updates.
     let kept = run.run_dir.join(format!(
         "checkpoints/updates-{:08}.safetensors",
@@ -512,6 +519,11 @@ fn bad_input_is_refused_before_anything_starts() {
         (vec!["3", "--shape", "blob"], "--shape"),
         (vec!["3", "--extra-swarms", "4,2"], "sizes 3 to 64"),
         (vec!["3", "--extra-swarms", "4", "--mode", "eval"], "for training"),
+        (
+            vec!["3", "--updates", "100", "--mode", "eval"],
+            "--updates is for training",
+        ),
+        (vec!["3", "--updates", "0"], "--updates"),
         // The default critic is sized by N: it cannot serve several sizes.
         (vec!["3", "--extra-swarms", "4"], "pooled"),
     ] {

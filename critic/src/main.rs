@@ -40,6 +40,11 @@ struct Cli {
     /// The run's length as given to the sim (`--minutes`): shows the time left.
     #[arg(long)]
     minutes: Option<f64>,
+    /// Train mode: stop updating after this many gradient updates in this run (counted on from
+    /// the checkpoint it starts from; a critic restarted in the same run directory keeps the
+    /// first one's target), then print `UPDATE_BUDGET_SPENT` and acknowledge every tick.
+    #[arg(long, value_name = "U", value_parser = clap::value_parser!(u64).range(1..))]
+    updates: Option<u64>,
     /// Only validate the flags, the configuration and the checkpoint to resume, then exit.
     #[arg(long)]
     check: bool,
@@ -92,6 +97,9 @@ fn try_main(cli: Cli) -> Result<()> {
             );
         }
     }
+    if cli.updates.is_some() && cli.run.mode != Mode::Train {
+        bail!("--updates is for training: an eval does no updates");
+    }
     if cli.run.mode == Mode::Train {
         config.learn.check_training_seeds(cli.run.seed, cli.extra_swarm.len())?;
         config.check_training_critic()?;
@@ -120,6 +128,7 @@ fn try_main(cli: Cli) -> Result<()> {
         viewer,
         run_id: identity.run_id.clone(),
         minutes: cli.minutes,
+        updates: cli.updates,
         extra_swarms: cli.extra_swarm,
     };
     let summary = run::<ipc::Service>(&identity, &options)?;

@@ -10,8 +10,8 @@ use anyhow::{Result, bail};
 use formation_core::config::RunConfig;
 use formation_core::observation::Layout;
 use formation_core::run_dir::write_atomically;
-use formation_ipc::cli::Mode;
 use formation_ipc::cli::ViewerMode;
+use formation_ipc::cli::{Mode, UPDATE_BUDGET_SPENT};
 use formation_ipc::services::{self, FileDescriptorBased, ProgressPublisher, RunIdentity, Sizing, StreamReader};
 use formation_ipc::summary::Summary;
 use formation_model::checkpoint::FILE_NAME;
@@ -49,6 +49,8 @@ pub struct CriticOptions {
     pub run_id: String,
     /// How long the run lasts (`--minutes`), for the time left on the progress display.
     pub minutes: Option<f64>,
+    /// Gradient updates this run does at most (`--updates`); then it only records.
+    pub updates: Option<u64>,
     /// Other swarms (run id, robots) whose sims and robots this critic also trains on.
     pub extra_swarms: Vec<(RunIdentity, usize)>,
 }
@@ -61,6 +63,8 @@ struct SwarmLink<S: Service> {
     progress: ProgressPublisher<S>,
     sim_watch: services::SimWatch,
     paid_ticks: u64,
+    /// Episodes its sim has finished in this run.
+    episodes: u64,
     last_acknowledged: u64,
     last_progress: Instant,
     /// Last: the ports above live in it.
@@ -88,6 +92,7 @@ where
             ),
             sizing,
             paid_ticks: u64::MAX,
+            episodes: 0,
             last_acknowledged: 0,
             last_progress: Instant::now(),
             node,
@@ -144,6 +149,7 @@ where
         Mode::Eval => None,
     };
     let mut progress = Progress::open(options)?;
+    let mut budget_announced = false;
     for link in &links {
         link.publish_progress(0, trainer.as_ref().map(Trainer::status))?;
     }
@@ -160,6 +166,7 @@ where
         for (k, link) in links.iter_mut().enumerate() {
             let before = link.collector.stats.ticks_received;
             for finished in link.collector.drain()? {
+                link.episodes += 1;
                 progress.episode(&finished)?;
                 // Eval mode only records figures: keeping episodes would grow memory for nothing.
                 if let Some(trainer) = &mut trainer {
@@ -195,6 +202,12 @@ where
             let ticks: Vec<u64> = links.iter().map(|l| l.collector.stats.ticks_received).collect();
             for (link, paid) in links.iter_mut().zip(trainer.train(&ticks, &progress.rolling)?) {
                 link.paid_ticks = paid;
+            }
+            // The run ends once every swarm has also fed the replay an episode: a size whose
+            // sim was still starting is not left out of the run unnoticed.
+            if trainer.budget_spent() && !budget_announced && links.iter().all(|l| l.episodes > 0) {
+                budget_announced = true;
+                println!("{UPDATE_BUDGET_SPENT}");
             }
         }
         let status = trainer.as_ref().map(Trainer::status);

@@ -9,6 +9,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use formation_core::config::Algorithm;
+use formation_core::run_dir::write_atomically;
 use formation_ipc::services::Sizing;
 use formation_model::actor::ActorShape;
 use formation_model::checkpoint::{self, BEST_FILE_NAME, FILE_NAME, SelectionScore};
@@ -28,6 +29,10 @@ use crate::weights::WeightsPublisher;
 /// Longest run of updates between two drains of the streams: the critic keeps telling the sim
 /// it is alive (and acknowledging) while updates are slow, e.g. a big swarm on a busy machine.
 const UPDATES_BETWEEN_DRAINS: Duration = Duration::from_millis(40);
+
+/// Where a critic given `--updates` keeps its target, `RUN_ID TOTAL`: a critic restarted in the
+/// same run resumes from the run's last checkpoint and must stop at the same total.
+const UPDATE_TARGET_FILE: &str = "update-target.txt";
 
 /// A selection running on its own thread: the score and how long it took.
 type Selection = JoinHandle<Result<(SelectionScore, Duration)>>;
@@ -80,6 +85,9 @@ pub struct Trainer<S: Service> {
     run_dir: PathBuf,
     seed: u64,
     algorithm: Algorithm,
+    /// With `--updates`: the learner's total count (the checkpoint's included) at which
+    /// training stops.
+    stop_at_updates: Option<u64>,
 }
 
 impl<S: Service> Trainer<S> {
@@ -100,6 +108,10 @@ impl<S: Service> Trainer<S> {
             );
         }
         learner.freeze_start()?;
+        let stop_at_updates = options
+            .updates
+            .map(|updates| update_target(&options.run_dir, &options.run_id, learner.updates() + updates))
+            .transpose()?;
         let mut data = Vec::with_capacity(swarms.len());
         for (node, sizing) in swarms {
             let mut weights = WeightsPublisher::new(node, sizing, &learner)?;
@@ -149,6 +161,7 @@ impl<S: Service> Trainer<S> {
             run_dir: options.run_dir.clone(),
             seed: options.seed,
             algorithm: learn.algorithm,
+            stop_at_updates,
         })
     }
 
@@ -157,8 +170,17 @@ impl<S: Service> Trainer<S> {
         self.swarms[swarm].replay.push(finished.episode);
     }
 
+    /// Whether `--updates` are done: no more updates, every tick acknowledged.
+    pub fn budget_spent(&self) -> bool {
+        self.stop_at_updates
+            .is_some_and(|target| self.learner.updates() >= target)
+    }
+
     /// Updates still due on swarm `swarm`'s data for its `ticks` received.
     pub fn updates_owed(&self, swarm: usize, ticks: u64) -> u64 {
+        if self.budget_spent() {
+            return 0;
+        }
         updates_owed(
             ticks,
             self.warmup_transitions,
@@ -181,7 +203,8 @@ impl<S: Service> Trainer<S> {
             self.save_scored(pending)?;
         }
         self.update(ticks)?;
-        if self.selecting.is_none() && self.last_checkpoint.elapsed() >= self.checkpoint_every {
+        // Once the budget is spent the weights stay as they are: the end's checkpoint scores them.
+        if !self.budget_spent() && self.selecting.is_none() && self.last_checkpoint.elapsed() >= self.checkpoint_every {
             self.start_selection(rolling)?;
         }
         Ok(self.paid_ticks(ticks))
@@ -231,10 +254,11 @@ impl<S: Service> Trainer<S> {
 
     /// For each swarm, the ticks its updates have paid for.
     fn paid_ticks(&mut self, ticks: &[u64]) -> Vec<u64> {
+        let spent = self.budget_spent();
         let mut paid = Vec::with_capacity(self.swarms.len());
         for (k, data) in self.swarms.iter_mut().enumerate() {
-            if data.replay.transitions() == 0 {
-                // Nothing to learn from yet: let the sim run on.
+            if data.replay.transitions() == 0 || spent {
+                // Nothing to learn from yet, or nothing more to learn: let the sim run on.
                 paid.push(u64::MAX);
                 continue;
             }
@@ -434,6 +458,22 @@ fn previous_best(run_dir: &Path, selector: &Selector) -> Option<SelectionScore> 
     }
 }
 
+/// The total update count at which a critic given `--updates` stops: `proposed` (its start's
+/// count plus the budget), unless an earlier critic of the same run (`run_id`) wrote one into
+/// `run_dir`, which a restarted critic keeps.
+fn update_target(run_dir: &Path, run_id: &str, proposed: u64) -> Result<u64> {
+    let path = run_dir.join(UPDATE_TARGET_FILE);
+    let earlier = std::fs::read_to_string(&path).ok().and_then(|text| {
+        let (id, total) = text.trim().split_once(' ')?;
+        (id == run_id).then(|| total.parse().ok()).flatten()
+    });
+    if let Some(total) = earlier {
+        return Ok(total);
+    }
+    write_atomically(&path, format!("{run_id} {proposed}\n").as_bytes())?;
+    Ok(proposed)
+}
+
 /// Updates still due at `ratio` updates per tick after `warmup` ticks.
 fn updates_owed(ticks: u64, warmup: usize, ratio: f64, done: u64) -> u64 {
     if ticks < warmup as u64 {
@@ -441,4 +481,22 @@ fn updates_owed(ticks: u64, warmup: usize, ratio: f64, done: u64) -> u64 {
     }
     let due = ((ticks - warmup as u64) as f64 * ratio) as u64;
     due.saturating_sub(done)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_restarted_critic_keeps_its_run_s_update_target_and_a_new_run_sets_its_own() {
+        let dir = std::env::temp_dir().join(format!("formation-update-target-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        // The first critic of run A: its start's count plus the budget.
+        assert_eq!(update_target(&dir, "runA", 1_500).expect("target"), 1_500);
+        // Restarted from the run's last checkpoint (say 900 updates in, asking 900 + 1_000).
+        assert_eq!(update_target(&dir, "runA", 1_900).expect("target"), 1_500);
+        // A new run in the same directory is not bound by the old one's.
+        assert_eq!(update_target(&dir, "runB", 700).expect("target"), 700);
+        std::fs::remove_dir_all(&dir).expect("cleanup");
+    }
 }

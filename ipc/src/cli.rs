@@ -9,6 +9,10 @@ use crate::placement::{self, Placement, Role};
 use crate::services::RunIdentity;
 use formation_core::config::{FormationShape, RunConfig, validate_agent_count};
 
+/// What a training critic given `--updates` prints, on a line of its own, once it has done them:
+/// the launcher, reading the critic's output, then asks every sim to end the run.
+pub const UPDATE_BUDGET_SPENT: &str = "formation-critic: the update budget is spent; ending the run";
+
 /// Train (explore, learn, checkpoint) or evaluate (no noise, no learning).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]

@@ -52,9 +52,14 @@ pub struct LaunchArgs {
     /// Stop after E episodes (eval default: 100).
     #[arg(long, value_name = "E", value_parser = clap::value_parser!(u64).range(1..))]
     pub episodes: Option<u64>,
-    /// Stop after M minutes of wall clock (train default: 30).
+    /// Stop after M minutes of wall clock (train default: 30, none with --updates).
     #[arg(long, value_name = "M", value_parser = positive_minutes)]
     pub minutes: Option<f64>,
+    /// Train: end the run once the critic has done U gradient updates (counted on from the
+    /// checkpoint it starts from). A length of training that is the same on any machine, where
+    /// --minutes buys fewer updates on a slower or busier one; without --minutes no time limit.
+    #[arg(long, value_name = "U", value_parser = clap::value_parser!(u64).range(1..))]
+    pub updates: Option<u64>,
     /// Robots that run the scripted baseline instead of the learned actor: all, or i,j,...
     #[arg(long, value_name = "all|i,j")]
     pub scripted: Option<String>,

@@ -115,6 +115,8 @@ pub struct Plan {
     pub episodes: Option<u64>,
     /// Stop after this many minutes.
     pub minutes: Option<f64>,
+    /// Train: end the run after the critic's this many updates.
+    pub updates: Option<u64>,
     /// Eval: the agents' weights; train: the critic's resume point.
     pub checkpoint: Option<PathBuf>,
     /// Where the recording goes.
@@ -167,6 +169,7 @@ impl Plan {
             mode: args.mode,
             episodes: args.episodes,
             minutes: args.minutes,
+            updates: args.updates,
             checkpoint,
             viewer: args.viewer.unwrap_or_else(default_viewer),
             realtime: args.realtime,
@@ -390,6 +393,9 @@ impl Plan {
                 if let (Mode::Train, Some(path)) = (self.mode, resume) {
                     args.extend(["--checkpoint".into(), path.into()]);
                 }
+                if let Some(updates) = self.updates {
+                    args.extend(["--updates".into(), updates.to_string().into()]);
+                }
                 args
             }
             Member::Bridge { host } => self.bridge_args(host),
@@ -442,6 +448,10 @@ impl Plan {
                         .into_iter()
                         .flatten(),
                 );
+                if self.updates.is_some() && self.minutes.is_none() && self.episodes.is_none() {
+                    // The launcher ends it once the critic's updates are done.
+                    args.push("--open-ended".into());
+                }
                 if self.realtime && swarm == 0 {
                     args.push("--realtime".into());
                 }
@@ -574,9 +584,13 @@ impl Plan {
     }
 }
 
-/// Refuses `--extra-swarms` outside training or past [`MAX_EXTRA_SWARMS`], and a `--config` or
+/// Refuses `--updates` and `--extra-swarms` outside training, more than [`MAX_EXTRA_SWARMS`], and a `--config` or
 /// `--checkpoint` that does not exist.
 fn check_extra_swarms_and_files(args: &LaunchArgs) -> Result<()> {
+    ensure!(
+        args.updates.is_none() || args.mode == Mode::Train,
+        "--updates is for training: an eval does no updates (give --episodes)"
+    );
     if !args.extra_swarms.is_empty() {
         ensure!(
             args.mode == Mode::Train,
@@ -1276,6 +1290,25 @@ mod tests {
         .expect("plan");
         assert_eq!(chosen.checkpoint.as_deref(), Some(Path::new(&given)));
         assert_eq!(chosen.config.env.observation, ObservationModel::default());
+    }
+
+    #[test]
+    fn updates_go_to_the_critic_and_leave_the_sims_without_a_time_limit() {
+        let strings =
+            |args: Vec<OsString>| -> Vec<String> { args.iter().map(|a| a.to_string_lossy().into_owned()).collect() };
+        let open_ended = plan(&["3", "--updates", "5000", "--viewer", "off"]).expect("plan");
+        let critic = strings(open_ended.args(Member::Critic, None, None));
+        assert!(critic.windows(2).any(|w| w == ["--updates", "5000"]), "{critic:?}");
+        let sim = strings(open_ended.args(Member::Sim { swarm: 0 }, None, None));
+        assert!(sim.contains(&"--open-ended".to_string()), "{sim:?}");
+        assert!(!sim.contains(&"--minutes".to_string()), "{sim:?}");
+        // With --minutes too, whichever comes first ends the run.
+        let capped = plan(&["3", "--updates", "5000", "--minutes", "10", "--viewer", "off"]).expect("plan");
+        let sim = strings(capped.args(Member::Sim { swarm: 0 }, None, None));
+        assert!(sim.windows(2).any(|w| w == ["--minutes", "10"]), "{sim:?}");
+        assert!(!sim.contains(&"--open-ended".to_string()), "{sim:?}");
+        let err = plan(&["3", "--updates", "5000", "--mode", "eval"]).expect_err("eval does no updates");
+        assert!(format!("{err:#}").contains("--updates is for training"), "{err:#}");
     }
 
     #[test]

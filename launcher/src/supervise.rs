@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use formation_core::run_dir::write_atomically;
-use formation_ipc::cli::Mode;
+use formation_ipc::cli::{Mode, UPDATE_BUDGET_SPENT};
 use formation_ipc::services::{RunIdentity, sweep_abandoned_runs};
 use formation_ipc::summary::Summary;
 use signal_hook::consts::{SIGINT, SIGTERM};
@@ -43,6 +43,8 @@ enum Event {
     Exited(Member, ExitStatus),
     /// The launcher got SIGINT or SIGTERM.
     Interrupted,
+    /// The critic printed `UPDATE_BUDGET_SPENT`: its `--updates` are done.
+    UpdatesDone,
 }
 
 /// The running process set.
@@ -61,6 +63,8 @@ struct Supervisor<'a> {
     ends_at: Option<Instant>,
     /// Threads copying the critic's output; they end with its pipes.
     tees: Vec<JoinHandle<()>>,
+    /// The critic has said its `--updates` are done: the run is ending, it is not restarted.
+    updates_done: bool,
 }
 
 /// What `formation-mcap` prints once its state subscriber exists (its `READY_LINE`).
@@ -109,7 +113,7 @@ pub fn launch(plan: &Plan) -> Result<u8> {
     });
     let minutes = plan
         .minutes
-        .or((plan.mode == Mode::Train && plan.episodes.is_none()).then_some(30.0));
+        .or((plan.mode == Mode::Train && plan.episodes.is_none() && plan.updates.is_none()).then_some(30.0));
     let mut supervisor = Supervisor {
         plan,
         bin_dir,
@@ -120,6 +124,7 @@ pub fn launch(plan: &Plan) -> Result<u8> {
         starts: HashMap::new(),
         ends_at: minutes.map(|m| Instant::now() + Duration::from_secs_f64(m * 60.0)),
         tees: Vec::new(),
+        updates_done: false,
     };
     let result = supervisor.run();
     supervisor.stop_all();
@@ -207,6 +212,14 @@ impl Supervisor<'_> {
                     println!("\nstopping: the sim closes the episode and ends the run...");
                     self.interrupt_sims();
                 }
+                Event::UpdatesDone => {
+                    self.updates_done = true;
+                    println!(
+                        "the critic has done its {} updates: the sims close their episodes and end the run...",
+                        self.plan.updates.unwrap_or_default()
+                    );
+                    self.interrupt_sims();
+                }
                 Event::Exited(member, status) => {
                     self.running.remove(&member);
                     self.exits.insert(member, status);
@@ -271,17 +284,22 @@ impl Supervisor<'_> {
                 );
             }
             let log = log.try_clone()?;
-            self.tees
-                .push(std::thread::spawn(move || tee_lines(stdout, std::io::sink(), log)));
+            self.tees.push(std::thread::spawn(move || {
+                tee_lines(stdout, std::io::sink(), log, None)
+            }));
         }
         if let Some(stdout) = child.stdout.take() {
             let log = log.try_clone()?;
-            self.tees
-                .push(std::thread::spawn(move || tee_lines(stdout, std::io::stdout(), log)));
+            // The critic says so when its --updates are done.
+            let watch = (member == Member::Critic).then(|| self.sender.clone());
+            self.tees.push(std::thread::spawn(move || {
+                tee_lines(stdout, std::io::stdout(), log, watch)
+            }));
         }
         if let Some(stderr) = child.stderr.take() {
-            self.tees
-                .push(std::thread::spawn(move || tee_lines(stderr, std::io::stderr(), log)));
+            self.tees.push(std::thread::spawn(move || {
+                tee_lines(stderr, std::io::stderr(), log, None)
+            }));
         }
         let quick_deaths = self.starts.get(&member).map_or(0, |(_, deaths)| *deaths);
         self.starts.insert(member, (Instant::now(), quick_deaths));
@@ -373,8 +391,9 @@ impl Supervisor<'_> {
     /// Applies the member's restart policy after an exit; false when the run must stop.
     fn restart_if_due(&mut self, member: Member, status: ExitStatus) -> Result<bool> {
         let policy = self.plan.restart_policy(member);
-        if status.success() || policy == Restart::Never {
-            // A clean exit: the run is ending (or the member is not to be restarted).
+        let critic_done = member == Member::Critic && self.updates_done;
+        if status.success() || policy == Restart::Never || critic_done {
+            // A clean exit, a member not to be restarted, or a critic whose updates are done.
             return Ok(true);
         }
         let name = self.plan.name(member);
@@ -457,7 +476,7 @@ impl Supervisor<'_> {
                     self.running.remove(&member);
                     self.exits.insert(member, status);
                 }
-                Ok(Event::Interrupted) => {}
+                Ok(Event::Interrupted | Event::UpdatesDone) => {}
                 Err(RecvTimeoutError::Timeout | RecvTimeoutError::Disconnected) => return,
             }
         }
@@ -528,13 +547,19 @@ fn exit_code(status: &ExitStatus) -> u8 {
     u8::try_from(code).unwrap_or(1).max(1)
 }
 
-/// Copies a child's lines to one of the launcher's outputs and to the child's log.
-fn tee_lines(from: impl std::io::Read, mut to: impl Write, mut log: File) {
+/// Copies a child's lines to one of the launcher's outputs and to the child's log; with
+/// `updates_done`, reports the critic's `UPDATE_BUDGET_SPENT` line on it.
+fn tee_lines(from: impl std::io::Read, mut to: impl Write, mut log: File, updates_done: Option<Sender<Event>>) {
     let mut reader = BufReader::new(from);
     let mut line = Vec::new();
     while reader.read_until(b'\n', &mut line).is_ok_and(|n| n > 0) {
         let _ = to.write_all(&line);
         let _ = log.write_all(&line);
+        if let Some(events) = &updates_done
+            && String::from_utf8_lossy(&line).trim_end().ends_with(UPDATE_BUDGET_SPENT)
+        {
+            let _ = events.send(Event::UpdatesDone);
+        }
         line.clear();
     }
 }

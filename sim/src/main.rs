@@ -21,9 +21,14 @@ struct Cli {
     /// Stop after this many episodes (default: 100 in eval mode, unlimited in train mode).
     #[arg(long)]
     episodes: Option<u64>,
-    /// Stop after this many minutes of wall clock (default: 30 in train mode).
+    /// Stop after this many minutes of wall clock (default: 30 in train mode, none with
+    /// --open-ended).
     #[arg(long)]
     minutes: Option<f64>,
+    /// Train mode: no default time limit; the run ends on Ctrl-C (the launcher's `--updates`
+    /// sends it once the critic has done its updates).
+    #[arg(long, conflicts_with_all = ["episodes", "minutes"])]
+    open_ended: bool,
     /// Pace ticks at dt of wall-clock time (real robots) instead of as fast as possible.
     #[arg(long)]
     realtime: bool,
@@ -74,12 +79,17 @@ fn try_main(cli: Cli) -> Result<()> {
             "--minutes must be > 0, got {minutes}"
         );
     }
+    anyhow::ensure!(
+        !cli.open_ended || cli.run.mode == Mode::Train,
+        "--open-ended is for training: an eval ends after its episodes"
+    );
     ViewerMode::parse(&cli.viewer)?;
     if cli.check_config {
         return Ok(());
     }
     let (episodes, minutes) = match (cli.run.mode, cli.episodes, cli.minutes) {
         (Mode::Eval, None, None) => (Some(100), None),
+        (Mode::Train, None, None) if cli.open_ended => (None, None),
         (Mode::Train, None, None) => (None, Some(30.0)),
         (_, e, m) => (e, m),
     };
