@@ -87,6 +87,8 @@ pub struct TrainingStatus {
     pub selection: Option<f64>,
     /// The selection score of `best.safetensors`, once there is one.
     pub best_selection: Option<f64>,
+    /// With `--updates`: the total count at which training stops.
+    pub update_target: Option<u64>,
 }
 
 /// One row of `training.csv`.
@@ -227,6 +229,15 @@ impl Progress {
             );
             if let Some(best) = status.best_selection {
                 line += &format!(" | best {best:.2}");
+            }
+            if let Some(target) = status.update_target {
+                line += &format!(" | {}/{target} updates", status.updates);
+                if status.run_updates > 0 {
+                    // At this run's rate so far.
+                    let rate = status.run_updates as f64 / secs;
+                    let left = (target.saturating_sub(status.updates) as f64 / rate) as u64;
+                    line += &format!(", ~{}:{:02} left", left / 60, left % 60);
+                }
             }
         }
         if let Some(ends) = self.ends {

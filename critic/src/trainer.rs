@@ -410,6 +410,7 @@ impl<S: Service> Trainer<S> {
             replay_transitions: self.swarms.iter().map(|s| s.replay.transitions()).sum(),
             selection: self.latest,
             best_selection: self.best.as_ref().map(SelectionScore::success),
+            update_target: self.stop_at_updates,
         }
     }
 
