@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The recipe of the forest-and-trap policy (models/formation-obstacles.safetensors), one seed,
-# each stage's length given in gradient updates (the shipped file's own), so it is the same
-# amount of learning on any machine:
+# each stage's length given in gradient updates (those of 093812fc, the file before; this
+# script's seed 5 is the shipped file), so it is the same amount of learning on any machine:
 #   D1  a DAgger student of the detouring field (formation-distill, 60 rounds, sizes 4, 8, 16)
 #   D2  12,103 updates of the critic's RL (TD3 + HER + BC) from swarms of 4, 8 and 16 robots
 #   D3  14,053 more, from D2's best.safetensors (the critic's own pick on its selection episodes)
