@@ -11,7 +11,7 @@
 #
 #   scripts/train_obstacle_policy.sh SEED [RUN_ROOT]     # RUN_ROOT default: runs/recipe-sSEED
 #
-# FORMATION_BIN_DIR=DIR uses prebuilt binaries from DIR (else scripts/run_swarm.sh builds them).
+# FORMATION_BIN_DIR=DIR uses prebuilt binaries from DIR (else it builds the release binaries).
 set -euo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 if [[ $# -lt 1 || $# -gt 2 || ! $1 =~ ^[0-9]+$ ]]; then
