@@ -155,7 +155,7 @@ impl Plan {
     pub fn new(args: LaunchArgs) -> Result<Self> {
         let sets = RobotSets::new(&args)?;
         let ros2_link = Ros2Link::new(&args)?;
-        check_extra_swarms_and_files(&args)?;
+        check_training_flags_and_files(&args)?;
         let learned = args.n - sets.scripted.len() - sets.oracle.len() - sets.external.len() - sets.ros2.len();
         let config = read_config(&args, learned)?;
         let checkpoint = checkpoint_to_load(&args, learned, &config)?;
@@ -586,7 +586,7 @@ impl Plan {
 
 /// Refuses `--updates` and `--extra-swarms` outside training, more than [`MAX_EXTRA_SWARMS`], and a `--config` or
 /// `--checkpoint` that does not exist.
-fn check_extra_swarms_and_files(args: &LaunchArgs) -> Result<()> {
+fn check_training_flags_and_files(args: &LaunchArgs) -> Result<()> {
     ensure!(
         args.updates.is_none() || args.mode == Mode::Train,
         "--updates is for training: an eval does no updates (give --episodes)"
