@@ -59,7 +59,7 @@ def play(args, kind: str, extra: list[str], out: Path) -> tuple[dict, dict]:
            "--trace-episode", str(args.episode)]
     print("$", " ".join(cmd), file=sys.stderr, flush=True)
     subprocess.run(cmd, cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
-    trace = json.loads((out / f"trace-n{args.n}.json").read_text())
+    trace = json.loads((out / f"trace-n{args.n}-e{args.episode}.json").read_text())
     with open(out / f"n{args.n}.csv") as f:
         row = [r for r in csv.DictReader(f) if int(r["episode"]) == args.episode][0]
     return trace, row

@@ -119,6 +119,13 @@ fn agent_ticks_allocate_nothing() {
                 std_start: 0.3,
                 std_end: 0.1,
                 decay_episodes: 10,
+                correlation_ticks: 0.0,
+            }),
+            Some(Exploration {
+                std_start: 0.3,
+                std_end: 0.1,
+                decay_episodes: 10,
+                correlation_ticks: 10.0,
             }),
         ] {
             let mut learned = LearnedPolicy::new(&config.env, shape.clone(), exploration, StdRng::seed_from_u64(3));

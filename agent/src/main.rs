@@ -119,6 +119,7 @@ fn try_main(cli: Cli) -> Result<()> {
                 std_start: config.learn.noise_std,
                 std_end: config.learn.noise_std_min,
                 decay_episodes: config.learn.noise_decay_episodes,
+                correlation_ticks: config.learn.noise_correlation_ticks,
             });
             let mut learned = LearnedPolicy::new(&config.env, shape.clone(), exploration, rng);
             let actor_index = if config.learn.shared_actor { 0 } else { cli.agent };

@@ -472,6 +472,11 @@ pub struct LearnConfig {
     pub noise_std_min: f64,
     /// Episodes over which the noise decays linearly.
     pub noise_decay_episodes: u32,
+    /// Correlation time of the exploration noise, ticks: each robot's noise is an AR(1)
+    /// process with this time constant and the std above (coloured noise, as Ornstein-Uhlenbeck
+    /// exploration), so a robot held at an obstacle turns one way for a while instead of
+    /// jittering in place. 0 (the default): white noise, drawn afresh every tick.
+    pub noise_correlation_ticks: f64,
     /// Gradient updates per team transition (update-to-data ratio).
     pub updates_per_transition: f64,
     /// Transitions collected with random actions before the first update.
@@ -547,6 +552,7 @@ impl Default for LearnConfig {
             noise_std: 0.2,
             noise_std_min: 0.2,
             noise_decay_episodes: 3000,
+            noise_correlation_ticks: 0.0,
             updates_per_transition: 0.5,
             warmup_transitions: 5000,
             actor_hidden: vec![128, 128],
@@ -903,6 +909,12 @@ impl LearnConfig {
             l.noise_std_min.is_finite() && l.noise_std_min >= 0.0,
             "learn.noise_std_min",
             l.noise_std_min,
+            "must be >= 0",
+        )?;
+        check(
+            l.noise_correlation_ticks.is_finite() && l.noise_correlation_ticks >= 0.0,
+            "learn.noise_correlation_ticks",
+            l.noise_correlation_ticks,
             "must be >= 0",
         )?;
         check(

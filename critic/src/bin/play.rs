@@ -3,6 +3,7 @@
 //! planner, each robot's own planner or a checkpoint's actor, and writes each swarm size's `episodes.csv` rows and one
 //! summary line. What the grids in docs/RESULTS.md are measured with.
 
+use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -86,10 +87,10 @@ struct Cli {
     /// Where the per-size CSV files go (created; nothing written without it).
     #[arg(long)]
     out: Option<PathBuf>,
-    /// Also write episode K's trajectories, goal, slots and obstacles (from 0) as
-    /// OUT/trace-n<N>.json (for pictures).
-    #[arg(long, value_name = "K", requires = "out")]
-    trace_episode: Option<usize>,
+    /// Also write these episodes' trajectories, goal, slots and obstacles (episodes from 0) as
+    /// OUT/trace-n<N>-e<K>.json, one file each (for pictures and scripts/failure_census.py).
+    #[arg(long, value_name = "K[,K...]", value_delimiter = ',', requires = "out")]
+    trace_episode: Vec<usize>,
 }
 
 fn main() -> ExitCode {
@@ -117,6 +118,12 @@ fn run(cli: Cli) -> Result<()> {
     }
     for &n in &cli.n {
         validate_agent_count(n)?;
+    }
+    if let Some(episode) = cli.trace_episode.iter().find(|&&k| k >= cli.episodes) {
+        bail!(
+            "--trace-episode {episode}: there are only {} episodes (from 0)",
+            cli.episodes
+        );
     }
     if let Some(out) = &cli.out {
         std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
@@ -147,9 +154,9 @@ fn run(cli: Cli) -> Result<()> {
             count: cli.episodes,
             reality: &config.reality,
         };
-        let mut trace = Trace::default();
+        let mut traces: BTreeMap<usize, Trace> = cli.trace_episode.iter().map(|&k| (k, Trace::default())).collect();
         let watch = |episode: usize, world: &World| {
-            if cli.trace_episode == Some(episode) {
+            if let Some(trace) = traces.get_mut(&episode) {
                 trace.record(world);
             }
         };
@@ -169,12 +176,12 @@ fn run(cli: Cli) -> Result<()> {
                 episode_records_watched(&env, n, &played, Team::Actors(&mut actors, &shape), watch)?
             }
         };
-        if let (Some(out), Some(_)) = (&cli.out, cli.trace_episode) {
-            let path = out.join(format!("trace-n{n}.json"));
-            std::fs::write(&path, serde_json::to_string(&trace)?)
-                .with_context(|| format!("cannot write {}", path.display()))?;
-        }
         if let Some(out) = &cli.out {
+            for (episode, trace) in &traces {
+                let path = out.join(format!("trace-n{n}-e{episode}.json"));
+                std::fs::write(&path, serde_json::to_string(trace)?)
+                    .with_context(|| format!("cannot write {}", path.display()))?;
+            }
             let path = out.join(format!("n{n}.csv"));
             let mut writer =
                 csv::Writer::from_path(&path).with_context(|| format!("cannot create {}", path.display()))?;
