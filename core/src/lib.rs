@@ -36,6 +36,7 @@ pub mod physics;
 pub mod planner;
 pub mod range_sensor;
 pub mod reality;
+pub mod recovery;
 pub mod run_dir;
 pub mod scene;
 pub mod shapes;

@@ -11,7 +11,9 @@
 //!    in-process player from its controllers; each command read passes the radio
 //!    ([`EpisodeStepper::command_arrives`]);
 //! 3. [`EpisodeStepper::step`] with the commands in use: a robot out of the formation is
-//!    commanded to stand still, the motors act through [`Reality::actuate`], the world integrates,
+//!    commanded to stand still, each robot's recovery behaviour may take over its command
+//!    ([`crate::recovery`], off by default), its collision monitor caps its forward speed, the
+//!    motors act through [`Reality::actuate`], the world integrates,
 //!    the [`Mission`] judges the step (its time limit, success only after the last change) and
 //!    changes the formation on schedule;
 //! 4. [`EpisodeStepper::call_the_roll`]: a controller that failed at this tick leaves the
@@ -31,6 +33,7 @@ use crate::observation::{Layout, ObservationView};
 use crate::obstacles::robot_radius_m;
 use crate::range_sensor::braking_speed;
 use crate::reality::{Command, Reality, RealityConfig};
+use crate::recovery::{Recovery, Sensed};
 use crate::task::{Conditions, Outcome, StepResult};
 use crate::world::World;
 
@@ -61,6 +64,8 @@ pub struct EpisodeStepper {
     formation_ticks: u32,
     lost_observations: u64,
     lost_commands: u64,
+    /// Each robot's recovery memory (`[obstacles] recovery_ticks`).
+    recoveries: Vec<Recovery>,
 }
 
 /// What a driver's transport adds to an episode's record: counts the stepper cannot see.
@@ -111,6 +116,7 @@ impl EpisodeStepper {
             formation_ticks: 0,
             lost_observations: 0,
             lost_commands: 0,
+            recoveries: vec![Recovery::default(); n],
             world,
             mission,
             reality,
@@ -176,6 +182,7 @@ impl EpisodeStepper {
                 command
             };
             self.applied[agent] = self.world.env.clamp_command(command.0, command.1);
+            let command = self.recovered(agent, command);
             let speed_cap = self.monitored_speed(agent);
             self.acting[agent] = self
                 .reality
@@ -194,6 +201,41 @@ impl EpisodeStepper {
             result.outcome == Outcome::Running,
         );
         result
+    }
+
+    /// The command robot `agent`'s motors take after its recovery behaviour (`[obstacles]
+    /// recovery_ticks`, [`crate::recovery`]), from what it was told this tick: `command`
+    /// unless it recovers; always `command` when recovery is off or the robot observes no scan
+    /// or slot.
+    fn recovered(&mut self, agent: usize, command: Command) -> Command {
+        let env = &self.world.env;
+        let ticks = env.obstacles.recovery_ticks;
+        if ticks == 0 {
+            return command;
+        }
+        let view = ObservationView::new(self.layout, &self.told[agent]);
+        let neighbours = (0..2).map(|k| {
+            let [x, y] = view.neighbour(k).position;
+            x.hypot(y)
+        });
+        // The proximity term is (1 - d / R) times the unit vector towards the robot, 0 for none.
+        let proximate = view.proximity().map(|[x, y]| x.hypot(y)).filter(|&p| p > 0.0);
+        let nearest_robot = neighbours
+            .chain(proximate.map(|p| env.proximity_range_m * (1.0 - p)))
+            .fold(f64::INFINITY, f64::min);
+        match (view.slot(), view.scan()) {
+            (Some(slot), Some(scan)) => {
+                let sensed = Sensed {
+                    slot,
+                    scan,
+                    scan_range: env.scan_range_m,
+                    nearest_robot,
+                    driven: self.acting[agent].0.abs() * env.dt_s,
+                };
+                self.recoveries[agent].command(&sensed, ticks, command)
+            }
+            _ => command,
+        }
     }
 
     /// The forward speed robot `agent`'s collision monitor allows this tick (`[obstacles]

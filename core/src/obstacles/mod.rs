@@ -136,6 +136,14 @@ pub struct ObstacleConfig {
     /// range sensor (`slot_proximity_scan`, as every controller among obstacles does but the
     /// open-arena model), whatever drives it ([`crate::stepper`]). Default 0.5.
     pub collision_monitor_m: f64,
+    /// Each robot's recovery behaviour ([`crate::recovery`], as a mobile base's progress checker
+    /// and recovery behaviours, e.g. Nav2's): a robot that has come less than 0.05 m closer to
+    /// its slot over 30 ticks, more than 1 m from it, with its scan's nearest hit within 0.5 m,
+    /// follows that surface (left round first, then alternating) for at most this many ticks,
+    /// handing back once the way to its slot reads 1 m clear. It reads what the robot is told
+    /// and acts at its motors before the collision monitor, whatever drives it, for robots that
+    /// observe their range sensor. 0 (the default) is off.
+    pub recovery_ticks: u32,
 }
 
 impl Default for ObstacleConfig {
@@ -149,6 +157,7 @@ impl Default for ObstacleConfig {
             trap_depth_m: Spread::range(1.0, 1.5),
             trap_margin_m: Spread::range(0.3, 0.6),
             collision_monitor_m: 0.5,
+            recovery_ticks: 0,
         }
     }
 }

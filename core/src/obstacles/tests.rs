@@ -615,3 +615,43 @@ pub(crate) fn rates_among_obstacles<D: FnMut(&crate::world::World) -> Vec<(f64, 
     }
     counts.map(|c| c as f64 / episodes as f64)
 }
+
+#[test]
+fn the_recovery_behaviour_takes_straight_drives_held_by_discs_round_them() {
+    use crate::config::ObservationModel;
+    use crate::reality::RealityConfig;
+    use crate::stepper::EpisodeStepper;
+    let with_recovery = |recovery_ticks: u32| EnvConfig {
+        observation: ObservationModel::SlotProximityScan,
+        obstacles: ObstacleConfig {
+            kind: ObstacleKind::Forest,
+            recovery_ticks,
+            ..ObstacleConfig::default()
+        },
+        ..EnvConfig::default()
+    };
+    // Robots driving straight for their slots stop at a disc in their way (the monitor) and stay
+    // there; with recovery each follows the disc round and drives on.
+    let (mut mean_without, mut mean_with) = (0.0, 0.0);
+    for (episode, init) in Episodes::new(4, &with_recovery(0), 5).take(5).enumerate() {
+        for (ticks, mean) in [(0, &mut mean_without), (30, &mut mean_with)] {
+            let env = with_recovery(ticks);
+            let mut stepper = EpisodeStepper::new(&env, &RealityConfig::default(), 5, episode as u32, init.clone());
+            drive_straight_for_the_slots(&mut stepper);
+            assert!(!stepper.last().conditions.obstacle_collision, "episode {episode}");
+            let world = stepper.world();
+            *mean += world
+                .poses
+                .iter()
+                .zip(&world.slots)
+                .map(|(p, s)| (world.goal[0] + s[0] - p.x).hypot(world.goal[1] + s[1] - p.y))
+                .sum::<f64>()
+                / 20.0;
+        }
+    }
+    eprintln!("mean distance to the slots: {mean_with:.2} m with recovery, {mean_without:.2} m without");
+    assert!(
+        mean_with < mean_without - 0.5,
+        "mean distance to the slots at the end: {mean_with:.2} m with recovery, {mean_without:.2} m without"
+    );
+}
