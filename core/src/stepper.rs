@@ -181,8 +181,10 @@ impl EpisodeStepper {
             } else {
                 command
             };
-            self.applied[agent] = self.world.env.clamp_command(command.0, command.1);
+            // While a robot recovers, its recovery's command is the one in use (and the replay's
+            // action: what the motors were asked for).
             let command = self.recovered(agent, command);
+            self.applied[agent] = self.world.env.clamp_command(command.0, command.1);
             let speed_cap = self.monitored_speed(agent);
             self.acting[agent] = self
                 .reality

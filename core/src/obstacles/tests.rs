@@ -633,11 +633,28 @@ fn the_recovery_behaviour_takes_straight_drives_held_by_discs_round_them() {
     // Robots driving straight for their slots stop at a disc in their way (the monitor) and stay
     // there; with recovery each follows the disc round and drives on.
     let (mut mean_without, mut mean_with) = (0.0, 0.0);
+    let mut taken_over_in_all = 0;
     for (episode, init) in Episodes::new(4, &with_recovery(0), 5).take(5).enumerate() {
         for (ticks, mean) in [(0, &mut mean_without), (30, &mut mean_with)] {
             let env = with_recovery(ticks);
             let mut stepper = EpisodeStepper::new(&env, &RealityConfig::default(), 5, episode as u32, init.clone());
-            drive_straight_for_the_slots(&mut stepper);
+            let mut taken_over = 0;
+            while stepper.running() {
+                stepper.tell();
+                let commands = straight_for_the_slots(stepper.world());
+                stepper.step(&commands, |_| true);
+                // The replay's action is the command in use: the recovery's while it recovers.
+                taken_over += stepper
+                    .applied()
+                    .iter()
+                    .zip(&commands)
+                    .filter(|&(&applied, &(v, w))| applied != env.clamp_command(v, w))
+                    .count();
+            }
+            if ticks == 0 {
+                assert_eq!(taken_over, 0, "episode {episode}: no recovery, yet commands taken over");
+            }
+            taken_over_in_all += taken_over;
             assert!(!stepper.last().conditions.obstacle_collision, "episode {episode}");
             let world = stepper.world();
             *mean += world
@@ -650,6 +667,7 @@ fn the_recovery_behaviour_takes_straight_drives_held_by_discs_round_them() {
         }
     }
     eprintln!("mean distance to the slots: {mean_with:.2} m with recovery, {mean_without:.2} m without");
+    assert!(taken_over_in_all > 0, "the recovery never took a command over");
     assert!(
         mean_with < mean_without - 0.5,
         "mean distance to the slots at the end: {mean_with:.2} m with recovery, {mean_without:.2} m without"
