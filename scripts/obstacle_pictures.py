@@ -31,7 +31,7 @@ from matplotlib.patches import Circle, Polygon  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 KINDS = ("forest", "passage", "trap")
 COLOURS = {"field": "tab:orange", "circulating": "tab:purple", "detouring": "tab:brown", "gap": "tab:red",
-           "planner": "tab:blue", "model": "tab:green"}
+           "planner": "tab:blue", "model": "tab:green", "model-recovery": "tab:olive"}
 #: The hand-written variants of the potential field drawn where a config of theirs exists.
 VARIANTS = {"circulating": "circulating field (tuned)", "detouring": "detouring field (tuned)",
             "gap": "gap-searching field"}
@@ -49,7 +49,13 @@ def controllers(kind: str) -> dict[str, tuple[str, list[str]]]:
         if tuned_variant.is_file():
             rivals[name] = (legend, ["--team", "scripted", "--config", str(tuned_variant.relative_to(ROOT))])
     return {**rivals, "planner": ("planner", ["--team", "oracle"]),
-            "model": ("learned (the shipped obstacle policy)", ["--team", "model"])}
+            "model": ("learned (the shipped obstacle policy)", ["--team", "model"]),
+            "model-recovery": ("learned, with the recovery behaviour",
+                               ["--team", "model", "--config", "configs/obstacles-recovery.toml"])}
+
+
+#: Drawn unless --controllers names them.
+OPTIONAL = {"model-recovery"}
 
 
 def play(args, kind: str, extra: list[str], out: Path) -> tuple[dict, dict]:
@@ -90,6 +96,8 @@ def picture(args, kind: str) -> Path:
     fig, ax = plt.subplots(figsize=(8, 8))
     xs, ys = [], []
     for key, (name, extra) in controllers(kind).items():
+        if (key not in args.controllers) if args.controllers else key in OPTIONAL:
+            continue
         trace, row = play(args, kind, extra, args.runs / kind / key)
         for robot in range(args.n):
             path = [tick[robot] for tick in trace["poses"]]
@@ -113,7 +121,7 @@ def picture(args, kind: str) -> Path:
     ax.set_ylabel("y (m)")
     ax.set_title(f"{kind}: N = {args.n}, held-out episode {args.episode} of seed {args.seed}")
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=2, fontsize=9)
-    png = args.out / f"obstacles_{kind}.png"
+    png = args.out / (args.name or f"obstacles_{kind}.png")
     fig.savefig(png, dpi=100, bbox_inches="tight")
     plt.close(fig)
     return png
@@ -128,7 +136,17 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=ROOT / "docs")
     parser.add_argument("--runs", type=Path, default=ROOT / "runs" / "obstacle-pictures")
     parser.add_argument("--bin-dir", default=os.environ.get("FORMATION_BIN_DIR", "target/debug"))
+    parser.add_argument("--controllers", type=lambda text: set(text.split(",")), default=None,
+                        help="draw only these (comma-separated) of field, circulating, detouring, gap, planner, "
+                             "model, model-recovery (the learned policy with configs/obstacles-recovery.toml); "
+                             "default: all but model-recovery")
+    parser.add_argument("--name", help="the PNG's name (default obstacles_KIND.png)")
     args = parser.parse_args()
+    known = set(COLOURS)
+    if args.controllers and not args.controllers <= known:
+        parser.error(f"--controllers: unknown {sorted(args.controllers - known)}; known: {sorted(known)}")
+    if args.name and "," in args.kinds:
+        parser.error("--name draws one picture: give one of --kinds")
     args.out.mkdir(parents=True, exist_ok=True)
     for kind in args.kinds.split(","):
         print(picture(args, kind))
