@@ -319,7 +319,7 @@ impl ScriptedBaseline {
                 [goal[0] - centroid[0], goal[1] - centroid[1]]
             }
         };
-        let nearest_other = self.nearest_other(&view);
+        let nearest_other = view.nearest_other(self.proximity_range);
         let tracked = self.tracked(&view);
         let detour = view
             .scan()
@@ -387,21 +387,8 @@ impl ScriptedBaseline {
 
     /// The robots the robot tracks, in its frame: its neighbours and the nearest other robot
     /// when the observation model reports one.
-    fn tracked<'a>(&'a self, view: &'a ObservationView) -> impl Iterator<Item = [f64; 2]> + Clone + 'a {
-        (0..NEIGHBOURS)
-            .map(|k| view.neighbour(k).position)
-            .chain(self.nearest_other(view))
-    }
-
-    /// Where the nearest robot the robot does not track is, in its frame, when the observation
-    /// model reports one within the proximity range (as (1 - d/R) along the unit vector to it).
-    fn nearest_other(&self, view: &ObservationView) -> Option<[f64; 2]> {
-        let near = view.proximity()?;
-        let closeness = near[0].hypot(near[1]);
-        (closeness > 0.0).then(|| {
-            let dist = (1.0 - closeness) * self.proximity_range;
-            [near[0] / closeness * dist, near[1] / closeness * dist]
-        })
+    fn tracked<'a>(&self, view: &ObservationView<'a>) -> impl Iterator<Item = [f64; 2]> + Clone + 'a {
+        view.robots(self.proximity_range)
     }
 
     /// The potential field's push from the rays of `scan` (normalised ranges) that read less

@@ -277,6 +277,26 @@ impl<'a> ObservationView<'a> {
     pub fn scan(&self) -> Option<&'a [f32]> {
         self.layout.scan().map(|at| &self.values[at..at + SCAN_RAYS])
     }
+
+    /// Where the nearest robot the robot does not track is, in its frame, when the model
+    /// reports one within `proximity_range_m` (`env.proximity_range_m`; the term is (1 - d/R)
+    /// along the unit vector to it).
+    pub fn nearest_other(&self, proximity_range_m: f64) -> Option<[f64; 2]> {
+        let near = self.proximity()?;
+        let closeness = near[0].hypot(near[1]);
+        (closeness > 0.0).then(|| {
+            let dist = (1.0 - closeness) * proximity_range_m;
+            [near[0] / closeness * dist, near[1] / closeness * dist]
+        })
+    }
+
+    /// Every robot the observation tells of, in the robot's frame: its neighbours and, when
+    /// the model reports one, the nearest other ([`ObservationView::nearest_other`]).
+    pub fn robots(self, proximity_range_m: f64) -> impl Iterator<Item = [f64; 2]> + Clone + 'a {
+        (0..NEIGHBOURS)
+            .map(move |k| self.neighbour(k).position)
+            .chain(self.nearest_other(proximity_range_m))
+    }
 }
 
 /// A world-frame point expressed in the frame of a robot at `pose` (x ahead, y to the left).

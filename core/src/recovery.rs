@@ -9,8 +9,9 @@
 //! docs/RESULTS.md ("Why the obstacle policy fails") measures what that costs.
 
 use std::collections::VecDeque;
-use std::f64::consts::{FRAC_PI_2, PI, TAU};
+use std::f64::consts::{FRAC_PI_2, TAU};
 
+use crate::physics::wrap_angle;
 use crate::reality::Command;
 
 /// Ticks over which a robot must come [`MIN_PROGRESS_M`] closer to its slot.
@@ -98,7 +99,7 @@ impl Recovery {
                 self.left -= 1;
                 self.done += 1;
                 let away = (FOLLOW_DISTANCE_M - nearest_m).clamp(-0.3, 0.3);
-                let heading = wrap(ray_angle(nearest) + self.side * (FRAC_PI_2 + away));
+                let heading = wrap_angle(ray_angle(nearest) + self.side * (FRAC_PI_2 + away));
                 let turn = (2.0 * heading).clamp(-1.0, 1.0);
                 let speed = if heading.abs() < TURN_IN_PLACE_RAD {
                     RECOVERY_SPEED
@@ -128,11 +129,6 @@ impl Recovery {
         }
         command
     }
-}
-
-/// `angle` in [-pi, pi).
-fn wrap(angle: f64) -> f64 {
-    (angle + PI).rem_euclid(TAU) - PI
 }
 
 #[cfg(test)]

@@ -216,14 +216,9 @@ impl EpisodeStepper {
             return command;
         }
         let view = ObservationView::new(self.layout, &self.told[agent]);
-        let neighbours = (0..2).map(|k| {
-            let [x, y] = view.neighbour(k).position;
-            x.hypot(y)
-        });
-        // The proximity term is (1 - d / R) times the unit vector towards the robot, 0 for none.
-        let proximate = view.proximity().map(|[x, y]| x.hypot(y)).filter(|&p| p > 0.0);
-        let nearest_robot = neighbours
-            .chain(proximate.map(|p| env.proximity_range_m * (1.0 - p)))
+        let nearest_robot = view
+            .robots(env.proximity_range_m)
+            .map(|[x, y]| x.hypot(y))
             .fold(f64::INFINITY, f64::min);
         match (view.slot(), view.scan()) {
             (Some(slot), Some(scan)) => {

@@ -1,6 +1,8 @@
 //! Distillation: the student comes closer to its teacher round by round, is saved as a
 //! checkpoint the agents load, and the tool refuses bad input naming it.
 
+mod common;
+
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::process::Command;
@@ -168,7 +170,7 @@ fn the_saved_student_is_a_checkpoint_the_agents_load_with_its_teacher_recorded()
     };
     let mut distiller = Distiller::new(&config, options, None).expect("a distiller");
     distiller.round().expect("a round");
-    let dir = tempdir();
+    let dir = common::tempdir("formation-distill");
     let path = dir.join("student.safetensors");
     distiller.save(&path, HashMap::new()).expect("saved");
     let loaded = checkpoint::load(&path).expect("loads");
@@ -197,7 +199,7 @@ fn the_saved_student_is_a_checkpoint_the_agents_load_with_its_teacher_recorded()
 
 #[test]
 fn the_tool_refuses_bad_sizes_and_an_existing_output_naming_them() {
-    let dir = tempdir();
+    let dir = common::tempdir("formation-distill");
     let out = dir.join("student.safetensors");
     let run = |args: &[&str]| {
         Command::new(env!("CARGO_BIN_EXE_formation-distill"))
@@ -248,17 +250,4 @@ fn the_tool_refuses_bad_sizes_and_an_existing_output_naming_them() {
     assert!(String::from_utf8_lossy(&exists.stderr).contains("--force"));
     assert_eq!(std::fs::read(&out).expect("still there"), b"keep me");
     std::fs::remove_dir_all(dir).ok();
-}
-
-fn tempdir() -> PathBuf {
-    let dir = std::env::temp_dir().join(format!(
-        "formation-distill-test-{}-{}",
-        std::process::id(),
-        std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .expect("clock")
-            .as_nanos()
-    ));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir
 }

@@ -1,7 +1,8 @@
 //! `formation-play` as a user runs it: the episodes' CSV rows and, for the episodes asked,
 //! their traces (what docs' pictures and scripts/failure_census.py read).
 
-use std::path::PathBuf;
+mod common;
+
 use std::process::{Command, Output};
 
 fn play(args: &[&str]) -> Output {
@@ -11,22 +12,9 @@ fn play(args: &[&str]) -> Output {
         .expect("runs")
 }
 
-fn tempdir() -> PathBuf {
-    let dir = std::env::temp_dir().join(format!(
-        "formation-play-test-{}-{}",
-        std::process::id(),
-        std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .expect("clock")
-            .as_nanos()
-    ));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir
-}
-
 #[test]
 fn traces_every_episode_asked_with_one_pose_a_tick_and_refuses_one_past_the_last() {
-    let dir = tempdir();
+    let dir = common::tempdir("formation-play");
     let out = dir.to_str().expect("utf-8");
     let common = [
         "--team",
