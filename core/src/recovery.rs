@@ -68,12 +68,42 @@ pub struct Recovery {
     side: f64,
     /// Recoveries so far: they alternate sides, left first.
     count: u32,
+    /// Whether the last command was the recovery's (not the controller's).
+    took_over: bool,
 }
 
 impl Recovery {
+    /// Whether the last [`Recovery::command`] was the recovery's own, not the controller's.
+    pub fn took_over(&self) -> bool {
+        self.took_over
+    }
+
+    /// The boundary-following command for a robot that reads `scan` (each ray range /
+    /// `scan_range`): along the surface its nearest ray hits, on this recovery's side, at
+    /// [`FOLLOW_DISTANCE_M`] from it; turning in place first when it faces away.
+    fn follow(&self, scan: &[f32], scan_range: f64) -> Command {
+        let rays = scan.len();
+        let (nearest, nearest_range) =
+            scan.iter().enumerate().fold(
+                (0, f32::INFINITY),
+                |best, (k, &r)| if r < best.1 { (k, r) } else { best },
+            );
+        let nearest_m = f64::from(nearest_range) * scan_range;
+        let away = (FOLLOW_DISTANCE_M - nearest_m).clamp(-0.3, 0.3);
+        let heading = wrap_angle(TAU * nearest as f64 / rays as f64 + self.side * (FRAC_PI_2 + away));
+        let turn = (2.0 * heading).clamp(-1.0, 1.0);
+        let speed = if heading.abs() < TURN_IN_PLACE_RAD {
+            RECOVERY_SPEED
+        } else {
+            0.0
+        };
+        (speed, turn)
+    }
+
     /// The command the robot's motors take this tick: `command` (its controller's), or while it
     /// recovers, a boundary-following one; `ticks` is the longest recovery.
     pub fn command(&mut self, sensed: &Sensed, ticks: u32, command: Command) -> Command {
+        self.took_over = false;
         let &Sensed {
             slot,
             scan,
@@ -83,12 +113,7 @@ impl Recovery {
         } = sensed;
         let rays = scan.len();
         let ray_angle = |k: usize| TAU * k as f64 / rays as f64;
-        let (nearest, nearest_range) =
-            scan.iter().enumerate().fold(
-                (0, f32::INFINITY),
-                |best, (k, &r)| if r < best.1 { (k, r) } else { best },
-            );
-        let nearest_m = f64::from(nearest_range) * scan_range;
+        let nearest_m = f64::from(scan.iter().copied().fold(f32::INFINITY, f32::min)) * scan_range;
         let bearing = slot[1].atan2(slot[0]);
         if self.left > 0 {
             let slot_ray = (bearing.rem_euclid(TAU) / ray_angle(1)).round() as usize % rays;
@@ -98,15 +123,8 @@ impl Recovery {
             } else {
                 self.left -= 1;
                 self.done += 1;
-                let away = (FOLLOW_DISTANCE_M - nearest_m).clamp(-0.3, 0.3);
-                let heading = wrap_angle(ray_angle(nearest) + self.side * (FRAC_PI_2 + away));
-                let turn = (2.0 * heading).clamp(-1.0, 1.0);
-                let speed = if heading.abs() < TURN_IN_PLACE_RAD {
-                    RECOVERY_SPEED
-                } else {
-                    0.0
-                };
-                return (speed, turn);
+                self.took_over = true;
+                return self.follow(scan, scan_range);
             }
         }
         let distance = slot[0].hypot(slot[1]);
@@ -179,11 +197,13 @@ mod tests {
             held,
             "the tick it is found stalled, its controller still acts"
         );
+        assert!(!recovery.took_over());
         // Now it recovers: the disc on its right (side +1) means heading about 90 degrees left
         // of the disc's ray (45 degrees): 135 degrees, so it turns left in place first.
         let (speed, turn) = recovery.command(&sensed(slot, &scan, f64::INFINITY, 0.0), 30, held);
         assert_eq!(speed, 0.0);
         assert!(turn > 0.9, "turns left hard: {turn}");
+        assert!(recovery.took_over());
         // Facing along the boundary (disc on its right, ray 12 = -90 degrees) it drives.
         let (speed, turn) = recovery.command(&sensed(slot, &scan_with_hit(12, 0.35), f64::INFINITY, 0.0), 30, held);
         assert_eq!(speed, RECOVERY_SPEED);

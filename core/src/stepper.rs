@@ -327,6 +327,12 @@ impl EpisodeStepper {
         &self.acting
     }
 
+    /// Whether robot `agent`'s command in the last transition was its recovery behaviour's
+    /// (`[obstacles] recovery_ticks`), not its controller's.
+    pub fn recovering(&self, agent: usize) -> bool {
+        self.recoveries[agent].took_over()
+    }
+
     /// The true state.
     pub fn world(&self) -> &World {
         &self.world

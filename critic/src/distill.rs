@@ -29,7 +29,7 @@ use anyhow::{Context, Result, ensure};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
 use formation_core::baseline::{BaselineGains, ScriptedBaseline};
-use formation_core::config::RunConfig;
+use formation_core::config::{EnvConfig, RunConfig};
 use formation_core::observation::Layout;
 use formation_core::task::Outcome;
 use formation_model::actor::{Actor, ActorHead, ActorShape, FrozenActor, var_map_actor_weights};
@@ -85,6 +85,11 @@ pub struct DistillOptions {
     pub planner_teacher: Option<PlannerKind>,
     /// How the student's distance to its labels is measured.
     pub loss: ImitationLoss,
+    /// A teacher with memory: every robot's recovery behaviour ([`formation_core::recovery`])
+    /// runs in the episodes with this longest recovery (ticks), and where it takes over a
+    /// robot's motors its command is the label (command heads only). `None`: the config's
+    /// `[obstacles] recovery_ticks` plays, and only the teacher's command is taught.
+    pub teach_recovery_ticks: Option<u32>,
 }
 
 /// The student's error to its labels, per output.
@@ -131,6 +136,7 @@ impl Default for DistillOptions {
             head: ActorHead::Command,
             planner_teacher: None,
             loss: ImitationLoss::Squared,
+            teach_recovery_ticks: None,
         }
     }
 }
@@ -171,13 +177,21 @@ impl Samples {
         self.len == 0
     }
 
-    /// Adds one, overwriting the oldest when full.
-    pub fn push(&mut self, window: &[f32], label: &[f32]) {
+    /// Adds one, overwriting the oldest when full; returns where it is stored (for
+    /// [`Samples::relabel`], until `capacity` more are pushed).
+    pub fn push(&mut self, window: &[f32], label: &[f32]) -> usize {
         let (i, l) = (self.next, self.label_width);
         self.windows[i * self.width..(i + 1) * self.width].copy_from_slice(window);
         self.labels[l * i..l * (i + 1)].copy_from_slice(label);
         self.next = (self.next + 1) % self.capacity;
         self.len = (self.len + 1).min(self.capacity);
+        i
+    }
+
+    /// Replaces the label of the sample stored at `stored` (what [`Samples::push`] returned).
+    pub fn relabel(&mut self, stored: usize, label: &[f32]) {
+        let l = self.label_width;
+        self.labels[l * stored..l * (stored + 1)].copy_from_slice(label);
     }
 
     /// Sample `i` (0 = the oldest still held).
@@ -234,6 +248,9 @@ pub struct RoundReport {
 /// A distillation in progress: the teacher, the student actor and its optimiser, the buffer.
 pub struct Distiller {
     config: RunConfig,
+    /// The world the rounds play: the config's, with the recovery behaviour a teacher with
+    /// memory needs ([`DistillOptions::teach_recovery_ticks`]).
+    play_env: EnvConfig,
     options: DistillOptions,
     shape: ActorShape,
     vars: VarMap,
@@ -298,6 +315,14 @@ impl Distiller {
             options.teacher_share
         );
         let layout = Layout::of(config.env.observation);
+        let mut play_env = config.env.clone();
+        if let Some(ticks) = options.teach_recovery_ticks {
+            ensure!(
+                ticks > 0 && options.head == ActorHead::Command && layout.scan().is_some(),
+                "the recovery teaches commands only, to a student that reads a scan (env.observation = \"slot_proximity_scan\"), for at least one tick"
+            );
+            play_env.obstacles.recovery_ticks = ticks;
+        }
         let shape = ActorShape {
             obs_dim: layout.dim(),
             history: config.env.history,
@@ -326,6 +351,7 @@ impl Distiller {
         Ok(Self {
             samples: Samples::new(shape.input_dim(), shape.head.outputs(), options.capacity),
             config: config.clone(),
+            play_env,
             options,
             shape,
             vars,
@@ -382,7 +408,7 @@ impl Distiller {
                 reality: &self.config.reality,
             };
             let (mut student_episodes, mut student_successes) = (0usize, 0usize);
-            for mut game in played.games(&self.config.env, n) {
+            for mut game in played.games(&self.play_env, n) {
                 let teacher_drives = first || self.rng.random::<f64>() < self.options.teacher_share;
                 let teachers: Vec<(ScriptedBaseline, [f32; 5])> = (0..n)
                     .map(|agent| {
@@ -401,6 +427,7 @@ impl Distiller {
                         None => Vec::new(),
                     };
                     let (env, samples, head) = (&self.config.env, &mut self.samples, self.shape.head);
+                    let mut stored = vec![None; n];
                     game.step(|asked| {
                         let (teacher, unit_gains) = &teachers[asked.agent];
                         let (v, w) = match planned.get(asked.agent) {
@@ -413,7 +440,7 @@ impl Distiller {
                                 ActorHead::Command => &action,
                                 ActorHead::Gains => unit_gains,
                             };
-                            samples.push(asked.window.as_flat(), label);
+                            stored[asked.agent] = Some(samples.push(asked.window.as_flat(), label));
                         }
                         if teacher_drives {
                             // The command the label stands for.
@@ -422,6 +449,13 @@ impl Distiller {
                             student.command(asked.window.as_flat(), env)
                         }
                     })?;
+                    // Where a robot's recovery took its motors over, the teacher with memory
+                    // answered with the recovery's command.
+                    for (agent, stored) in stored.into_iter().enumerate() {
+                        if let (Some(stored), Some((v, w))) = (stored, game.recovery_command(agent)) {
+                            samples.relabel(stored, &env.action_from_command(v, w));
+                        }
+                    }
                 }
                 if !teacher_drives {
                     student_episodes += 1;
@@ -788,6 +822,72 @@ mod tests {
                 "{kind:?}: {} labels",
                 distiller.samples.len()
             );
+        }
+    }
+
+    #[test]
+    fn a_teacher_with_memory_labels_the_ticks_its_recovery_takes_over_with_the_recovery_s_command() {
+        let mut config = RunConfig::default();
+        config.env.observation = ObservationModel::SlotProximityScan;
+        config.env.obstacles.kind = ObstacleKind::Forest;
+        let (n, episodes, ticks) = (4, 6, 30);
+        let options = DistillOptions {
+            sizes: vec![n],
+            robots_per_round: n * episodes,
+            updates_per_round: 1,
+            batch: 8,
+            capacity: 1 << 17,
+            teach_recovery_ticks: Some(ticks),
+            ..DistillOptions::default()
+        };
+        let gains_head = DistillOptions {
+            head: ActorHead::Gains,
+            ..options.clone()
+        };
+        let refused = Distiller::new(&config, gains_head, None).err().expect("refused");
+        assert!(refused.to_string().contains("commands only"), "{refused}");
+        let mut distiller = Distiller::new(&config, options, None).expect("a distiller");
+        distiller.round().expect("a round the teacher drives");
+        // The same episodes replayed: the teacher drives, every robot's recovery on.
+        let mut env = config.env.clone();
+        env.obstacles.recovery_ticks = ticks;
+        let played = Played {
+            seed: episode_seed(1, 0, n),
+            count: episodes,
+            reality: &config.reality,
+        };
+        let teacher = ScriptedBaseline::new(&config.env, config.baseline);
+        let (mut expected, mut recovered) = (Vec::new(), 0);
+        for mut game in played.games(&env, n) {
+            while game.running() {
+                let mut answered = Vec::new();
+                game.step(|asked| {
+                    let (v, w) = teacher.command_in(asked.window.as_flat());
+                    let action = env.action_from_command(v, w);
+                    if asked.present {
+                        answered.push((asked.agent, action));
+                    }
+                    Ok(env.command_from_action(action))
+                })
+                .expect("a tick");
+                for (agent, action) in answered {
+                    expected.push(match game.recovery_command(agent) {
+                        Some((v, w)) => {
+                            recovered += 1;
+                            env.action_from_command(v, w)
+                        }
+                        None => action,
+                    });
+                }
+            }
+        }
+        assert!(
+            recovered > 0,
+            "the field stalls at a disc somewhere in {episodes} forest episodes"
+        );
+        assert_eq!(distiller.samples.len(), expected.len());
+        for (i, label) in expected.iter().enumerate() {
+            assert_eq!(distiller.samples.get(i).1, &label[..], "label {i}");
         }
     }
 

@@ -184,6 +184,12 @@ impl Game {
         self.stepper.running()
     }
 
+    /// Robot `agent`'s recovery behaviour's command in the last transition, when it took the
+    /// robot's motors over (`[obstacles] recovery_ticks`).
+    pub(crate) fn recovery_command(&self, agent: usize) -> Option<Command> {
+        self.stepper.recovering(agent).then(|| self.stepper.applied()[agent])
+    }
+
     /// How it stands (ended: how it ended).
     pub(crate) fn outcome(&self) -> Outcome {
         self.stepper.last().outcome

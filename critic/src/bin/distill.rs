@@ -125,6 +125,13 @@ struct Cli {
     /// the student cannot tell apart (stop or go, left or right) it takes the more frequent one.
     #[arg(long, value_enum, default_value_t = ImitationLoss::Squared)]
     loss: ImitationLoss,
+    /// A teacher with memory: every robot's recovery behaviour (docs/OBSTACLES.md, "The
+    /// recovery behaviour") runs in the rounds' episodes with this longest recovery, and where
+    /// it takes a robot's motors over, its command is the label, so the student learns to go
+    /// round an obstacle that holds it (command head, a config with a scan). The student is
+    /// scored, and plays, without it.
+    #[arg(long, value_name = "TICKS")]
+    teach_recovery: Option<u32>,
     /// Also write the student to --out every this many rounds (unscored; its metadata says the
     /// rounds done), so an interrupted run keeps its work; 0: only at the end.
     #[arg(long, default_value_t = 50)]
@@ -203,6 +210,7 @@ fn distill_options(cli: &Cli) -> Result<DistillOptions> {
         soft_from_delay_ticks: cli.soft_from_delay_ticks,
         head: ActorHead::from_name(&cli.head).context("--head")?,
         loss: cli.loss,
+        teach_recovery_ticks: cli.teach_recovery,
         ..DistillOptions::default()
     })
 }
@@ -262,6 +270,9 @@ fn student_metadata(
         && let Some(name) = cli.loss.to_possible_value()
     {
         extra.insert("distill_loss".into(), name.get_name().into());
+    }
+    if let Some(ticks) = cli.teach_recovery {
+        extra.insert("distill_recovery_ticks".into(), ticks.to_string());
     }
     if distiller.shape().head == ActorHead::Gains {
         record_gain_profiles(cli, config, distiller, &mut extra)?;
