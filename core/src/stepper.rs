@@ -216,17 +216,16 @@ impl EpisodeStepper {
             return command;
         }
         let view = ObservationView::new(self.layout, &self.told[agent]);
-        let nearest_robot = view
-            .robots(env.proximity_range_m)
-            .map(|[x, y]| x.hypot(y))
-            .fold(f64::INFINITY, f64::min);
         match (view.slot(), view.scan()) {
             (Some(slot), Some(scan)) => {
                 let sensed = Sensed {
                     slot,
                     scan,
                     scan_range: env.scan_range_m,
-                    nearest_robot,
+                    nearest_robot: view
+                        .robots(env.proximity_range_m)
+                        .map(|[x, y]| x.hypot(y))
+                        .fold(f64::INFINITY, f64::min),
                     driven: self.acting[agent].0.abs() * env.dt_s,
                 };
                 self.recoveries[agent].command(&sensed, ticks, command)

@@ -427,7 +427,8 @@ impl Distiller {
                         None => Vec::new(),
                     };
                     let (env, samples, head) = (&self.config.env, &mut self.samples, self.shape.head);
-                    let mut stored = vec![None; n];
+                    let teaches_recovery = self.options.teach_recovery_ticks.is_some();
+                    let mut stored = vec![None; if teaches_recovery { n } else { 0 }];
                     game.step(|asked| {
                         let (teacher, unit_gains) = &teachers[asked.agent];
                         let (v, w) = match planned.get(asked.agent) {
@@ -440,7 +441,10 @@ impl Distiller {
                                 ActorHead::Command => &action,
                                 ActorHead::Gains => unit_gains,
                             };
-                            stored[asked.agent] = Some(samples.push(asked.window.as_flat(), label));
+                            let at = samples.push(asked.window.as_flat(), label);
+                            if let Some(stored) = stored.get_mut(asked.agent) {
+                                *stored = Some(at);
+                            }
                         }
                         if teacher_drives {
                             // The command the label stands for.
