@@ -443,6 +443,21 @@ pub enum ImitationTeacher {
     Start,
 }
 
+/// How an actor step improves the actor on the critic (`learn.actor_update`).
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum ActorUpdate {
+    /// Up the gradient of the first critic's Q (DDPG and TD3, the paper's).
+    #[default]
+    QGradient,
+    /// Towards the replayed actions the critic rates above the actor's own, robot by robot
+    /// (critic-regularised regression with a binary filter, Wang et al. 2020): a robot's played
+    /// action is copied where Q with it beats Q with the actor's action in its place, the other
+    /// robots' actions as played. The actor only moves towards actions that were tried, so a
+    /// critic that is wrong cannot pull it off the replay; `pooled` critic only.
+    AdvantageFiltered,
+}
+
 /// Central training hyper-parameters.
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
 #[serde(deny_unknown_fields, default)]
@@ -507,6 +522,9 @@ pub struct LearnConfig {
     /// Whom the imitation term pulls towards: `baseline` (default) or `start` (the actor of
     /// `--checkpoint`, frozen; a run with it needs a checkpoint).
     pub imitation_teacher: ImitationTeacher,
+    /// How the actor improves on the critic: `q_gradient` (default) or `advantage_filtered`
+    /// (with a teacher, `imitation_alpha` weighs the filtered copy against the teacher's pull).
+    pub actor_update: ActorUpdate,
     /// Critic-only updates at the start of a run: the actor (and its target) is held while the
     /// critics learn its value, so that a run starting from an imitated actor does not climb a
     /// random critic first. 0 = off.
@@ -566,6 +584,7 @@ impl Default for LearnConfig {
             action_l2: 0.0,
             imitation_alpha: 2.5,
             imitation_teacher: ImitationTeacher::Baseline,
+            actor_update: ActorUpdate::QGradient,
             critic_warmup_updates: 0,
             replay_capacity: 1_000_000,
             publish_every_updates: 50,
@@ -927,6 +946,12 @@ impl LearnConfig {
         check_widths(&l.critic_hidden, "learn.critic_hidden")?;
         check_widths(&l.critic_encoder, "learn.critic_encoder")?;
         check(
+            l.actor_update == ActorUpdate::QGradient || l.critic == CriticArchitecture::Pooled,
+            "learn.actor_update",
+            "\"advantage_filtered\"",
+            "needs learn.critic = \"pooled\": the filter rates each robot's action by swapping its token alone",
+        )?;
+        check(
             l.policy_delay >= 1,
             "learn.policy_delay",
             l.policy_delay,
@@ -1161,6 +1186,18 @@ mod tests {
             let err = RunConfig::from_toml_str(text).expect_err(text);
             assert!(err.to_string().contains(field), "{err} should name {field}");
         }
+    }
+
+    #[test]
+    fn the_advantage_filtered_actor_update_needs_the_pooled_critic() {
+        let mlp = RunConfig::from_toml_str("[learn]\nactor_update = \"advantage_filtered\"\n")
+            .expect_err("mlp critic")
+            .to_string();
+        assert!(mlp.contains("learn.actor_update") && mlp.contains("pooled"), "{mlp}");
+        let pooled = RunConfig::from_toml_str("[learn]\nactor_update = \"advantage_filtered\"\ncritic = \"pooled\"\n")
+            .expect("pooled critic");
+        assert_eq!(pooled.learn.actor_update, ActorUpdate::AdvantageFiltered);
+        assert_eq!(RunConfig::default().learn.actor_update, ActorUpdate::QGradient);
     }
 
     #[test]

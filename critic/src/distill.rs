@@ -23,7 +23,7 @@
 //! "Distillation").
 
 use std::collections::HashMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, ensure};
 use candle_core::{DType, Device, Tensor};
@@ -90,6 +90,11 @@ pub struct DistillOptions {
     /// robot's motors its command is the label (command heads only). `None`: the config's
     /// `[obstacles] recovery_ticks` plays, and only the teacher's command is taught.
     pub teach_recovery_ticks: Option<u32>,
+    /// A learned teacher: this checkpoint's shared actor answers every window instead of the
+    /// scripted baseline (command heads only, a window of the student's width). With
+    /// `teach_recovery_ticks` the recovery answers where it takes over: a student learns its
+    /// teacher and the recovery together (expert iteration). `None`: the baseline teaches.
+    pub actor_teacher: Option<PathBuf>,
 }
 
 /// The student's error to its labels, per output.
@@ -135,6 +140,7 @@ impl Default for DistillOptions {
             soft_from_delay_ticks: None,
             head: ActorHead::Command,
             planner_teacher: None,
+            actor_teacher: None,
             loss: ImitationLoss::Squared,
             teach_recovery_ticks: None,
         }
@@ -260,6 +266,8 @@ pub struct Distiller {
     rng: StdRng,
     round: usize,
     device: Device,
+    /// [`DistillOptions::actor_teacher`], loaded.
+    actor_teacher: Option<FrozenActor>,
 }
 
 impl Distiller {
@@ -329,6 +337,15 @@ impl Distiller {
             hidden: config.learn.actor_hidden.clone(),
             head: options.head,
         };
+        let actor_teacher = options
+            .actor_teacher
+            .as_deref()
+            .map(|path| load_actor_teacher(path, &shape, config))
+            .transpose()?;
+        ensure!(
+            actor_teacher.is_none() || (options.planner_teacher.is_none() && options.quiet_teacher.is_none()),
+            "a learned teacher teaches alone (no planner, no quiet teacher)"
+        );
         let device = Device::Cpu;
         let vars = VarMap::new();
         let actor = Actor::new(
@@ -360,6 +377,7 @@ impl Distiller {
             rng,
             round: 0,
             device,
+            actor_teacher,
         })
     }
 
@@ -429,11 +447,13 @@ impl Distiller {
                     let (env, samples, head) = (&self.config.env, &mut self.samples, self.shape.head);
                     let teaches_recovery = self.options.teach_recovery_ticks.is_some();
                     let mut stored = vec![None; if teaches_recovery { n } else { 0 }];
+                    let mut actor_teacher = self.actor_teacher.as_mut();
                     game.step(|asked| {
                         let (teacher, unit_gains) = &teachers[asked.agent];
-                        let (v, w) = match planned.get(asked.agent) {
-                            Some(&command) => command,
-                            None => teacher.command_in(asked.window.as_flat()),
+                        let (v, w) = match (planned.get(asked.agent), actor_teacher.as_mut()) {
+                            (Some(&command), _) => command,
+                            (None, Some(actor)) => actor.command(asked.window.as_flat(), env)?,
+                            (None, None) => teacher.command_in(asked.window.as_flat()),
                         };
                         let action = env.action_from_command(v, w);
                         if asked.present {
@@ -525,7 +545,10 @@ impl Distiller {
                     self.config.env.scan_range_m
                 )
             }
-            None => gains,
+            None => match &self.options.actor_teacher {
+                Some(path) => format!("actor {}", path.display()),
+                None => gains,
+            },
         };
         extra.insert("distilled_from".into(), teacher);
         if let Some(quiet) = self.options.quiet_teacher {
@@ -646,6 +669,28 @@ pub fn gain_profile(
 /// the gain searches' (2000) and model selection's, and distinct for every round and size.
 fn episode_seed(seed: u64, round: usize, n: usize) -> u64 {
     (1 << 40) + seed.wrapping_mul(0x9E37_79B9) + ((round as u64) << 8) + n as u64
+}
+
+/// The shared actor of `path` as a teacher: a command head reading the student's window.
+fn load_actor_teacher(path: &Path, student: &ActorShape, config: &RunConfig) -> Result<FrozenActor> {
+    let loaded = checkpoint::load(&checkpoint::resolve(path)?)?;
+    let shape = &loaded.meta.actor;
+    loaded
+        .meta
+        .check_observation(&loaded.path, config.env.observation, student.obs_dim)?;
+    ensure!(
+        loaded.meta.n_actors == 1
+            && shape.head == ActorHead::Command
+            && shape.history == student.history
+            && student.head == ActorHead::Command,
+        "the teacher {} must be one shared actor with a command head reading a window of {} observations, as the student's (it has {} actor(s), head {:?}, H = {})",
+        loaded.path.display(),
+        student.history,
+        loaded.meta.n_actors,
+        shape.head,
+        shape.history
+    );
+    FrozenActor::from_flat(&loaded.actor_weights(0)?, shape)
 }
 
 /// Loads the shared actor of `path` into `vars`.
@@ -893,6 +938,57 @@ mod tests {
         for (i, label) in expected.iter().enumerate() {
             assert_eq!(distiller.samples.get(i).1, &label[..], "label {i}");
         }
+    }
+
+    #[test]
+    fn a_learned_teacher_labels_every_window_with_its_actor_s_command() {
+        let mut config = RunConfig::default();
+        config.env.observation = ObservationModel::SlotProximityScan;
+        config.env.obstacles.kind = ObstacleKind::Forest;
+        config.env.history = 2;
+        config.learn.actor_hidden = vec![16];
+        let n = 3;
+        let options = DistillOptions {
+            sizes: vec![n],
+            robots_per_round: 2 * n,
+            updates_per_round: 1,
+            batch: 8,
+            capacity: 1 << 16,
+            seed: 5,
+            ..DistillOptions::default()
+        };
+        // The teacher: a fresh student of another seed, saved.
+        let dir = std::env::temp_dir().join(format!("formation-distill-teacher-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let path = dir.join("teacher.safetensors");
+        let teacher = Distiller::new(&config, options.clone(), None).expect("a teacher");
+        teacher.save(&path, HashMap::new()).expect("saved");
+        let mut frozen =
+            FrozenActor::from_flat(&teacher.actor_weights().expect("weights"), teacher.shape()).expect("actor");
+        let learned = DistillOptions {
+            actor_teacher: Some(path.clone()),
+            seed: 6,
+            ..options.clone()
+        };
+        let mut distiller = Distiller::new(&config, learned.clone(), None).expect("a distiller");
+        distiller.round().expect("a round the teacher drives");
+        assert!(!distiller.samples.is_empty());
+        let baseline = ScriptedBaseline::new(&config.env, config.baseline);
+        let mut unlike_the_baseline = 0;
+        for i in 0..distiller.samples.len() {
+            let (window, label) = distiller.samples.get(i);
+            let (v, w) = frozen.command(window, &config.env).expect("command");
+            assert_eq!(label, &config.env.action_from_command(v, w)[..], "label {i}");
+            let (v, w) = baseline.command_in(window);
+            unlike_the_baseline += usize::from(label != &config.env.action_from_command(v, w)[..]);
+        }
+        assert!(unlike_the_baseline > 0, "the baseline taught");
+        // A teacher must read the student's window.
+        let mut longer = config.clone();
+        longer.env.history = 3;
+        let refused = Distiller::new(&longer, learned, None).err().expect("refused");
+        assert!(refused.to_string().contains("window of 3"), "{refused}");
+        std::fs::remove_dir_all(&dir).expect("cleaned");
     }
 
     #[test]

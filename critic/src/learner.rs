@@ -15,7 +15,7 @@ use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{AdamW, Linear, Optimizer, ParamsAdamW, VarBuilder, VarMap};
 use formation_core::baseline::{BaselineGains, ScriptedBaseline};
 use formation_core::config::{
-    Algorithm, CriticArchitecture, EnvConfig, ImitationTeacher, LearnConfig, ObservationModel,
+    ActorUpdate, Algorithm, CriticArchitecture, EnvConfig, ImitationTeacher, LearnConfig, ObservationModel,
 };
 use formation_core::features::CriticFeatures;
 use formation_core::observation::{Layout, SCAN_RAYS};
@@ -193,6 +193,41 @@ impl CriticNet {
                 head.forward(&pooled)
             }
         }
+    }
+
+    /// For each robot i of each sample, shape [B, N]: Q with every robot's token from `played`
+    /// minus Q with robot i's token from `swapped` instead, the others as played. `pooled`
+    /// only: a swap moves the mean of the encodings by robot i's change alone, so all N swaps
+    /// cost one more encoder pass and a head pass over [B * N].
+    pub fn swap_advantages(&self, played: &Tensor, swapped: &Tensor, members: Option<&Members>) -> Result<Tensor> {
+        let Self::Pooled { encoder, head } = self else {
+            bail!("learn.actor_update = \"advantage_filtered\" needs the pooled critic");
+        };
+        let (batch, robots, width) = played.dims3()?;
+        let encode = |input: &Tensor| -> candle_core::Result<Tensor> {
+            let encoded = encoder.forward(&input.reshape((batch * robots, width))?)?;
+            encoded.reshape((batch, robots, encoded.dim(1)?))
+        };
+        let (played, swapped) = (encode(played)?, encode(swapped)?);
+        let (pooled, weights) = match members {
+            None => (
+                played.mean(1)?,
+                Tensor::full(1.0 / robots as f32, (batch, robots, 1), &Device::Cpu)?,
+            ),
+            Some(m) => (
+                played.broadcast_mul(&m.robots)?.sum(1)?.broadcast_mul(&m.per_sample)?,
+                m.robots.broadcast_mul(&m.per_sample.unsqueeze(2)?)?,
+            ),
+        };
+        // A robot out of the formation is not in the mean: its swap changes nothing.
+        let shifted = (swapped - &played)?
+            .broadcast_mul(&weights)?
+            .broadcast_add(&pooled.unsqueeze(1)?)?;
+        let width = pooled.dim(1)?;
+        let q_swapped = head
+            .forward(&shifted.reshape((batch * robots, width))?)?
+            .reshape((batch, robots))?;
+        Ok(head.forward(&pooled)?.broadcast_sub(&q_swapped)?)
     }
 }
 
@@ -691,6 +726,77 @@ impl Learner {
         Ok((q, current, members))
     }
 
+    /// The actors' normalised actions [B, N * 2] on a batch's observation windows.
+    pub fn policy_actions(&self, batch: &Batch) -> Result<Vec<f32>> {
+        let obs = Tensor::from_slice(
+            &batch.observations,
+            (batch.batch_size, batch.n_agents, batch.window_dim()),
+            &Device::Cpu,
+        )?;
+        Ok(Self::joint_actions(&self.actors, &obs)?.flatten_all()?.to_vec1()?)
+    }
+
+    /// Q_1 of each sample [B] with the actions as played.
+    pub fn played_value(&self, batch: &Batch) -> Result<Vec<f32>> {
+        let members = Members::of(&batch.present, batch.batch_size, batch.n_agents)?;
+        let q = self.critics[0].forward(&self.played_input(batch)?, members.as_ref())?;
+        Ok(q.flatten_all()?.to_vec1()?)
+    }
+
+    /// For each robot of each sample [B, N], Q_1 with the actions as played minus Q_1 with the
+    /// robot's action at t replaced by its actor's (the others' as played), given the actors'
+    /// actions `current` [B, N * 2].
+    fn advantages_over(&self, batch: &Batch, current: &Tensor) -> Result<Tensor> {
+        let device = Device::Cpu;
+        let b = batch.batch_size;
+        let joint = batch.n_agents * ACTION_DIM;
+        let obs = Tensor::from_slice(&batch.observations, (b, batch.n_agents, batch.window_dim()), &device)?;
+        let states = Tensor::from_slice(&batch.states, (b, batch.state_window_dim()), &device)?;
+        let actions = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?;
+        let swapped = Tensor::cat(
+            &[actions.narrow(1, 0, (self.history - 1) * joint)?, current.detach()],
+            1,
+        )?;
+        let members = Members::of(&batch.present, b, batch.n_agents)?;
+        let played_input = self.critic_input(batch, states.clone(), actions, &obs)?;
+        let swapped_input = self.critic_input(batch, states, swapped, &obs)?;
+        Ok(self.critics[0]
+            .swap_advantages(&played_input, &swapped_input, members.as_ref())?
+            .detach())
+    }
+
+    /// [`Learner::advantages_over`] the actors' current actions, as plain numbers [B * N].
+    pub fn advantages(&self, batch: &Batch) -> Result<Vec<f32>> {
+        let current = Tensor::from_vec(
+            self.policy_actions(batch)?,
+            (batch.batch_size, batch.n_agents * ACTION_DIM),
+            &Device::Cpu,
+        )?;
+        Ok(self.advantages_over(batch, &current)?.flatten_all()?.to_vec1()?)
+    }
+
+    /// The advantage-filtered copy ([`ActorUpdate::AdvantageFiltered`]): the squared distance
+    /// from each robot's actor action to its action as played at t, where the first critic
+    /// rates the played one higher, averaged over the robots in the formation at t. Returns
+    /// it, the actors' actions and those robots.
+    fn filtered_copy(&self, batch: &Batch) -> Result<(Tensor, Tensor, Option<Members>)> {
+        let device = Device::Cpu;
+        let b = batch.batch_size;
+        let joint = batch.n_agents * ACTION_DIM;
+        let obs = Tensor::from_slice(&batch.observations, (b, batch.n_agents, batch.window_dim()), &device)?;
+        let current = Self::joint_actions(&self.actors, &obs)?;
+        let better = self.advantages_over(batch, &current)?.gt(0f32)?.to_dtype(DType::F32)?;
+        let better = Tensor::cat(&vec![better.unsqueeze(2)?; ACTION_DIM], 2)?.reshape((b, joint))?;
+        let played = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?.narrow(
+            1,
+            (self.history - 1) * joint,
+            joint,
+        )?;
+        let members = Members::of(&batch.present, b, batch.n_agents)?;
+        let copy = member_mean(&((&current - played)?.sqr()? * better)?, members.as_ref())?;
+        Ok((copy, current, members))
+    }
+
     /// Mean Q_1 of the current policy on a batch: what an actor step raises.
     pub fn policy_value(&self, batch: &Batch) -> Result<f64> {
         let (q, _, _) = self.policy_q(batch)?;
@@ -702,16 +808,26 @@ impl Learner {
     /// pull, the action penalty and the mean |action| are over the robots in the formation at
     /// t: a robot out of it is not trained on.
     pub fn actor_step(&mut self, batch: &Batch) -> Result<(f64, f64)> {
-        let (q, current, members) = self.policy_q(batch)?;
+        // The critic's term and its scale against the teacher's pull.
+        let (mut actor_loss, scale, current, members) = match self.config.actor_update {
+            ActorUpdate::QGradient => {
+                let (q, current, members) = self.policy_q(batch)?;
+                // TD3+BC: Q normalised by its mean magnitude (no gradient through the scale),
+                // at least 1 so that a fresh critic (Q near 0, e.g. after a change of N) cannot
+                // blow its random gradients up over the teacher's.
+                let q_scale = f64::from(q.abs()?.mean_all()?.to_scalar::<f32>()?).max(1.0);
+                (q.mean_all()?.neg()?, q_scale, current, members)
+            }
+            // A squared distance like the teacher's pull: no scale between them.
+            ActorUpdate::AdvantageFiltered => {
+                let (copy, current, members) = self.filtered_copy(batch)?;
+                (copy, 1.0, current, members)
+            }
+        };
         let members = members.as_ref();
-        let mut actor_loss = q.mean_all()?.neg()?;
         if let Some(teacher) = self.teacher_actions(batch)? {
-            // TD3+BC: Q normalised by its mean magnitude (no gradient through the scale), at
-            // least 1 so that a fresh critic (Q near 0, e.g. after a change of N) cannot blow
-            // its random gradients up over the teacher's.
-            let q_scale = f64::from(q.abs()?.mean_all()?.to_scalar::<f32>()?).max(1.0);
             let imitation = member_mean(&(&current - teacher)?.sqr()?, members)?;
-            actor_loss = (actor_loss.affine(self.config.imitation_alpha / q_scale, 0.0)? + imitation)?;
+            actor_loss = (actor_loss.affine(self.config.imitation_alpha / scale, 0.0)? + imitation)?;
         }
         if self.config.action_l2 > 0.0 {
             actor_loss = (actor_loss + member_mean(&current.sqr()?, members)?.affine(self.config.action_l2, 0.0)?)?;
@@ -721,6 +837,11 @@ impl Learner {
             f64::from(actor_loss.to_scalar::<f32>()?),
             f64::from(member_mean(&current.abs()?, members)?.to_scalar::<f32>()?),
         ))
+    }
+
+    /// Whether the actor steps yet: this run's critic warm-up is over.
+    pub fn actor_is_learning(&self) -> bool {
+        self.run_updates > self.config.critic_warmup_updates
     }
 
     /// What swarm `swarm`'s batches have driven so far.

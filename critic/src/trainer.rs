@@ -204,7 +204,12 @@ impl<S: Service> Trainer<S> {
         }
         self.update(ticks)?;
         // Once the budget is spent the weights stay as they are: the end's checkpoint scores them.
-        if !self.budget_spent() && self.selecting.is_none() && self.last_checkpoint.elapsed() >= self.checkpoint_every {
+        // During the critic's warm-up the actor is the run's start: nothing to score.
+        if !self.budget_spent()
+            && self.learner.actor_is_learning()
+            && self.selecting.is_none()
+            && self.last_checkpoint.elapsed() >= self.checkpoint_every
+        {
             self.start_selection(rolling)?;
         }
         Ok(self.paid_ticks(ticks))

@@ -132,6 +132,12 @@ struct Cli {
     /// scored, and plays, without it.
     #[arg(long, value_name = "TICKS")]
     teach_recovery: Option<u32>,
+    /// A learned teacher: this checkpoint's shared actor (a command head reading the config's
+    /// window) labels every window instead of the [baseline] gains. With --teach-recovery the
+    /// recovery labels the ticks it takes over: the student learns its teacher and the recovery
+    /// together (expert iteration; start it from the teacher with --checkpoint).
+    #[arg(long, value_name = "FILE")]
+    teacher_checkpoint: Option<PathBuf>,
     /// Also write the student to --out every this many rounds (unscored; its metadata says the
     /// rounds done), so an interrupted run keeps its work; 0: only at the end.
     #[arg(long, default_value_t = 50)]
@@ -211,6 +217,7 @@ fn distill_options(cli: &Cli) -> Result<DistillOptions> {
         head: ActorHead::from_name(&cli.head).context("--head")?,
         loss: cli.loss,
         teach_recovery_ticks: cli.teach_recovery,
+        actor_teacher: cli.teacher_checkpoint.clone(),
         ..DistillOptions::default()
     })
 }
