@@ -839,9 +839,10 @@ impl Learner {
         ))
     }
 
-    /// Whether the actor steps yet: this run's critic warm-up is over.
-    pub fn actor_is_learning(&self) -> bool {
-        self.run_updates > self.config.critic_warmup_updates
+    /// Whether the actor has stepped in this run: past the critic's warm-up and the policy
+    /// delay, its weights are no longer those the run started from.
+    pub fn actor_has_stepped(&self) -> bool {
+        self.swarm_steps.iter().any(|steps| steps.actor > 0)
     }
 
     /// What swarm `swarm`'s batches have driven so far.

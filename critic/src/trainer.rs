@@ -204,9 +204,10 @@ impl<S: Service> Trainer<S> {
         }
         self.update(ticks)?;
         // Once the budget is spent the weights stay as they are: the end's checkpoint scores them.
-        // During the critic's warm-up the actor is the run's start: nothing to score.
+        // Until the actor's first step (the critic's warm-up, then the policy delay) it is the
+        // run's start: nothing to score.
         if !self.budget_spent()
-            && self.learner.actor_is_learning()
+            && self.learner.actor_has_stepped()
             && self.selecting.is_none()
             && self.last_checkpoint.elapsed() >= self.checkpoint_every
         {

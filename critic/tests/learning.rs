@@ -664,15 +664,20 @@ fn during_the_critic_warmup_the_actor_is_held_and_the_critic_learns() {
         critic_losses.push(losses.critic);
     }
     assert_eq!(learner.actor_weights(0).expect("weights"), start, "the actor is held");
+    assert!(!learner.actor_has_stepped(), "no checkpoint is scored yet");
     assert!(
         critic_losses[5] < critic_losses[0],
         "the critic stepped: {critic_losses:?}"
     );
     // After it, the actor steps on the policy delay's schedule.
-    let stepped: Vec<bool> = (0..4)
-        .map(|_| learner.update(&batch, 0).expect("update").actor.is_some())
+    let stepped: Vec<(bool, bool)> = (0..4)
+        .map(|_| {
+            let actor = learner.update(&batch, 0).expect("update").actor.is_some();
+            (actor, learner.actor_has_stepped())
+        })
         .collect();
-    assert_eq!(stepped, [false, true, false, true]);
+    // The first update after the warm-up waits for the policy delay: still the start.
+    assert_eq!(stepped, [(false, false), (true, true), (false, true), (true, true)]);
     assert_ne!(
         learner.actor_weights(0).expect("weights"),
         start,
