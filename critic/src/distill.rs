@@ -683,7 +683,7 @@ fn load_actor_teacher(path: &Path, student: &ActorShape, config: &RunConfig) -> 
             && shape.head == ActorHead::Command
             && shape.history == student.history
             && student.head == ActorHead::Command,
-        "the teacher {} must be one shared actor with a command head reading a window of {} observations, as the student's (it has {} actor(s), head {:?}, H = {})",
+        "the teacher {} must be one shared actor with a command head reading the student's window, H = {} (it has {} actor(s), head {:?}, H = {})",
         loaded.path.display(),
         student.history,
         loaded.meta.n_actors,
@@ -987,7 +987,7 @@ mod tests {
         let mut longer = config.clone();
         longer.env.history = 3;
         let refused = Distiller::new(&longer, learned, None).err().expect("refused");
-        assert!(refused.to_string().contains("window of 3"), "{refused}");
+        assert!(refused.to_string().contains("window, H = 3"), "{refused}");
         std::fs::remove_dir_all(&dir).expect("cleaned");
     }
 
