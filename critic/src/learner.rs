@@ -666,13 +666,30 @@ impl Learner {
         Ok(y.detach())
     }
 
-    /// The critics' input for the batch's states and actions as played.
-    fn played_input(&self, batch: &Batch) -> Result<Tensor> {
+    /// A batch's robots' observation windows [B, N, H * od], state windows [B, H * state_dim]
+    /// and joint-action windows as played [B, H * N * 2].
+    fn played_tensors(batch: &Batch) -> Result<(Tensor, Tensor, Tensor)> {
         let device = Device::Cpu;
         let b = batch.batch_size;
-        let states = Tensor::from_slice(&batch.states, (b, batch.state_window_dim()), &device)?;
-        let actions = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?;
-        let obs = Tensor::from_slice(&batch.observations, (b, batch.n_agents, batch.window_dim()), &device)?;
+        Ok((
+            Tensor::from_slice(&batch.observations, (b, batch.n_agents, batch.window_dim()), &device)?,
+            Tensor::from_slice(&batch.states, (b, batch.state_window_dim()), &device)?,
+            Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?,
+        ))
+    }
+
+    /// A joint-action window as played with the actions at t replaced by `at_t` [B, N * 2].
+    fn with_actions_at_t(&self, played: &Tensor, at_t: Tensor) -> Result<Tensor> {
+        let joint = at_t.dim(1)?;
+        Ok(Tensor::cat(
+            &[played.narrow(1, 0, (self.history - 1) * joint)?, at_t],
+            1,
+        )?)
+    }
+
+    /// The critics' input for the batch's states and actions as played.
+    fn played_input(&self, batch: &Batch) -> Result<Tensor> {
+        let (obs, states, actions) = Self::played_tensors(batch)?;
         self.critic_input(batch, states, actions, &obs)
     }
 
@@ -713,15 +730,10 @@ impl Learner {
     /// the formation at t (a robot out of it adds nothing to Q, so no gradient reaches its
     /// action).
     fn policy_q(&self, batch: &Batch) -> Result<(Tensor, Tensor, Option<Members>)> {
-        let device = Device::Cpu;
-        let b = batch.batch_size;
-        let joint = batch.n_agents * ACTION_DIM;
-        let obs = Tensor::from_slice(&batch.observations, (b, batch.n_agents, batch.window_dim()), &device)?;
-        let states = Tensor::from_slice(&batch.states, (b, batch.state_window_dim()), &device)?;
-        let actions = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?;
+        let (obs, states, actions) = Self::played_tensors(batch)?;
         let current = Self::joint_actions(&self.actors, &obs)?;
-        let window = Tensor::cat(&[actions.narrow(1, 0, (self.history - 1) * joint)?, current.clone()], 1)?;
-        let members = Members::of(&batch.present, b, batch.n_agents)?;
+        let window = self.with_actions_at_t(&actions, current.clone())?;
+        let members = Members::of(&batch.present, batch.batch_size, batch.n_agents)?;
         let q = self.critics[0].forward(&self.critic_input(batch, states, window, &obs)?, members.as_ref())?;
         Ok((q, current, members))
     }
@@ -747,17 +759,9 @@ impl Learner {
     /// robot's action at t replaced by its actor's (the others' as played), given the actors'
     /// actions `current` [B, N * 2].
     fn advantages_over(&self, batch: &Batch, current: &Tensor) -> Result<Tensor> {
-        let device = Device::Cpu;
-        let b = batch.batch_size;
-        let joint = batch.n_agents * ACTION_DIM;
-        let obs = Tensor::from_slice(&batch.observations, (b, batch.n_agents, batch.window_dim()), &device)?;
-        let states = Tensor::from_slice(&batch.states, (b, batch.state_window_dim()), &device)?;
-        let actions = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?;
-        let swapped = Tensor::cat(
-            &[actions.narrow(1, 0, (self.history - 1) * joint)?, current.detach()],
-            1,
-        )?;
-        let members = Members::of(&batch.present, b, batch.n_agents)?;
+        let (obs, states, actions) = Self::played_tensors(batch)?;
+        let swapped = self.with_actions_at_t(&actions, current.detach())?;
+        let members = Members::of(&batch.present, batch.batch_size, batch.n_agents)?;
         let played_input = self.critic_input(batch, states.clone(), actions, &obs)?;
         let swapped_input = self.critic_input(batch, states, swapped, &obs)?;
         Ok(self.critics[0]
@@ -780,18 +784,12 @@ impl Learner {
     /// rates the played one higher, averaged over the robots in the formation at t. Returns
     /// it, the actors' actions and those robots.
     fn filtered_copy(&self, batch: &Batch) -> Result<(Tensor, Tensor, Option<Members>)> {
-        let device = Device::Cpu;
-        let b = batch.batch_size;
-        let joint = batch.n_agents * ACTION_DIM;
-        let obs = Tensor::from_slice(&batch.observations, (b, batch.n_agents, batch.window_dim()), &device)?;
+        let (b, joint) = (batch.batch_size, batch.n_agents * ACTION_DIM);
+        let (obs, _, actions) = Self::played_tensors(batch)?;
         let current = Self::joint_actions(&self.actors, &obs)?;
         let better = self.advantages_over(batch, &current)?.gt(0f32)?.to_dtype(DType::F32)?;
         let better = Tensor::cat(&vec![better.unsqueeze(2)?; ACTION_DIM], 2)?.reshape((b, joint))?;
-        let played = Tensor::from_slice(&batch.actions, (b, batch.action_window_dim()), &device)?.narrow(
-            1,
-            (self.history - 1) * joint,
-            joint,
-        )?;
+        let played = actions.narrow(1, (self.history - 1) * joint, joint)?;
         let members = Members::of(&batch.present, b, batch.n_agents)?;
         let copy = member_mean(&((&current - played)?.sqr()? * better)?, members.as_ref())?;
         Ok((copy, current, members))
