@@ -67,7 +67,7 @@ def paired(a_dir: Path, b_dir: Path) -> list[tuple[str, dict[str, float]]]:
         rows.append((str(rel), compare([a[k] for k in keys], [b[k] for k in keys])))
         all_a += [a[k] for k in keys]
         all_b += [b[k] for k in keys]
-    extra = sorted(p.relative_to(b_dir) for p in b_dir.rglob("n*.csv") if p.relative_to(b_dir) not in set(files))
+    extra = sorted(set(p.relative_to(b_dir) for p in b_dir.rglob("n*.csv")) - set(files))
     if extra:
         sys.exit(f"paired_compare.py: B has files A lacks: {', '.join(map(str, extra))}")
     rows.append(("all", compare(all_a, all_b)))

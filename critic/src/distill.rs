@@ -673,11 +673,8 @@ fn episode_seed(seed: u64, round: usize, n: usize) -> u64 {
 
 /// The shared actor of `path` as a teacher: a command head reading the student's window.
 fn load_actor_teacher(path: &Path, student: &ActorShape, config: &RunConfig) -> Result<FrozenActor> {
-    let loaded = checkpoint::load(&checkpoint::resolve(path)?)?;
+    let loaded = load_observing(path, student, config)?;
     let shape = &loaded.meta.actor;
-    loaded
-        .meta
-        .check_observation(&loaded.path, config.env.observation, student.obs_dim)?;
     ensure!(
         loaded.meta.n_actors == 1
             && shape.head == ActorHead::Command
@@ -693,12 +690,18 @@ fn load_actor_teacher(path: &Path, student: &ActorShape, config: &RunConfig) -> 
     FrozenActor::from_flat(&loaded.actor_weights(0)?, shape)
 }
 
-/// Loads the shared actor of `path` into `vars`.
-fn load_shared_actor(vars: &VarMap, path: &Path, shape: &ActorShape, config: &RunConfig) -> Result<()> {
+/// The checkpoint at `path`, refused unless it observes as the config's student of `shape`.
+fn load_observing(path: &Path, shape: &ActorShape, config: &RunConfig) -> Result<checkpoint::Checkpoint> {
     let loaded = checkpoint::load(&checkpoint::resolve(path)?)?;
     loaded
         .meta
         .check_observation(&loaded.path, config.env.observation, shape.obs_dim)?;
+    Ok(loaded)
+}
+
+/// Loads the shared actor of `path` into `vars`.
+fn load_shared_actor(vars: &VarMap, path: &Path, shape: &ActorShape, config: &RunConfig) -> Result<()> {
+    let loaded = load_observing(path, shape, config)?;
     ensure!(
         loaded.meta.n_actors == 1 && &loaded.meta.actor == shape,
         "checkpoint {} holds {} actor(s) of shape {:?}; distillation trains one shared actor of shape {:?} (env.history, learn.actor_hidden)",

@@ -806,24 +806,27 @@ impl Learner {
     /// pull, the action penalty and the mean |action| are over the robots in the formation at
     /// t: a robot out of it is not trained on.
     pub fn actor_step(&mut self, batch: &Batch) -> Result<(f64, f64)> {
-        // The critic's term and its scale against the teacher's pull.
-        let (mut actor_loss, scale, current, members) = match self.config.actor_update {
+        // The critic's term, and Q itself for the Q gradient (its scale against the teacher's).
+        let (mut actor_loss, q, current, members) = match self.config.actor_update {
             ActorUpdate::QGradient => {
                 let (q, current, members) = self.policy_q(batch)?;
-                // TD3+BC: Q normalised by its mean magnitude (no gradient through the scale),
-                // at least 1 so that a fresh critic (Q near 0, e.g. after a change of N) cannot
-                // blow its random gradients up over the teacher's.
-                let q_scale = f64::from(q.abs()?.mean_all()?.to_scalar::<f32>()?).max(1.0);
-                (q.mean_all()?.neg()?, q_scale, current, members)
+                (q.mean_all()?.neg()?, Some(q), current, members)
             }
-            // A squared distance like the teacher's pull: no scale between them.
             ActorUpdate::AdvantageFiltered => {
                 let (copy, current, members) = self.filtered_copy(batch)?;
-                (copy, 1.0, current, members)
+                (copy, None, current, members)
             }
         };
         let members = members.as_ref();
         if let Some(teacher) = self.teacher_actions(batch)? {
+            // TD3+BC: Q normalised by its mean magnitude (no gradient through the scale), at
+            // least 1 so that a fresh critic (Q near 0, e.g. after a change of N) cannot blow
+            // its random gradients up over the teacher's. The filtered copy is a squared
+            // distance like the teacher's pull: no scale between them.
+            let scale = match &q {
+                Some(q) => f64::from(q.abs()?.mean_all()?.to_scalar::<f32>()?).max(1.0),
+                None => 1.0,
+            };
             let imitation = member_mean(&(&current - teacher)?.sqr()?, members)?;
             actor_loss = (actor_loss.affine(self.config.imitation_alpha / scale, 0.0)? + imitation)?;
         }
