@@ -458,6 +458,20 @@ pub enum ActorUpdate {
     AdvantageFiltered,
 }
 
+/// Whose value the central critic learns (`learn.credit`).
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Credit {
+    /// One value of the team for the shared reward (the paper's).
+    #[default]
+    Team,
+    /// One value per robot, for its own reward: the shared reward with the team's mean approach
+    /// to the slots (`env.r_progress`) replaced by the robot's own. Each robot's value then
+    /// answers for what its own action did, so one robot stalled among sixteen is not one
+    /// sixteenth of the team's signal. `pooled` critic, `q_gradient` update only.
+    Robot,
+}
+
 /// Central training hyper-parameters.
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
 #[serde(deny_unknown_fields, default)]
@@ -525,6 +539,9 @@ pub struct LearnConfig {
     /// How the actor improves on the critic: `q_gradient` (default) or `advantage_filtered`
     /// (with a teacher, `imitation_alpha` weighs the filtered copy against the teacher's pull).
     pub actor_update: ActorUpdate,
+    /// Whose value the critic learns: `team` (default, the shared reward) or `robot` (each
+    /// robot's own reward and value, [`Credit::Robot`]).
+    pub credit: Credit,
     /// Critic-only updates at the start of a run: the actor (and its target) is held while the
     /// critics learn its value, so that a run starting from an imitated actor does not climb a
     /// random critic first. 0 = off.
@@ -585,6 +602,7 @@ impl Default for LearnConfig {
             imitation_alpha: 2.5,
             imitation_teacher: ImitationTeacher::Baseline,
             actor_update: ActorUpdate::QGradient,
+            credit: Credit::Team,
             critic_warmup_updates: 0,
             replay_capacity: 1_000_000,
             publish_every_updates: 50,
@@ -952,6 +970,13 @@ impl LearnConfig {
             "needs learn.critic = \"pooled\": the filter rates each robot's action by swapping its token alone",
         )?;
         check(
+            l.credit == Credit::Team
+                || (l.critic == CriticArchitecture::Pooled && l.actor_update == ActorUpdate::QGradient),
+            "learn.credit",
+            "\"robot\"",
+            "needs learn.critic = \"pooled\" (a value per robot token) and learn.actor_update = \"q_gradient\"",
+        )?;
+        check(
             l.policy_delay >= 1,
             "learn.policy_delay",
             l.policy_delay,
@@ -1198,6 +1223,21 @@ mod tests {
             .expect("pooled critic");
         assert_eq!(pooled.learn.actor_update, ActorUpdate::AdvantageFiltered);
         assert_eq!(RunConfig::default().learn.actor_update, ActorUpdate::QGradient);
+    }
+
+    #[test]
+    fn per_robot_credit_needs_the_pooled_critic_and_the_q_gradient() {
+        for text in [
+            "[learn]\ncredit = \"robot\"\n",
+            "[learn]\ncredit = \"robot\"\ncritic = \"pooled\"\nactor_update = \"advantage_filtered\"\n",
+        ] {
+            let err = RunConfig::from_toml_str(text).expect_err(text).to_string();
+            assert!(err.contains("learn.credit") && err.contains("pooled"), "{err}");
+        }
+        let robot =
+            RunConfig::from_toml_str("[learn]\ncredit = \"robot\"\ncritic = \"pooled\"\n").expect("pooled critic");
+        assert_eq!(robot.learn.credit, Credit::Robot);
+        assert_eq!(RunConfig::default().learn.credit, Credit::Team);
     }
 
     #[test]

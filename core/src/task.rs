@@ -226,24 +226,35 @@ pub struct StepResult {
     pub conditions: Conditions,
 }
 
-/// The mean approach of the robots in the formation to their slots at the goal in the
-/// transition into `scene`, metres: each one's applied speed times the cosine between its
-/// heading and the bearing of its slot, times dt (a robot on its slot approaches by 0).
+/// Each robot's approach to its slot at the goal in the transition into `scene`, metres: its
+/// applied speed times the cosine between its heading and the bearing of its slot, times dt (a
+/// robot on its slot approaches by 0); `None` for a robot out of the formation.
+pub fn robot_progress(scene: &Scene, env: &EnvConfig) -> Vec<Option<f64>> {
+    scene
+        .poses
+        .iter()
+        .zip(scene.commands)
+        .enumerate()
+        .map(|(agent, (pose, &(v, _)))| {
+            if !is_present(agent, scene.observed) {
+                return None;
+            }
+            let slot = scene.slots[agent];
+            let (dx, dy) = (scene.goal[0] + slot[0] - pose.x, scene.goal[1] + slot[1] - pose.y);
+            let distance = dx.hypot(dy);
+            Some(if distance > 1e-9 {
+                v * env.dt_s * (pose.theta.cos() * dx + pose.theta.sin() * dy) / distance
+            } else {
+                0.0
+            })
+        })
+        .collect()
+}
+
+/// The mean [`robot_progress`] of the robots in the formation, metres.
 pub fn progress(scene: &Scene, env: &EnvConfig) -> f64 {
-    let (mut sum, mut m) = (0.0, 0usize);
-    for (agent, (pose, &(v, _))) in scene.poses.iter().zip(scene.commands).enumerate() {
-        if !is_present(agent, scene.observed) {
-            continue;
-        }
-        let slot = scene.slots[agent];
-        let (dx, dy) = (scene.goal[0] + slot[0] - pose.x, scene.goal[1] + slot[1] - pose.y);
-        let distance = dx.hypot(dy);
-        if distance > 1e-9 {
-            sum += v * env.dt_s * (pose.theta.cos() * dx + pose.theta.sin() * dy) / distance;
-        }
-        m += 1;
-    }
-    sum / m.max(1) as f64
+    let approaches: Vec<f64> = robot_progress(scene, env).into_iter().flatten().collect();
+    approaches.iter().sum::<f64>() / approaches.len().max(1) as f64
 }
 
 /// Scores the transition into `scene`, the `steps`-th of its episode: C1-C3 at its poses, the

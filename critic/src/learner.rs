@@ -15,7 +15,7 @@ use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{AdamW, Linear, Optimizer, ParamsAdamW, VarBuilder, VarMap};
 use formation_core::baseline::{BaselineGains, ScriptedBaseline};
 use formation_core::config::{
-    ActorUpdate, Algorithm, CriticArchitecture, EnvConfig, ImitationTeacher, LearnConfig, ObservationModel,
+    ActorUpdate, Algorithm, Credit, CriticArchitecture, EnvConfig, ImitationTeacher, LearnConfig, ObservationModel,
 };
 use formation_core::features::CriticFeatures;
 use formation_core::observation::{Layout, SCAN_RAYS};
@@ -134,7 +134,24 @@ fn member_mean(values: &Tensor, members: Option<&Members>) -> Result<Tensor> {
     })
 }
 
-/// Q(s, u) of the whole team, shape [B, 1].
+/// The mean of values [B, 1] (the team's) or [B, N] (each robot's, `learn.credit = "robot"`)
+/// over the robots in the formation, as a scalar tensor.
+fn value_mean(values: &Tensor, members: Option<&Members>) -> Result<Tensor> {
+    Ok(match members {
+        Some(m) if values.dim(1)? > 1 => (values * m.robots.squeeze(2)?)?
+            .sum_all()?
+            .affine(ACTION_DIM as f64 / m.action_count as f64, 0.0)?,
+        _ => values.mean_all()?,
+    })
+}
+
+/// The critics' squared TD error: of the team's value [B, 1], or of each robot's [B, N]
+/// averaged over the robots in the formation at t.
+fn td_loss(q: &Tensor, target: &Tensor, members: Option<&Members>) -> Result<Tensor> {
+    value_mean(&(q - target)?.sqr()?, members)
+}
+
+/// Q(s, u) of the whole team, shape [B, 1], or of each robot, [B, N] (`learn.credit = "robot"`).
 #[derive(Debug, Clone)]
 pub enum CriticNet {
     /// An MLP over the flat state and joint-action windows, [B, H (state_dim + 2N)]. It reads
@@ -152,11 +169,17 @@ pub enum CriticNet {
     /// with it is a surprise to the value (the actors still sense it through their proximity
     /// observation); the team's value is that of the robots in the formation, whose success
     /// the sim judges.
+    ///
+    /// With `learn.credit = "robot"` the head reads each robot's encoding beside the mean,
+    /// `head([encoder(token_i), mean_j encoder(token_j)])`: one value per robot, for its own
+    /// reward ([`formation_replay::sample::Batch::robot_rewards`]).
     Pooled {
         /// Applied to each robot's token alone.
         encoder: Mlp,
-        /// Applied to the mean of the encodings.
+        /// Applied to the mean of the encodings (beside each robot's own, per robot).
         head: Mlp,
+        /// Whose value the head gives.
+        credit: Credit,
     },
 }
 
@@ -167,20 +190,25 @@ impl CriticNet {
             CriticArchitecture::Mlp => Self::Mlp(Mlp::new(vb, input, &head_widths, false)?),
             CriticArchitecture::Pooled => {
                 let encoded = *config.critic_encoder.last().expect("validated: not empty");
+                let head_input = match config.credit {
+                    Credit::Team => encoded,
+                    Credit::Robot => 2 * encoded,
+                };
                 Self::Pooled {
                     encoder: Mlp::new(vb.pp("encoder"), input, &config.critic_encoder, true)?,
-                    head: Mlp::new(vb.pp("head"), encoded, &head_widths, false)?,
+                    head: Mlp::new(vb.pp("head"), head_input, &head_widths, false)?,
+                    credit: config.credit,
                 }
             }
         })
     }
 
-    /// Q values, shape [B, 1], the pooled critic's mean over the robots of `members` (over
-    /// every robot without; the `mlp` critic reads every robot).
+    /// Q values, shape [B, 1] (or [B, N] per robot), the pooled critic's mean over the robots
+    /// of `members` (over every robot without; the `mlp` critic reads every robot).
     pub fn forward(&self, input: &Tensor, members: Option<&Members>) -> candle_core::Result<Tensor> {
         match self {
             Self::Mlp(mlp) => mlp.forward(input),
-            Self::Pooled { encoder, head } => {
+            Self::Pooled { encoder, head, credit } => {
                 let (batch, robots, width) = input.dims3()?;
                 let encoded = encoder.forward(&input.reshape((batch * robots, width))?)?;
                 let encoded = encoded.reshape((batch, robots, encoded.dim(1)?))?;
@@ -190,7 +218,15 @@ impl CriticNet {
                     // times the same 1 / N).
                     Some(m) => encoded.broadcast_mul(&m.robots)?.sum(1)?.broadcast_mul(&m.per_sample)?,
                 };
-                head.forward(&pooled)
+                match credit {
+                    Credit::Team => head.forward(&pooled),
+                    Credit::Robot => {
+                        let width = pooled.dim(1)?;
+                        let beside = pooled.unsqueeze(1)?.broadcast_as((batch, robots, width))?;
+                        let own = Tensor::cat(&[&encoded, &beside], 2)?.reshape((batch * robots, 2 * width))?;
+                        head.forward(&own)?.reshape((batch, robots))
+                    }
+                }
             }
         }
     }
@@ -200,8 +236,13 @@ impl CriticNet {
     /// only: a swap moves the mean of the encodings by robot i's change alone, so all N swaps
     /// cost one more encoder pass and a head pass over [B * N].
     pub fn swap_advantages(&self, played: &Tensor, swapped: &Tensor, members: Option<&Members>) -> Result<Tensor> {
-        let Self::Pooled { encoder, head } = self else {
-            bail!("learn.actor_update = \"advantage_filtered\" needs the pooled critic");
+        let Self::Pooled {
+            encoder,
+            head,
+            credit: Credit::Team,
+        } = self
+        else {
+            bail!("learn.actor_update = \"advantage_filtered\" needs the pooled critic of the team's value");
         };
         let (batch, robots, width) = played.dims3()?;
         let encode = |input: &Tensor| -> candle_core::Result<Tensor> {
@@ -635,7 +676,13 @@ impl Learner {
         let next_obs = Tensor::from_slice(&batch.next_observations, (b, n, batch.window_dim()), &device)?;
         let next_states = Tensor::from_slice(&batch.next_states, (b, batch.state_window_dim()), &device)?;
         let played = Tensor::from_slice(&batch.bootstrap_actions, (b, batch.action_window_dim()), &device)?;
-        let rewards = (Tensor::from_slice(&batch.rewards, (b, 1), &device)? * self.config.reward_scale)?;
+        let rewards = match self.config.credit {
+            Credit::Robot if !batch.robot_rewards.is_empty() => {
+                Tensor::from_slice(&batch.robot_rewards, (b, n), &device)?
+            }
+            _ => Tensor::from_slice(&batch.rewards, (b, 1), &device)?,
+        };
+        let rewards = (rewards * self.config.reward_scale)?;
         let discounts = Tensor::from_slice(&batch.discounts, (b, 1), &device)?;
         let terminals = Tensor::from_slice(&batch.terminals, (b, 1), &device)?;
         let mut next_actions = Self::joint_actions(&self.actor_targets, &next_obs)?;
@@ -662,7 +709,9 @@ impl Learner {
             q_next = q_next.minimum(q)?;
         }
         let not_done = terminals.affine(-1.0, 1.0)?;
-        let y = (rewards + ((q_next * not_done)? * discounts)?)?;
+        // [B, 1] for the team; [B, N] per robot (a team reward broadcast to every robot).
+        let future = q_next.broadcast_mul(&not_done)?.broadcast_mul(&discounts)?;
+        let y = rewards.broadcast_add(&future)?;
         Ok(y.detach())
     }
 
@@ -700,7 +749,7 @@ impl Learner {
         let members = Members::of(&batch.present, batch.batch_size, batch.n_agents)?;
         let mut loss: Option<Tensor> = None;
         for critic in &self.critics {
-            let l = candle_nn::loss::mse(&critic.forward(&input, members.as_ref())?, target)?;
+            let l = td_loss(&critic.forward(&input, members.as_ref())?, target, members.as_ref())?;
             loss = Some(match loss {
                 Some(acc) => (acc + l)?,
                 None => l,
@@ -717,7 +766,7 @@ impl Learner {
             self.config.parallel_critics,
             self.critics.iter().zip(self.critic_optimizers.iter_mut()).collect(),
             |(critic, optimizer)| {
-                let loss = candle_nn::loss::mse(&critic.forward(&input, members.as_ref())?, target)?;
+                let loss = td_loss(&critic.forward(&input, members.as_ref())?, target, members.as_ref())?;
                 optimizer.backward_step(&loss)?;
                 Ok(f64::from(loss.to_scalar::<f32>()?))
             },
@@ -810,7 +859,7 @@ impl Learner {
         let (mut actor_loss, q, current, members) = match self.config.actor_update {
             ActorUpdate::QGradient => {
                 let (q, current, members) = self.policy_q(batch)?;
-                (q.mean_all()?.neg()?, Some(q), current, members)
+                (value_mean(&q, members.as_ref())?.neg()?, Some(q), current, members)
             }
             ActorUpdate::AdvantageFiltered => {
                 let (copy, current, members) = self.filtered_copy(batch)?;

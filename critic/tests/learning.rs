@@ -3,7 +3,9 @@
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use formation_core::baseline::BaselineGains;
-use formation_core::config::{ActorUpdate, Algorithm, CriticArchitecture, EnvConfig, ImitationTeacher, LearnConfig};
+use formation_core::config::{
+    ActorUpdate, Algorithm, Credit, CriticArchitecture, EnvConfig, ImitationTeacher, LearnConfig,
+};
 use formation_core::features::CriticFeatures;
 use formation_core::observation::Layout;
 use formation_critic::learner::{Learner, soft_update};
@@ -53,6 +55,7 @@ fn random_batch_for(env: &EnvConfig, critic: CriticArchitecture, n: usize, b: us
         actions: fill(b * h * n * ACTION_DIM),
         bootstrap_actions: fill(b * h * n * ACTION_DIM),
         rewards: fill(b),
+        robot_rewards: Vec::new(),
         discounts: vec![LearnConfig::default().gamma as f32; b],
         terminals: vec![0.0; b],
         origins: vec![(0, 0); b],
@@ -872,4 +875,71 @@ fn a_resumed_learner_counts_its_own_updates_apart_from_the_checkpoints() {
         "rates count this run's updates only"
     );
     std::fs::remove_dir_all(&dir).expect("cleanup");
+}
+
+#[test]
+fn with_per_robot_credit_each_robot_s_target_answers_for_its_own_reward() {
+    let (env, learn) = pooled_config();
+    let learn = LearnConfig {
+        credit: Credit::Robot,
+        ..learn
+    };
+    let (n, b) = (4, 8);
+    let mut batch = random_batch_for(&env, CriticArchitecture::Pooled, n, b, 71);
+    batch.robot_rewards = (0..b * n).map(|i| batch.rewards[i / n]).collect();
+    let mut learner = Learner::new(n, &env, &learn, 72).expect("learner");
+    let before = td_targets(&mut learner, &batch);
+    assert_eq!(before.len(), b * n, "one target per robot");
+    // Robot 1's own reward moves robot 1's target alone, by as much.
+    let mut raised = batch.clone();
+    (0..b).for_each(|s| raised.robot_rewards[s * n + 1] += 1.0);
+    let after = td_targets(&mut learner, &raised);
+    for (i, (x, y)) in before.iter().zip(&after).enumerate() {
+        let expected = if i % n == 1 { 1.0 } else { 0.0 };
+        assert!((y - x - expected).abs() < 1e-5, "entry {i}: {x} -> {y}");
+    }
+    // Without per-robot rewards every robot's target takes the shared one.
+    let shared = Batch {
+        robot_rewards: Vec::new(),
+        ..batch.clone()
+    };
+    assert_eq!(td_targets(&mut learner, &shared), before);
+}
+
+#[test]
+fn a_per_robot_critic_learns_which_robot_s_reward_is_high_where_the_team_s_cannot() {
+    let (env, learn) = pooled_config();
+    let (n, b) = (4, 32);
+    let mut batch = random_batch_for(&env, CriticArchitecture::Pooled, n, b, 81);
+    // Terminal samples: the target is the reward alone. Robot 2 earns 1, the others -1.
+    batch.terminals = vec![1.0; b];
+    batch.robot_rewards = (0..b * n).map(|i| if i % n == 2 { 1.0 } else { -1.0 }).collect();
+    batch.rewards = vec![-0.5; b];
+    for (credit, values) in [(Credit::Team, b), (Credit::Robot, b * n)] {
+        let learn = LearnConfig {
+            credit,
+            critic_warmup_updates: 1_000,
+            ..learn.clone()
+        };
+        let mut learner = Learner::new(n, &env, &learn, 82).expect("learner");
+        for _ in 0..400 {
+            learner.update(&batch, 0).expect("update");
+        }
+        let q = learner.played_value(&batch).expect("q");
+        assert_eq!(q.len(), values);
+        if credit == Credit::Robot {
+            let mean_of = |robot: usize| q.iter().skip(robot).step_by(n).sum::<f32>() / b as f32;
+            assert!((mean_of(2) - 1.0).abs() < 0.2, "robot 2's value {}", mean_of(2));
+            for robot in [0, 1, 3] {
+                assert!(
+                    (mean_of(robot) + 1.0).abs() < 0.2,
+                    "robot {robot}'s value {}",
+                    mean_of(robot)
+                );
+            }
+        } else {
+            let mean = q.iter().sum::<f32>() / b as f32;
+            assert!((mean + 0.5).abs() < 0.2, "the team's value {mean}");
+        }
+    }
 }

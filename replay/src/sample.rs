@@ -12,12 +12,16 @@
 //! formation is in force ([`success_after_last_change`]); a relabelled observation is the one
 //! the robot was told, its goal and slot moved to the new goal ([`Observer::move_goal`]), so
 //! the sensor noise it was told with stays.
+//!
+//! Each robot's own reward ([`Batch::robot_rewards`], for `learn.credit = "robot"`) is the
+//! team's with the team's mean approach to the slots replaced by the robot's own
+//! ([`robot_progress`]), from the same scenes.
 
 use formation_core::config::{CriticArchitecture, EnvConfig};
 use formation_core::features::CriticFeatures;
 use formation_core::mission::success_after_last_change;
 use formation_core::observation::Observer;
-use formation_core::task::score;
+use formation_core::task::{robot_progress, score};
 use formation_protocol::ACTION_DIM;
 use rand::Rng;
 
@@ -52,6 +56,11 @@ pub struct Batch {
     /// [B]: shared reward of t -> t+k, discounted within the stretch (recomputed when
     /// relabelled).
     pub rewards: Vec<f32>,
+    /// [B, N]: each robot's own reward of t -> t+k, discounted as `rewards`: the shared reward
+    /// plus `env.r_progress` times (its own approach to its slot minus the team's mean,
+    /// [`robot_progress`]), so that the robots' mean is the shared reward. Equal to `rewards`
+    /// for every robot without a progress term; empty means so too (a batch built by hand).
+    pub robot_rewards: Vec<f32>,
     /// [B]: gamma^k, the discount of the bootstrapped value.
     pub discounts: Vec<f32>,
     /// [B]: 1 when t+k is terminal (success or collision); a time limit is not terminal.
@@ -140,6 +149,7 @@ impl Sampler {
             actions: vec![0.0; batch_size * h * n * ACTION_DIM],
             bootstrap_actions: vec![0.0; batch_size * h * n * ACTION_DIM],
             rewards: vec![0.0; batch_size],
+            robot_rewards: vec![0.0; batch_size * n],
             discounts: vec![0.0; batch_size],
             terminals: vec![0.0; batch_size],
             origins: Vec::with_capacity(batch_size),
@@ -167,6 +177,23 @@ impl Sampler {
         Some(batch)
     }
 
+    /// What each robot's own reward adds to the shared one in the transition into tick `t`
+    /// under `goal`: `env.r_progress` times (its approach minus the team's mean approach), 0 for
+    /// a robot out of the formation and for every robot without a progress term.
+    fn own_progress_shifts(&self, episode: &Episode, t: usize, goal: [f64; 2]) -> Vec<f64> {
+        let n = episode.n_agents();
+        if self.env.r_progress == 0.0 {
+            return vec![0.0; n];
+        }
+        let approaches = robot_progress(&episode.scored_scene(t, goal), &self.env);
+        let present: Vec<f64> = approaches.iter().flatten().copied().collect();
+        let mean = present.iter().sum::<f64>() / present.len().max(1) as f64;
+        approaches
+            .into_iter()
+            .map(|approach| approach.map_or(0.0, |a| self.env.r_progress * (a - mean)))
+            .collect()
+    }
+
     /// Fills sample `b` of `batch` with transition `t` of `episode`; relabelled rewards are
     /// judged under `env`, the sampler's environment with the episode's time limit
     /// ([`Episode::time_limit`]).
@@ -188,6 +215,7 @@ impl Sampler {
         // The rewards of t -> t+1, t+1 -> t+2, ... up to n of them, the episode's end or a
         // terminal tick, whichever comes first.
         let (mut reward, mut discount, mut terminal, mut steps) = (0.0f64, 1.0f64, false, 0);
+        let mut own = vec![0.0f64; n];
         while steps < self.n_step.max(1) && t + steps < last {
             let s = t + steps;
             let (r, done) = if relabel {
@@ -203,6 +231,9 @@ impl Sampler {
                 (episode.ticks[s + 1].reward, episode.is_terminal_transition(s))
             };
             reward += discount * f64::from(r);
+            for (own, shift) in own.iter_mut().zip(self.own_progress_shifts(episode, s + 1, goal)) {
+                *own += discount * (f64::from(r) + shift);
+            }
             discount *= self.gamma;
             steps += 1;
             if done {
@@ -247,6 +278,9 @@ impl Sampler {
             }
         }
         batch.rewards[b] = reward as f32;
+        for (slot, own) in batch.robot_rewards[b * n..(b + 1) * n].iter_mut().zip(own) {
+            *slot = own as f32;
+        }
         batch.discounts[b] = discount as f32;
         batch.terminals[b] = if terminal { 1.0 } else { 0.0 };
         batch.origins.push((episode.number, t));

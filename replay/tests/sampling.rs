@@ -523,3 +523,73 @@ fn a_relabelled_transition_into_an_obstacle_stays_terminal_with_r_collision() {
     }
     assert!(into_the_wall > 0, "the last transition was sampled");
 }
+
+#[test]
+fn each_robot_s_own_reward_is_the_shared_one_with_its_own_approach_in_place_of_the_mean() {
+    let n = 4;
+    let env = EnvConfig {
+        r_progress: 10.0,
+        ..EnvConfig::default()
+    };
+    let episodes = recorded_episodes(&env, 10, n, 91);
+    let buffer = buffer_of(&episodes);
+    let sampler = |her_probability, n_step| Sampler {
+        history: 2,
+        her_probability,
+        n_step,
+        gamma: 0.98,
+        env: env.clone(),
+        critic: CriticArchitecture::Pooled,
+    };
+    let mut rng = StdRng::seed_from_u64(92);
+    // One step: r_i = r + r_progress (a_i - mean a), a_i from the scene's poses and commands.
+    let batch = sampler(0.5, 1).sample(&buffer, 128, &mut rng).expect("batch");
+    let mut spread = 0.0f32;
+    for b in 0..batch.batch_size {
+        let (number, t) = batch.origins[b];
+        let scene = episodes[number as usize].scored_scene(t + 1, batch.goals[b]);
+        let approach: Vec<f64> = (0..n)
+            .map(|i| {
+                let (pose, (v, _)) = (scene.poses[i], scene.commands[i]);
+                let (dx, dy) = (
+                    scene.goal[0] + scene.slots[i][0] - pose.x,
+                    scene.goal[1] + scene.slots[i][1] - pose.y,
+                );
+                v * env.dt_s * (pose.theta.cos() * dx + pose.theta.sin() * dy) / dx.hypot(dy)
+            })
+            .collect();
+        let mean = approach.iter().sum::<f64>() / n as f64;
+        for (i, a) in approach.iter().enumerate() {
+            let expected = batch.rewards[b] as f64 + env.r_progress * (a - mean);
+            let own = batch.robot_rewards[b * n + i];
+            assert!(
+                (f64::from(own) - expected).abs() < 1e-4,
+                "sample {b} robot {i}: {own} vs {expected}"
+            );
+            spread = spread.max((own - batch.rewards[b]).abs());
+        }
+    }
+    assert!(
+        spread > 0.01,
+        "robots that move differently earn differently ({spread})"
+    );
+    // n-step and relabelled: the robots' mean is still the shared reward.
+    let batch = sampler(1.0, 3).sample(&buffer, 128, &mut rng).expect("batch");
+    for (b, own) in batch.robot_rewards.chunks_exact(n).enumerate() {
+        let mean = own.iter().sum::<f32>() / n as f32;
+        assert!(
+            (mean - batch.rewards[b]).abs() < 1e-4,
+            "sample {b}: {mean} vs {}",
+            batch.rewards[b]
+        );
+    }
+    // Without a progress term every robot's reward is the shared one.
+    let plain = Sampler {
+        env: EnvConfig::default(),
+        ..sampler(0.5, 3)
+    };
+    let batch = plain.sample(&buffer, 64, &mut rng).expect("batch");
+    for (b, own) in batch.robot_rewards.chunks_exact(n).enumerate() {
+        assert!(own.iter().all(|&r| r == batch.rewards[b]), "sample {b}");
+    }
+}
