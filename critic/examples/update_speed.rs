@@ -2,15 +2,16 @@
 //! on a replay filled with random-action episodes (no IPC), and sets the update against its
 //! compute floor: the matrix-product FLOPs of one update (counted from the layer shapes)
 //! divided by the rate candle's matmul reaches on the critic's widest layer on this core:
-//! `cargo run --release -p formation-critic --example update_speed -- [BATCH] [UPDATES] [HISTORY] [ROBOTS] [mlp|pooled] [parallel|serial]`.
+//! `cargo run --release -p formation-critic --example update_speed -- [BATCH] [UPDATES] [HISTORY] [ROBOTS] [mlp|pooled] [parallel|serial] [team|robot]`.
 //! Threads: `RAYON_NUM_THREADS` (as the critic's `learn.threads` sets it) for each matrix
 //! product; `parallel` runs TD3's twin critics on two threads, `serial` one after the other
-//! (default: as `learn.parallel_critics` defaults). The floor is one core's.
+//! (default: as `learn.parallel_critics` defaults); `robot` learns a value per robot
+//! (`learn.credit`, pooled only). The floor is one core's.
 
 use std::time::Instant;
 
 use candle_core::{Device, Tensor};
-use formation_core::config::{Algorithm, CriticArchitecture, EnvConfig, LearnConfig};
+use formation_core::config::{Algorithm, Credit, CriticArchitecture, EnvConfig, LearnConfig};
 use formation_core::formation::random_episode;
 use formation_core::world::World;
 use formation_critic::learner::Learner;
@@ -39,6 +40,11 @@ fn main() -> anyhow::Result<()> {
         Some("serial") => false,
         Some(other) => anyhow::bail!("the twin critics run parallel or serial, got {other}"),
     };
+    let credit = match args.next().as_deref() {
+        None | Some("team") => Credit::Team,
+        Some("robot") if critic == CriticArchitecture::Pooled => Credit::Robot,
+        Some(other) => anyhow::bail!("credit must be team, or robot with the pooled critic, got {other}"),
+    };
     let env = EnvConfig {
         history,
         ..EnvConfig::default()
@@ -47,6 +53,7 @@ fn main() -> anyhow::Result<()> {
         batch_size,
         critic,
         parallel_critics,
+        credit,
         ..LearnConfig::default()
     };
     let mut rng = StdRng::seed_from_u64(1);
@@ -85,7 +92,7 @@ fn main() -> anyhow::Result<()> {
         updating += t1.elapsed().as_secs_f64();
     }
     println!(
-        "N = {n}, H = {history}, B = {batch_size}, {critic:?} critic, twin critics {}: sample {:.2} ms, update {:.2} ms, {:.0} updates/s",
+        "N = {n}, H = {history}, B = {batch_size}, {critic:?} critic, {credit:?} credit, twin critics {}: sample {:.2} ms, update {:.2} ms, {:.0} updates/s",
         if parallel_critics {
             "on two threads"
         } else {
@@ -130,7 +137,11 @@ fn flops_per_update(learn: &LearnConfig, n: usize, window: usize, critic_input: 
         CriticArchitecture::Mlp => dense_flops(b, critic_input, &head),
         CriticArchitecture::Pooled => {
             let encoded = *learn.critic_encoder.last().expect("validated: not empty");
-            dense_flops(b * n, critic_input / n, &learn.critic_encoder) + dense_flops(b, encoded, &head)
+            let head_flops = match learn.credit {
+                Credit::Team => dense_flops(b, encoded, &head),
+                Credit::Robot => dense_flops(b * n, 2 * encoded, &head),
+            };
+            dense_flops(b * n, critic_input / n, &learn.critic_encoder) + head_flops
         }
     };
     let (critics, delay) = match learn.algorithm {
