@@ -251,10 +251,15 @@ pub fn robot_progress(scene: &Scene, env: &EnvConfig) -> Vec<Option<f64>> {
         .collect()
 }
 
+/// The mean of [`robot_progress`]'s approaches over the robots in the formation (0 for none).
+pub fn mean_progress(approaches: &[Option<f64>]) -> f64 {
+    let present: Vec<f64> = approaches.iter().flatten().copied().collect();
+    present.iter().sum::<f64>() / present.len().max(1) as f64
+}
+
 /// The mean [`robot_progress`] of the robots in the formation, metres.
 pub fn progress(scene: &Scene, env: &EnvConfig) -> f64 {
-    let approaches: Vec<f64> = robot_progress(scene, env).into_iter().flatten().collect();
-    approaches.iter().sum::<f64>() / approaches.len().max(1) as f64
+    mean_progress(&robot_progress(scene, env))
 }
 
 /// Scores the transition into `scene`, the `steps`-th of its episode: C1-C3 at its poses, the

@@ -96,6 +96,8 @@ pub struct Members {
     actions: Tensor,
     /// Action components in the formation over the batch (at least one).
     action_count: usize,
+    /// Robots in the formation over the batch (at least one).
+    robot_count: usize,
 }
 
 impl Members {
@@ -113,11 +115,13 @@ impl Members {
             .collect();
         let actions: Vec<f32> = mask.iter().flat_map(|&m| [m; ACTION_DIM]).collect();
         let action_count = (actions.iter().sum::<f32>() as usize).max(1);
+        let robot_count = (mask.iter().sum::<f32>() as usize).max(1);
         Ok(Some(Self {
             robots: Tensor::from_slice(mask, (batch_size, n_agents, 1), &device)?,
             per_sample: Tensor::from_vec(per_sample, (batch_size, 1), &device)?,
             actions: Tensor::from_vec(actions, (batch_size, n_agents * ACTION_DIM), &device)?,
             action_count,
+            robot_count,
         }))
     }
 }
@@ -140,7 +144,7 @@ fn value_mean(values: &Tensor, members: Option<&Members>) -> Result<Tensor> {
     Ok(match members {
         Some(m) if values.dim(1)? > 1 => (values * m.robots.squeeze(2)?)?
             .sum_all()?
-            .affine(ACTION_DIM as f64 / m.action_count as f64, 0.0)?,
+            .affine(1.0 / m.robot_count as f64, 0.0)?,
         _ => values.mean_all()?,
     })
 }

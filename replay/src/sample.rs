@@ -21,7 +21,7 @@ use formation_core::config::{CriticArchitecture, EnvConfig};
 use formation_core::features::CriticFeatures;
 use formation_core::mission::success_after_last_change;
 use formation_core::observation::Observer;
-use formation_core::task::{robot_progress, score};
+use formation_core::task::{mean_progress, robot_progress, score};
 use formation_protocol::ACTION_DIM;
 use rand::Rng;
 
@@ -186,8 +186,7 @@ impl Sampler {
             return vec![0.0; n];
         }
         let approaches = robot_progress(&episode.scored_scene(t, goal), &self.env);
-        let present: Vec<f64> = approaches.iter().flatten().copied().collect();
-        let mean = present.iter().sum::<f64>() / present.len().max(1) as f64;
+        let mean = mean_progress(&approaches);
         approaches
             .into_iter()
             .map(|approach| approach.map_or(0.0, |a| self.env.r_progress * (a - mean)))
