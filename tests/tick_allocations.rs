@@ -120,12 +120,16 @@ fn agent_ticks_allocate_nothing() {
                 std_end: 0.1,
                 decay_episodes: 10,
                 correlation_ticks: 0.0,
+                stall_std: 0.0,
+                stall_ticks: 30,
             }),
             Some(Exploration {
                 std_start: 0.3,
                 std_end: 0.1,
                 decay_episodes: 10,
                 correlation_ticks: 10.0,
+                stall_std: 0.0,
+                stall_ticks: 30,
             }),
         ] {
             let mut learned = LearnedPolicy::new(&config.env, shape.clone(), exploration, StdRng::seed_from_u64(3));

@@ -120,6 +120,8 @@ fn try_main(cli: Cli) -> Result<()> {
                 std_end: config.learn.noise_std_min,
                 decay_episodes: config.learn.noise_decay_episodes,
                 correlation_ticks: config.learn.noise_correlation_ticks,
+                stall_std: config.learn.stall_noise_std,
+                stall_ticks: config.learn.stall_noise_ticks,
             });
             let mut learned = LearnedPolicy::new(&config.env, shape.clone(), exploration, rng);
             let actor_index = if config.learn.shared_actor { 0 } else { cli.agent };
@@ -158,7 +160,11 @@ fn try_main(cli: Cli) -> Result<()> {
         weights_from,
         config,
     };
-    run::<ipc::Service>(&identity, &options, policy)?;
+    let explores_stalls = cli.run.mode == Mode::Train && options.config.learn.stall_noise_std > 0.0;
+    let stats = run::<ipc::Service>(&identity, &options, policy)?;
+    if explores_stalls {
+        eprintln!("agent {}: explored {} stalls", cli.agent, stats.stall_bursts);
+    }
     Ok(())
 }
 

@@ -39,6 +39,8 @@ pub struct AgentStats {
     pub weight_updates: u64,
     /// Latest policy version.
     pub policy_version: u32,
+    /// Stalls it explored with a held offset (`learn.stall_noise_std`; learned, train mode).
+    pub stall_bursts: u64,
 }
 
 /// What drives the robot; only the learned actor takes weights, only the oracle reads the
@@ -126,6 +128,9 @@ where
             }
             sim_watch.heard();
             if msg.header.has(FLAG_RUN_END) {
+                if let AgentPolicy::Learned(learned) = &policy {
+                    stats.stall_bursts = learned.stall_bursts();
+                }
                 return Ok(stats);
             }
             if msg.header.has(FLAG_EPISODE_END) {

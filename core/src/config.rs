@@ -506,6 +506,14 @@ pub struct LearnConfig {
     /// exploration), so a robot held at an obstacle turns one way for a while instead of
     /// jittering in place. 0 (the default): white noise, drawn afresh every tick.
     pub noise_correlation_ticks: f64,
+    /// Temporally extended exploration at stalls: when an exploring robot's own progress
+    /// checker ([`crate::recovery::ProgressChecker`]) finds it stalled by a surface, an offset
+    /// of this std (normalised action units, one draw per action) is added to its command and
+    /// held for [`LearnConfig::stall_noise_ticks`], so the replay holds what turning away or
+    /// pressing on does there. 0 (the default): off.
+    pub stall_noise_std: f64,
+    /// How long a stall's held offset lasts, ticks.
+    pub stall_noise_ticks: u32,
     /// Gradient updates per team transition (update-to-data ratio).
     pub updates_per_transition: f64,
     /// Transitions collected with random actions before the first update.
@@ -588,6 +596,8 @@ impl Default for LearnConfig {
             noise_std_min: 0.2,
             noise_decay_episodes: 3000,
             noise_correlation_ticks: 0.0,
+            stall_noise_std: 0.0,
+            stall_noise_ticks: 30,
             updates_per_transition: 0.5,
             warmup_transitions: 5000,
             actor_hidden: vec![128, 128],
@@ -955,6 +965,18 @@ impl LearnConfig {
             "must be >= 0",
         )?;
         check(
+            l.stall_noise_std.is_finite() && l.stall_noise_std >= 0.0,
+            "learn.stall_noise_std",
+            l.stall_noise_std,
+            "must be >= 0",
+        )?;
+        check(
+            l.stall_noise_ticks >= 1,
+            "learn.stall_noise_ticks",
+            l.stall_noise_ticks,
+            "must be >= 1",
+        )?;
+        check(
             positive(l.updates_per_transition) && l.updates_per_transition <= 64.0,
             "learn.updates_per_transition",
             l.updates_per_transition,
@@ -1314,6 +1336,26 @@ mod tests {
         let err = RunConfig::from_toml_str("[env]\ndt = 0.1\n").expect_err("unknown key");
         assert!(err.to_string().contains("unknown field"), "{err}");
         assert!(RunConfig::from_toml_str("[env\n").is_err());
+    }
+
+    #[test]
+    fn stall_exploration_is_refused_with_a_negative_std_or_no_ticks_naming_the_field() {
+        for (text, field) in [
+            ("[learn]\nstall_noise_std = -0.1\n", "learn.stall_noise_std"),
+            (
+                "[learn]\nstall_noise_std = 0.5\nstall_noise_ticks = 0\n",
+                "learn.stall_noise_ticks",
+            ),
+        ] {
+            let err = RunConfig::from_toml_str(text).expect_err(field).to_string();
+            assert!(err.contains(field), "{err:?} should name {field}");
+        }
+        let config =
+            RunConfig::from_toml_str("[learn]\nstall_noise_std = 0.6\nstall_noise_ticks = 20\n").expect("valid");
+        assert_eq!(
+            (config.learn.stall_noise_std, config.learn.stall_noise_ticks),
+            (0.6, 20)
+        );
     }
 
     #[test]

@@ -11,6 +11,8 @@
 use std::collections::VecDeque;
 use std::f64::consts::{FRAC_PI_2, TAU};
 
+use crate::config::EnvConfig;
+use crate::observation::{Layout, ObservationView};
 use crate::physics::wrap_angle;
 use crate::reality::Command;
 
@@ -55,11 +57,76 @@ pub struct Sensed<'a> {
     pub driven: f64,
 }
 
+impl<'a> Sensed<'a> {
+    /// What a robot reads from its told observation `told` (of `layout`) when it drove `driven`
+    /// metres in the last tick; `None` if its observation holds no slot or no scan.
+    pub fn told(layout: Layout, told: &'a [f32], env: &EnvConfig, driven: f64) -> Option<Self> {
+        let view = ObservationView::new(layout, told);
+        Some(Self {
+            slot: view.slot()?,
+            scan: view.scan()?,
+            scan_range: env.scan_range_m,
+            nearest_robot: view
+                .robots(env.proximity_range_m)
+                .map(|[x, y]| x.hypot(y))
+                .fold(f64::INFINITY, f64::min),
+            driven,
+        })
+    }
+}
+
+/// One robot's progress checker (Nav2's, in spirit): over the last
+/// [`PROGRESS_WINDOW_TICKS`], has it come closer to its slot, or is it held by a surface?
+#[derive(Debug, Clone)]
+pub struct ProgressChecker {
+    /// Its distance to its slot and how far it drove, each of the window's ticks.
+    distances: VecDeque<(f64, f64)>,
+}
+
+impl Default for ProgressChecker {
+    /// An empty window, its room taken at once so a tick allocates nothing.
+    fn default() -> Self {
+        Self {
+            distances: VecDeque::with_capacity(PROGRESS_WINDOW_TICKS + 1),
+        }
+    }
+}
+
+impl ProgressChecker {
+    /// Forgets the window (a new episode).
+    pub fn clear(&mut self) {
+        self.distances.clear();
+    }
+
+    /// Records this tick and says whether the robot is stalled: over a full window it came
+    /// less than [`MIN_PROGRESS_M`] closer to its slot and drove less than [`MAX_DRIVEN_M`],
+    /// it is more than [`ARRIVING_M`] from its slot, a surface lies within [`STALLED_BY_M`],
+    /// and no robot it is told of is nearer than [`QUEUEING_M`]. A stall starts a new window.
+    pub fn stalled(&mut self, sensed: &Sensed) -> bool {
+        let nearest_m = f64::from(sensed.scan.iter().copied().fold(f32::INFINITY, f32::min)) * sensed.scan_range;
+        let distance = sensed.slot[0].hypot(sensed.slot[1]);
+        self.distances.push_back((distance, sensed.driven));
+        if self.distances.len() > PROGRESS_WINDOW_TICKS {
+            self.distances.pop_front();
+        }
+        let stalled = self.distances.len() == PROGRESS_WINDOW_TICKS
+            && self.distances[0].0 - distance < MIN_PROGRESS_M
+            && self.distances.iter().map(|&(_, driven)| driven).sum::<f64>() < MAX_DRIVEN_M
+            && distance > ARRIVING_M
+            && nearest_m < STALLED_BY_M
+            && sensed.nearest_robot > QUEUEING_M;
+        if stalled {
+            self.distances.clear();
+        }
+        stalled
+    }
+}
+
 /// One robot's recovery memory.
 #[derive(Debug, Clone, Default)]
 pub struct Recovery {
-    /// Its distance to its slot and how far it drove, each of the window's ticks.
-    distances: VecDeque<(f64, f64)>,
+    /// Whether it is stalled.
+    progress: ProgressChecker,
     /// Ticks left in the recovery under way (0: none).
     left: u32,
     /// Ticks since it began.
@@ -105,15 +172,10 @@ impl Recovery {
     pub fn command(&mut self, sensed: &Sensed, ticks: u32, command: Command) -> Command {
         self.took_over = false;
         let &Sensed {
-            slot,
-            scan,
-            scan_range,
-            nearest_robot,
-            driven,
+            slot, scan, scan_range, ..
         } = sensed;
         let rays = scan.len();
         let ray_angle = |k: usize| TAU * k as f64 / rays as f64;
-        let nearest_m = f64::from(scan.iter().copied().fold(f32::INFINITY, f32::min)) * scan_range;
         let bearing = slot[1].atan2(slot[0]);
         if self.left > 0 {
             let slot_ray = (bearing.rem_euclid(TAU) / ray_angle(1)).round() as usize % rays;
@@ -127,23 +189,11 @@ impl Recovery {
                 return self.follow(scan, scan_range);
             }
         }
-        let distance = slot[0].hypot(slot[1]);
-        self.distances.push_back((distance, driven));
-        if self.distances.len() > PROGRESS_WINDOW_TICKS {
-            self.distances.pop_front();
-        }
-        let stalled = self.distances.len() == PROGRESS_WINDOW_TICKS
-            && self.distances[0].0 - distance < MIN_PROGRESS_M
-            && self.distances.iter().map(|&(_, driven)| driven).sum::<f64>() < MAX_DRIVEN_M
-            && distance > ARRIVING_M
-            && nearest_m < STALLED_BY_M
-            && nearest_robot > QUEUEING_M;
-        if stalled {
+        if self.progress.stalled(sensed) {
             self.count += 1;
             self.side = if self.count % 2 == 1 { 1.0 } else { -1.0 };
             self.left = ticks;
             self.done = 0;
-            self.distances.clear();
         }
         command
     }

@@ -215,22 +215,10 @@ impl EpisodeStepper {
         if ticks == 0 {
             return command;
         }
-        let view = ObservationView::new(self.layout, &self.told[agent]);
-        match (view.slot(), view.scan()) {
-            (Some(slot), Some(scan)) => {
-                let sensed = Sensed {
-                    slot,
-                    scan,
-                    scan_range: env.scan_range_m,
-                    nearest_robot: view
-                        .robots(env.proximity_range_m)
-                        .map(|[x, y]| x.hypot(y))
-                        .fold(f64::INFINITY, f64::min),
-                    driven: self.acting[agent].0.abs() * env.dt_s,
-                };
-                self.recoveries[agent].command(&sensed, ticks, command)
-            }
-            _ => command,
+        let driven = self.acting[agent].0.abs() * env.dt_s;
+        match Sensed::told(self.layout, &self.told[agent], env, driven) {
+            Some(sensed) => self.recoveries[agent].command(&sensed, ticks, command),
+            None => command,
         }
     }
 
