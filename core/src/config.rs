@@ -124,6 +124,10 @@ pub struct EnvConfig {
     /// table. Among obstacles it makes getting through worth more than waiting
     /// (docs/OBSTACLES.md, "The reward").
     pub r_progress: f64,
+    /// Reward per metre of the robots' mean distance from their slots at the goal, every tick
+    /// (<= 0; 0, the default, is off): a cost of every tick not yet there, so waiting, in
+    /// formation or stalled by a disc, costs what it keeps the robots from their slots.
+    pub r_distance: f64,
     /// While a robot in the formation is within this distance of an obstacle's surface, the
     /// formation is excused from C1's reward: the tick earns `r_edge` in formation or not (a
     /// column through a gap is not punished); success still needs C1. Metres; 0 (the default):
@@ -185,6 +189,7 @@ impl Default for EnvConfig {
             r_goal: 50.0,
             r_penalty: -0.5,
             r_progress: 0.0,
+            r_distance: 0.0,
             formation_excuse_m: 0.0,
             observation: ObservationModel::default(),
             shape: FormationShape::Random,
@@ -843,6 +848,12 @@ impl EnvConfig {
         ] {
             check(value.is_finite(), field, value, "must be finite")?;
         }
+        check(
+            e.r_distance.is_finite() && e.r_distance <= 0.0,
+            "env.r_distance",
+            e.r_distance,
+            "must be <= 0 (a cost per metre from the slots)",
+        )?;
         check(
             (1..=64).contains(&e.history),
             "env.history",

@@ -262,9 +262,23 @@ pub fn progress(scene: &Scene, env: &EnvConfig) -> f64 {
     mean_progress(&robot_progress(scene, env))
 }
 
+/// The mean distance of the robots in the formation from their slots at the goal, metres (0
+/// for none).
+pub fn slot_distance(scene: &Scene) -> f64 {
+    let (sum, count) = (0..scene.poses.len())
+        .filter(|&agent| is_present(agent, scene.observed))
+        .map(|agent| {
+            let (pose, slot) = (scene.poses[agent], scene.slots[agent]);
+            (scene.goal[0] + slot[0] - pose.x).hypot(scene.goal[1] + slot[1] - pose.y)
+        })
+        .fold((0.0, 0usize), |(sum, count), d| (sum + d, count + 1));
+    sum / count.max(1) as f64
+}
+
 /// Scores the transition into `scene`, the `steps`-th of its episode: C1-C3 at its poses, the
-/// reward (the paper's table, plus `r_progress` x [`progress`] when set) and the outcome. The
-/// sim's step and HER's relabelling both call this.
+/// reward (the paper's table, plus `r_progress` x [`progress`] and `r_distance` x
+/// [`slot_distance`] when set) and the outcome. The sim's step and HER's relabelling both call
+/// this.
 pub fn score(scene: &Scene, steps: u32, env: &EnvConfig) -> StepResult {
     let conditions = conditions(
         scene.poses,
@@ -277,6 +291,9 @@ pub fn score(scene: &Scene, steps: u32, env: &EnvConfig) -> StepResult {
     let (mut reward, outcome) = reward(&conditions, steps, env);
     if env.r_progress != 0.0 {
         reward += env.r_progress * progress(scene, env);
+    }
+    if env.r_distance != 0.0 {
+        reward += env.r_distance * slot_distance(scene);
     }
     StepResult {
         reward,

@@ -528,6 +528,44 @@ fn the_obstacle_reward_makes_passing_worth_more_than_waiting() {
 }
 
 #[test]
+fn a_cost_of_distance_from_the_slots_makes_waiting_cost_and_passing_worth_more_still() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/obstacles-distance.toml");
+    let config = crate::config::RunConfig::from_toml_file(&path).expect("the distance config");
+    assert!(config.env.r_distance < 0.0);
+    let env = EnvConfig {
+        obstacles: ObstacleConfig {
+            kind: ObstacleKind::Passage,
+            ..config.env.obstacles.clone()
+        },
+        ..config.env.clone()
+    };
+    let free = EnvConfig {
+        r_distance: 0.0,
+        ..env.clone()
+    };
+    let gamma = config.learn.gamma;
+    for seed in [5, 6, 7] {
+        let (wait, pass) = waiting_and_passing(&free, seed);
+        let free_margin = discounted(&pass, gamma) - discounted(&wait, gamma);
+        let (wait, pass) = waiting_and_passing(&env, seed);
+        let (costed_wait, costed_pass) = (discounted(&wait, gamma), discounted(&pass, gamma));
+        println!(
+            "seed {seed}, gamma {gamma}: with the distance cost waiting {costed_wait:.2}, passing {costed_pass:.2}; \
+             passing's margin {:.2} against {free_margin:.2} without it",
+            costed_pass - costed_wait
+        );
+        assert!(
+            costed_wait < -1.0,
+            "waiting short of the slots costs (seed {seed}): {costed_wait}"
+        );
+        assert!(
+            costed_pass - costed_wait > free_margin,
+            "passing gains more over waiting (seed {seed})"
+        );
+    }
+}
+
+#[test]
 fn within_keeps_the_obstacles_whose_surface_is_in_range_and_walls_whole() {
     let wall = Obstacle::Wall {
         a: [3.0, 0.0],
