@@ -220,16 +220,21 @@ mod tests {
     use formation_model::actor::ActorHead;
     use rand::SeedableRng;
 
+    /// A command actor of one hidden layer of 8 reading one observation of `obs_dim` floats.
+    fn small_actor(obs_dim: usize) -> ActorShape {
+        ActorShape {
+            obs_dim,
+            history: 1,
+            hidden: vec![8],
+            head: ActorHead::Command,
+        }
+    }
+
     /// The turn-rate noise of 20,000 exploring ticks of an actor whose outputs are all 0 (so the
     /// command is the noise alone), normalised by `w_max`.
     fn turn_noise(correlation_ticks: f64) -> Vec<f64> {
         let env = EnvConfig::default();
-        let shape = ActorShape {
-            obs_dim: 16,
-            history: 1,
-            hidden: vec![8],
-            head: ActorHead::Command,
-        };
+        let shape = small_actor(16);
         let exploration = Exploration {
             std_start: 0.2,
             std_end: 0.2,
@@ -294,12 +299,7 @@ mod tests {
             observation: ObservationModel::SlotProximityScan,
             ..EnvConfig::default()
         };
-        let shape = ActorShape {
-            obs_dim: Layout::of(env.observation).dim(),
-            history: 1,
-            hidden: vec![8],
-            head: ActorHead::Command,
-        };
+        let shape = small_actor(Layout::of(env.observation).dim());
         let exploration = Exploration {
             std_start: 0.0,
             std_end: 0.0,
