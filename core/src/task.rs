@@ -226,6 +226,12 @@ pub struct StepResult {
     pub conditions: Conditions,
 }
 
+/// The world-frame vector from robot `agent` to its slot at the goal, metres.
+fn to_slot(scene: &Scene, agent: usize) -> [f64; 2] {
+    let (pose, slot) = (scene.poses[agent], scene.slots[agent]);
+    [scene.goal[0] + slot[0] - pose.x, scene.goal[1] + slot[1] - pose.y]
+}
+
 /// Each robot's approach to its slot at the goal in the transition into `scene`, metres: its
 /// applied speed times the cosine between its heading and the bearing of its slot, times dt (a
 /// robot on its slot approaches by 0); `None` for a robot out of the formation.
@@ -239,8 +245,7 @@ pub fn robot_progress(scene: &Scene, env: &EnvConfig) -> Vec<Option<f64>> {
             if !is_present(agent, scene.observed) {
                 return None;
             }
-            let slot = scene.slots[agent];
-            let (dx, dy) = (scene.goal[0] + slot[0] - pose.x, scene.goal[1] + slot[1] - pose.y);
+            let [dx, dy] = to_slot(scene, agent);
             let distance = dx.hypot(dy);
             Some(if distance > 1e-9 {
                 v * env.dt_s * (pose.theta.cos() * dx + pose.theta.sin() * dy) / distance
@@ -268,8 +273,8 @@ pub fn slot_distance(scene: &Scene) -> f64 {
     let (sum, count) = (0..scene.poses.len())
         .filter(|&agent| is_present(agent, scene.observed))
         .map(|agent| {
-            let (pose, slot) = (scene.poses[agent], scene.slots[agent]);
-            (scene.goal[0] + slot[0] - pose.x).hypot(scene.goal[1] + slot[1] - pose.y)
+            let [dx, dy] = to_slot(scene, agent);
+            dx.hypot(dy)
         })
         .fold((0.0, 0usize), |(sum, count), d| (sum + d, count + 1));
     sum / count.max(1) as f64
