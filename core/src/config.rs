@@ -491,6 +491,12 @@ pub struct LearnConfig {
     pub gamma: f64,
     /// Adam learning rate of the actor(s).
     pub actor_lr: f64,
+    /// Adam's epsilon for the actor(s), added to each weight's gradient rms before it divides
+    /// the step. At the default (1e-8, Adam's own) every weight moves by about `actor_lr` a
+    /// step whatever the size of its gradient; at an epsilon near the gradients' size (see
+    /// `actor_gradient_rms` in training.csv) a weight whose gradient is small moves in
+    /// proportion to it, as under plain SGD with a rate of `actor_lr / actor_adam_eps`.
+    pub actor_adam_eps: f64,
     /// Adam learning rate of the critic(s).
     pub critic_lr: f64,
     /// Polyak factor of the target networks.
@@ -593,6 +599,7 @@ impl Default for LearnConfig {
             batch_size: 256,
             gamma: 0.98,
             actor_lr: 3e-4,
+            actor_adam_eps: 1e-8,
             critic_lr: 1e-3,
             tau: 5e-3,
             her_probability: 0.8,
@@ -943,6 +950,12 @@ impl LearnConfig {
             "must be in [0, 1)",
         )?;
         check(positive(l.actor_lr), "learn.actor_lr", l.actor_lr, "must be > 0")?;
+        check(
+            positive(l.actor_adam_eps),
+            "learn.actor_adam_eps",
+            l.actor_adam_eps,
+            "must be > 0",
+        )?;
         check(positive(l.critic_lr), "learn.critic_lr", l.critic_lr, "must be > 0")?;
         check(positive(l.tau) && l.tau <= 1.0, "learn.tau", l.tau, "must be in (0, 1]")?;
         check(

@@ -37,6 +37,20 @@ pub struct Losses {
     pub actor: Option<f64>,
     /// Mean |action| of the current policy, a saturation gauge (1 = every output at a limit).
     pub action_magnitude: Option<f64>,
+    /// Rms of the actor loss's gradient over the actor's weights: the scale that
+    /// `learn.actor_adam_eps` is set against.
+    pub actor_gradient_rms: Option<f64>,
+}
+
+/// What one actor step did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ActorStep {
+    /// The actor loss before the step.
+    pub loss: f64,
+    /// Mean |action| of the current policy over the robots in the formation.
+    pub action_magnitude: f64,
+    /// Rms of the loss's gradient over the actor's weights.
+    pub gradient_rms: f64,
 }
 
 /// What the batches of one swarm (one replay) have driven. The actor's schedule is kept per
@@ -452,12 +466,13 @@ fn per_critic<I: Send, T: Send>(parallel: bool, items: Vec<I>, work: impl Fn(I) 
     })
 }
 
-fn adam(vars: Vec<Var>, lr: f64) -> Result<AdamW> {
+fn adam(vars: Vec<Var>, lr: f64, eps: f64) -> Result<AdamW> {
     // The paper's Adam: candle's AdamW defaults weight_decay to 0.01.
     Ok(AdamW::new(
         vars,
         ParamsAdamW {
             lr,
+            eps,
             weight_decay: 0.0,
             ..ParamsAdamW::default()
         },
@@ -508,9 +523,9 @@ impl Learner {
         let critic_targets = build_critics(&critic_target_vars)?;
         copy_vars(&critic_vars, &critic_target_vars)?;
         Ok(Self {
-            actor_optimizer: adam(actor_vars.all_vars(), config.actor_lr)?,
+            actor_optimizer: adam(actor_vars.all_vars(), config.actor_lr, config.actor_adam_eps)?,
             critic_optimizers: (0..n_critics)
-                .map(|j| adam(vars_under(&critic_vars, &critic_prefix(j))?, config.critic_lr))
+                .map(|j| adam(vars_under(&critic_vars, &critic_prefix(j))?, config.critic_lr, 1e-8))
                 .collect::<Result<_>>()?,
             config: config.clone(),
             n_agents,
@@ -855,10 +870,11 @@ impl Learner {
     }
 
     /// One gradient step of the actor(s) up the first critic (and towards the teacher, if any);
-    /// the critics are left alone. Returns the actor loss and the mean |action|. The teacher's
+    /// the critics are left alone. Returns the actor loss, the mean |action| and the rms of the
+    /// loss's gradient over the actor's weights. The teacher's
     /// pull, the action penalty and the mean |action| are over the robots in the formation at
     /// t: a robot out of it is not trained on.
-    pub fn actor_step(&mut self, batch: &Batch) -> Result<(f64, f64)> {
+    pub fn actor_step(&mut self, batch: &Batch) -> Result<ActorStep> {
         // The critic's term, and Q itself for the Q gradient (its scale against the teacher's).
         let (mut actor_loss, q, current, members) = match self.config.actor_update {
             ActorUpdate::QGradient => {
@@ -886,11 +902,20 @@ impl Learner {
         if self.config.action_l2 > 0.0 {
             actor_loss = (actor_loss + member_mean(&current.sqr()?, members)?.affine(self.config.action_l2, 0.0)?)?;
         }
-        self.actor_optimizer.backward_step(&actor_loss)?;
-        Ok((
-            f64::from(actor_loss.to_scalar::<f32>()?),
-            f64::from(member_mean(&current.abs()?, members)?.to_scalar::<f32>()?),
-        ))
+        let gradients = actor_loss.backward()?;
+        let (mut square_sum, mut weights) = (0.0, 0);
+        for var in self.actor_vars.all_vars() {
+            if let Some(gradient) = gradients.get(&var) {
+                square_sum += f64::from(gradient.sqr()?.sum_all()?.to_scalar::<f32>()?);
+                weights += gradient.elem_count();
+            }
+        }
+        self.actor_optimizer.step(&gradients)?;
+        Ok(ActorStep {
+            loss: f64::from(actor_loss.to_scalar::<f32>()?),
+            action_magnitude: f64::from(member_mean(&current.abs()?, members)?.to_scalar::<f32>()?),
+            gradient_rms: (square_sum / weights.max(1) as f64).sqrt(),
+        })
     }
 
     /// Whether the actor has stepped in this run: past the critic's warm-up and the policy
@@ -940,9 +965,10 @@ impl Learner {
         if steps.updates.is_multiple_of(delay) {
             steps.actor += 1;
             steps.teacher += u64::from(self.teacher.is_some());
-            let (actor_loss, action_magnitude) = self.actor_step(batch)?;
-            losses.actor = Some(actor_loss);
-            losses.action_magnitude = Some(action_magnitude);
+            let step = self.actor_step(batch)?;
+            losses.actor = Some(step.loss);
+            losses.action_magnitude = Some(step.action_magnitude);
+            losses.actor_gradient_rms = Some(step.gradient_rms);
             soft_update(&self.actor_vars, &self.actor_target_vars, self.config.tau)?;
             soft_update(&self.critic_vars, &self.critic_target_vars, self.config.tau)?;
         }

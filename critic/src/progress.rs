@@ -105,6 +105,7 @@ struct TrainingRow {
     critic_loss: f64,
     actor_loss: Option<f64>,
     action_magnitude: Option<f64>,
+    actor_gradient_rms: Option<f64>,
     weights_version: u32,
     replay_transitions: usize,
 }
@@ -191,6 +192,7 @@ impl Progress {
             critic_loss: losses.critic,
             actor_loss: losses.actor,
             action_magnitude: losses.action_magnitude,
+            actor_gradient_rms: losses.actor_gradient_rms,
             weights_version: status.map_or(0, |s| s.weights_version),
             replay_transitions: status.map_or(0, |s| s.replay_transitions),
         })?;

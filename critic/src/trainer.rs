@@ -241,6 +241,7 @@ impl<S: Service> Trainer<S> {
             if step.actor.is_some() {
                 self.losses.actor = step.actor;
                 self.losses.action_magnitude = step.action_magnitude;
+                self.losses.actor_gradient_rms = step.actor_gradient_rms;
             }
             if self.learner.updates().is_multiple_of(self.publish_every_updates) || self.weights_version() == 0 {
                 for data in &mut self.swarms {

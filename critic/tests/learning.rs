@@ -400,6 +400,43 @@ fn an_actor_step_raises_q_and_leaves_the_critic_alone() {
 }
 
 /// Reverses the order of the `n` robots in every tick of a robot-major array.
+/// Rms change between two flat weight vectors.
+fn rms_move(before: &[f32], after: &[f32]) -> f64 {
+    let sum: f64 = before.iter().zip(after).map(|(a, b)| f64::from(b - a).powi(2)).sum();
+    (sum / before.len() as f64).sqrt()
+}
+
+#[test]
+fn adam_moves_every_weight_by_the_rate_and_a_large_epsilon_scales_the_step_with_the_gradient() {
+    let (env, mut learn) = small_config(Algorithm::Td3);
+    let batch = random_batch(&env, 3, 64, 43);
+    // Adam's first step is lr x g / (|g| + eps) on each weight: about lr on every weight with a
+    // gradient at the default epsilon, whatever its size.
+    let mut sign_like = Learner::new(3, &env, &learn, 42).expect("learner");
+    let start = sign_like.actor_weights(0).expect("actor");
+    let step = sign_like.actor_step(&batch).expect("step");
+    assert!(
+        step.gradient_rms > 0.0 && step.gradient_rms < 1e-2,
+        "gradient rms {}",
+        step.gradient_rms
+    );
+    let moved = rms_move(&start, &sign_like.actor_weights(0).expect("actor"));
+    assert!(
+        moved > 0.5 * learn.actor_lr && moved <= 1.0001 * learn.actor_lr,
+        "rms move {moved} at lr {}",
+        learn.actor_lr
+    );
+    // An epsilon far above every gradient: plain SGD at lr / eps, so the rms move is lr x the
+    // gradient's rms / eps.
+    learn.actor_adam_eps = 1.0;
+    let mut scaled = Learner::new(3, &env, &learn, 42).expect("learner");
+    assert_eq!(scaled.actor_weights(0).expect("actor"), start, "the same start");
+    let step = scaled.actor_step(&batch).expect("step");
+    let moved = rms_move(&start, &scaled.actor_weights(0).expect("actor"));
+    let sgd = learn.actor_lr * step.gradient_rms / learn.actor_adam_eps;
+    assert!((moved - sgd).abs() < 0.05 * sgd, "rms move {moved}, plain SGD's {sgd}");
+}
+
 fn reverse_robots(values: &[f32], n: usize, width: usize) -> Vec<f32> {
     values
         .chunks_exact(n * width)
@@ -784,7 +821,7 @@ fn an_advantage_filtered_step_copies_the_played_actions_the_critic_rates_higher_
         sum / (b * n * ACTION_DIM) as f64
     };
     let before = copy_error(&learner);
-    let (loss, _) = learner.actor_step(&batch).expect("step");
+    let loss = learner.actor_step(&batch).expect("step").loss;
     assert!(
         (loss - before).abs() < 1e-5,
         "the actor's loss {loss} is the filtered copy {before}"
