@@ -525,7 +525,13 @@ impl Learner {
         Ok(Self {
             actor_optimizer: adam(actor_vars.all_vars(), config.actor_lr, config.actor_adam_eps)?,
             critic_optimizers: (0..n_critics)
-                .map(|j| adam(vars_under(&critic_vars, &critic_prefix(j))?, config.critic_lr, 1e-8))
+                .map(|j| {
+                    adam(
+                        vars_under(&critic_vars, &critic_prefix(j))?,
+                        config.critic_lr,
+                        ParamsAdamW::default().eps,
+                    )
+                })
                 .collect::<Result<_>>()?,
             config: config.clone(),
             n_agents,
@@ -871,9 +877,9 @@ impl Learner {
 
     /// One gradient step of the actor(s) up the first critic (and towards the teacher, if any);
     /// the critics are left alone. Returns the actor loss, the mean |action| and the rms of the
-    /// loss's gradient over the actor's weights. The teacher's
-    /// pull, the action penalty and the mean |action| are over the robots in the formation at
-    /// t: a robot out of it is not trained on.
+    /// loss's gradient over the actor's weights. The teacher's pull, the action penalty and the
+    /// mean |action| are over the robots in the formation at t: a robot out of it is not
+    /// trained on.
     pub fn actor_step(&mut self, batch: &Batch) -> Result<ActorStep> {
         // The critic's term, and Q itself for the Q gradient (its scale against the teacher's).
         let (mut actor_loss, q, current, members) = match self.config.actor_update {

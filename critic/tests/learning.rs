@@ -399,7 +399,6 @@ fn an_actor_step_raises_q_and_leaves_the_critic_alone() {
     assert_eq!(critic_loss(&learner), loss_before, "the critic moved");
 }
 
-/// Reverses the order of the `n` robots in every tick of a robot-major array.
 /// Rms change between two flat weight vectors.
 fn rms_move(before: &[f32], after: &[f32]) -> f64 {
     let sum: f64 = before.iter().zip(after).map(|(a, b)| f64::from(b - a).powi(2)).sum();
@@ -437,6 +436,7 @@ fn adam_moves_every_weight_by_the_rate_and_a_large_epsilon_scales_the_step_with_
     assert!((moved - sgd).abs() < 0.05 * sgd, "rms move {moved}, plain SGD's {sgd}");
 }
 
+/// Reverses the order of the `n` robots in every tick of a robot-major array.
 fn reverse_robots(values: &[f32], n: usize, width: usize) -> Vec<f32> {
     values
         .chunks_exact(n * width)
