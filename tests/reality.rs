@@ -173,6 +173,7 @@ impl TrueTick {
         Scene {
             obstacles,
             arena_m,
+            ways: None,
             poses: &self.poses,
             commands: &self.acting,
             desired: &self.desired,

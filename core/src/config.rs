@@ -124,6 +124,11 @@ pub struct EnvConfig {
     /// table. Among obstacles it makes getting through worth more than waiting
     /// (docs/OBSTACLES.md, "The reward").
     pub r_progress: f64,
+    /// Measure `r_progress`'s approach along each robot's way round the obstacles to its slot
+    /// (the sim's map, [`crate::geodesic`]) instead of its slot's straight bearing: a detour
+    /// round a disc is paid as progress. Needs `learn.her_probability = 0` and team credit (a
+    /// relabelled goal has no way computed); false (the default): straight.
+    pub geodesic_progress: bool,
     /// Reward per metre of the robots' mean distance from their slots at the goal, every tick
     /// (<= 0; 0, the default, is off): a cost of every tick not yet there, so waiting, in
     /// formation or stalled by a disc, costs what it keeps the robots from their slots.
@@ -189,6 +194,7 @@ impl Default for EnvConfig {
             r_goal: 50.0,
             r_penalty: -0.5,
             r_progress: 0.0,
+            geodesic_progress: false,
             r_distance: 0.0,
             formation_excuse_m: 0.0,
             observation: ObservationModel::default(),
@@ -759,6 +765,14 @@ impl RunConfig {
             self.view.world_every_episodes,
             "must be >= 1",
         )?;
+        check(
+            !self.env.geodesic_progress || (self.learn.her_probability == 0.0 && self.learn.credit == Credit::Team),
+            "env.geodesic_progress",
+            true,
+            "needs learn.her_probability = 0 and learn.credit = \"team\": the ways round the obstacles are \
+             the sim's, to each episode's own goal, and a relabelled goal or a robot's own reward would be \
+             scored straight",
+        )?;
         Ok(())
     }
 
@@ -1220,6 +1234,20 @@ mod tests {
         };
         let limits = [6, 16, 32].map(|n| changing.episode_steps(n));
         assert_eq!(limits, [442, 516, 798], "the figures the README and RESULTS give");
+    }
+
+    #[test]
+    fn progress_round_the_obstacles_needs_the_episodes_own_goals_and_the_team_s_credit() {
+        let on = "[env]\ngeodesic_progress = true\n";
+        let err = RunConfig::from_toml_str(on).expect_err("HER is on by default");
+        assert!(err.to_string().contains("env.geodesic_progress"), "{err}");
+        let robot = format!("{on}[learn]\nher_probability = 0.0\ncredit = \"robot\"\n");
+        assert!(
+            RunConfig::from_toml_str(&robot).is_err(),
+            "a robot's own reward is scored straight"
+        );
+        let config = RunConfig::from_toml_str(&format!("{on}[learn]\nher_probability = 0.0\n")).expect("valid");
+        assert!(config.env.geodesic_progress);
     }
 
     #[test]

@@ -174,6 +174,7 @@ mod tests {
         Scene {
             obstacles: &crate::obstacles::NO_OBSTACLES,
             arena_m: 10.0,
+            ways: None,
             poses: &POSES,
             commands: &COMMANDS,
             desired: &DESIRED,
@@ -230,6 +231,7 @@ mod tests {
         let four = Scene {
             obstacles: &crate::obstacles::NO_OBSTACLES,
             arena_m: 10.0,
+            ways: None,
             poses: &poses,
             commands: &[(0.0, 0.0); 4],
             desired: &[DESIRED[0], DESIRED[1], DESIRED[2], [0.0; NEIGHBOURS]],

@@ -27,6 +27,7 @@ pub mod config;
 pub mod features;
 pub mod formation;
 pub mod gap_search;
+pub mod geodesic;
 pub mod layout;
 pub mod mission;
 pub mod observation;

@@ -470,6 +470,7 @@ mod tests {
         let scene = Scene {
             obstacles: &crate::obstacles::NO_OBSTACLES,
             arena_m: 10.0,
+            ways: None,
             poses: &poses,
             commands: &[(0.0, 0.0); 3],
             desired: &desired,
@@ -521,6 +522,7 @@ mod tests {
         let scene = Scene {
             obstacles: &crate::obstacles::NO_OBSTACLES,
             arena_m: 10.0,
+            ways: None,
             poses: &poses,
             commands: &[(0.0, 0.0); 3],
             desired: &desired,
@@ -552,6 +554,7 @@ mod tests {
         let scene = Scene {
             obstacles: &crate::obstacles::NO_OBSTACLES,
             arena_m: 10.0,
+            ways: None,
             poses: &poses,
             commands: &[(0.0, 0.0); 5],
             desired: &desired,

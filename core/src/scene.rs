@@ -14,6 +14,7 @@
 //! actions, next to the 64 bytes of each robot's observation), so HER runs the sim's own
 //! functions on them without a conversion or an allocation.
 
+use crate::geodesic::Ways;
 use formation_protocol::{NEIGHBOURS, neighbours};
 
 use crate::obstacles::Obstacles;
@@ -43,6 +44,9 @@ pub struct Scene<'a> {
     /// Side of the square arena the robots are kept in, metres (what a range sensor sees as
     /// walls).
     pub arena_m: f64,
+    /// Each robot's way round the obstacles to its slot, for `env.geodesic_progress` (the
+    /// sim's; `None` where the progress is measured straight).
+    pub ways: Option<&'a Ways>,
 }
 
 /// The robots each of `n` robots observes when robot i holds slot i: (i+1) and (i+2) mod N.

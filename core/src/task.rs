@@ -234,8 +234,11 @@ fn to_slot(scene: &Scene, agent: usize) -> [f64; 2] {
 
 /// Each robot's approach to its slot at the goal in the transition into `scene`, metres: its
 /// applied speed times the cosine between its heading and the bearing of its slot, times dt (a
-/// robot on its slot approaches by 0); `None` for a robot out of the formation.
+/// robot on its slot approaches by 0); with the scene's ways round the obstacles
+/// (`env.geodesic_progress`), the bearing of its way on round them instead
+/// ([`crate::geodesic::DistanceField::descent`]); `None` for a robot out of the formation.
 pub fn robot_progress(scene: &Scene, env: &EnvConfig) -> Vec<Option<f64>> {
+    let ways = scene.ways.filter(|ways| ways.lead_to(scene.goal, scene.slots));
     scene
         .poses
         .iter()
@@ -247,11 +250,13 @@ pub fn robot_progress(scene: &Scene, env: &EnvConfig) -> Vec<Option<f64>> {
             }
             let [dx, dy] = to_slot(scene, agent);
             let distance = dx.hypot(dy);
-            Some(if distance > 1e-9 {
-                v * env.dt_s * (pose.theta.cos() * dx + pose.theta.sin() * dy) / distance
-            } else {
-                0.0
-            })
+            if distance <= 1e-9 {
+                return Some(0.0);
+            }
+            let [ux, uy] = ways
+                .and_then(|ways| ways.field(agent).descent([pose.x, pose.y], scene.obstacles))
+                .unwrap_or([dx / distance, dy / distance]);
+            Some(v * env.dt_s * (pose.theta.cos() * ux + pose.theta.sin() * uy))
         })
         .collect()
 }
@@ -397,6 +402,67 @@ mod tests {
         assert_eq!(reward(&col, env.max_steps, &env), (env.r_collision, Outcome::Collision));
         assert!(Outcome::Collision.is_terminal() && Outcome::Success.is_terminal() && !Outcome::Timeout.is_terminal());
         assert!(!Outcome::Aborted.is_terminal());
+    }
+
+    #[test]
+    fn along_the_way_round_a_wall_a_detour_is_progress_where_the_straight_measure_charges_it() {
+        use crate::geodesic::Ways;
+        use crate::obstacles::{Obstacle, Obstacles};
+        // Robot 0 at (3, 5) behind a wall at x = 5 (y 2 to 8), its slot at (7, 5); it drives
+        // north-north-west, round the wall's upper end, at 0.2 m/s.
+        let obstacles = Obstacles::new(vec![Obstacle::Wall {
+            a: [5.0, 2.0],
+            b: [5.0, 8.0],
+            thickness: 0.2,
+        }]);
+        let heading = std::f64::consts::FRAC_PI_2 + 0.2;
+        let poses = [
+            Pose {
+                x: 3.0,
+                y: 5.0,
+                theta: heading,
+            },
+            Pose {
+                x: 3.0,
+                y: 4.0,
+                theta: 0.0,
+            },
+            Pose {
+                x: 2.0,
+                y: 4.5,
+                theta: 0.0,
+            },
+        ];
+        let (goal, slots) = ([7.0, 5.0], [[0.0, 0.0], [0.0, -1.0], [-1.0, -0.5]]);
+        let commands = [(0.2, 0.0), (0.0, 0.0), (0.0, 0.0)];
+        let ways = Ways::new(goal, &slots, &obstacles, 10.0);
+        let env = EnvConfig::default();
+        let scene = |ways: Option<&Ways>, goal: [f64; 2]| {
+            let desired = [[1.0; NEIGHBOURS]; 3];
+            let observed = crate::scene::index_neighbours(3);
+            robot_progress(
+                &Scene {
+                    poses: &poses,
+                    commands: &commands,
+                    desired: &desired,
+                    observed: &observed,
+                    goal,
+                    slots: &slots,
+                    obstacles: &obstacles,
+                    arena_m: 10.0,
+                    ways,
+                },
+                &env,
+            )[0]
+            .expect("robot 0 is in the formation")
+        };
+        let straight = scene(None, goal);
+        let round = scene(Some(&ways), goal);
+        assert!(straight < 0.0, "straight: moving away from the slot, {straight}");
+        assert!(round > 0.01, "round the wall: progress, {round}");
+        assert!(round <= 0.2 * env.dt_s + 1e-12, "no more than its speed: {round}");
+        let elsewhere = scene(Some(&ways), [7.0, 5.5]);
+        assert_eq!(elsewhere, scene(None, [7.0, 5.5]), "ways to another goal are not used");
     }
 
     #[test]

@@ -4,6 +4,7 @@ use crate::config::EnvConfig;
 use formation_protocol::{MAX_OBS_DIM, NEIGHBOURS};
 
 use crate::formation::EpisodeInit;
+use crate::geodesic::Ways;
 use crate::observation::Observer;
 use crate::obstacles::{ObstacleKind, Obstacles};
 use crate::physics::{Pose, integrate};
@@ -40,6 +41,9 @@ pub struct World {
     pub observer: Observer,
     /// Steps taken in this episode.
     pub steps: u32,
+    /// Each robot's way round the obstacles to its slot, with `env.geodesic_progress` among
+    /// obstacles (rebuilt when the goal or the formation changes).
+    ways: Option<Ways>,
 }
 
 impl World {
@@ -64,6 +68,22 @@ impl World {
             obstacles: init.obstacles,
             obstacle_kind: init.obstacle_kind,
             steps: 0,
+            ways: None,
+        }
+    }
+
+    /// Builds the robots' ways round the obstacles when the progress is measured along them and
+    /// the goal or the formation is not the one they lead to.
+    fn update_ways(&mut self) {
+        if !self.env.geodesic_progress || self.obstacles.is_empty() {
+            return;
+        }
+        if !self
+            .ways
+            .as_ref()
+            .is_some_and(|ways| ways.lead_to(self.goal, &self.slots))
+        {
+            self.ways = Some(Ways::new(self.goal, &self.slots, &self.obstacles, self.arena_m));
         }
     }
 
@@ -84,6 +104,7 @@ impl World {
             slots: &self.slots,
             obstacles: &self.obstacles,
             arena_m: self.arena_m,
+            ways: self.ways.as_ref(),
         }
     }
 
@@ -116,6 +137,7 @@ impl World {
             *pose = next;
         }
         self.steps += 1;
+        self.update_ways();
         score(&self.scene(), self.steps, &self.env)
     }
 }

@@ -110,6 +110,7 @@ impl Episode {
             slots: &formation.slots,
             obstacles: &self.obstacles,
             arena_m: self.arena_m,
+            ways: None,
         }
     }
 

@@ -566,6 +566,40 @@ fn a_cost_of_distance_from_the_slots_makes_waiting_cost_and_passing_worth_more_s
 }
 
 #[test]
+fn progress_round_the_obstacles_pays_passing_more_than_the_straight_measure_and_waiting_nothing_more() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/obstacles-geodesic.toml");
+    let config = crate::config::RunConfig::from_toml_file(&path).expect("the geodesic config");
+    assert!(config.env.geodesic_progress);
+    let env = EnvConfig {
+        obstacles: ObstacleConfig {
+            kind: ObstacleKind::Passage,
+            ..config.env.obstacles.clone()
+        },
+        ..config.env.clone()
+    };
+    let straight = EnvConfig {
+        geodesic_progress: false,
+        ..env.clone()
+    };
+    let gamma = config.learn.gamma;
+    for seed in [5, 6, 7] {
+        let (straight_wait, straight_pass) = waiting_and_passing(&straight, seed);
+        let (wait, pass) = waiting_and_passing(&env, seed);
+        let (straight_wait, straight_pass) = (discounted(&straight_wait, gamma), discounted(&straight_pass, gamma));
+        let (round_wait, round_pass) = (discounted(&wait, gamma), discounted(&pass, gamma));
+        println!(
+            "seed {seed}, gamma {gamma}: straight progress: waiting {straight_wait:.2}, passing {straight_pass:.2}; \
+             round the obstacles: waiting {round_wait:.2}, passing {round_pass:.2}"
+        );
+        assert_eq!(round_wait, straight_wait, "standing still earns the same (seed {seed})");
+        assert!(
+            round_pass > straight_pass + 0.1,
+            "the file's way through the gap is paid more round the obstacles (seed {seed})"
+        );
+    }
+}
+
+#[test]
 fn within_keeps_the_obstacles_whose_surface_is_in_range_and_walls_whole() {
     let wall = Obstacle::Wall {
         a: [3.0, 0.0],
