@@ -21,10 +21,15 @@ pub const CELL_M: f64 = 0.1;
 /// A cell whose centre is nearer a surface than this is blocked, metres (half a robot's radius:
 /// a robot's centre keeps its radius from every surface, so it lies in a free cell).
 pub const CLEARANCE_M: f64 = 0.05;
-/// Grid steps in A*-style integer costs: millimetres.
+/// Grid steps in Dijkstra's integer costs: millimetres.
 const COST_PER_M: f64 = 1e3;
 /// How many cells round a robot's cell its way on is looked for.
 const LOOK_CELLS: isize = 2;
+
+/// The centre of the `i`-th cell along either axis, metres.
+fn cell_centre(i: usize) -> f64 {
+    (i as f64 + 0.5) * CELL_M
+}
 
 /// The distance from every grid cell to one target over the free cells, metres.
 #[derive(Debug, Clone)]
@@ -39,9 +44,8 @@ impl DistanceField {
     /// The field to `target` in the arena [0, `arena_m`]^2 among `obstacles`.
     pub fn to(target: [f64; 2], obstacles: &Obstacles, arena_m: f64) -> Self {
         let side = (arena_m / CELL_M).ceil().max(1.0) as usize;
-        let centre = |i: usize| (i as f64 + 0.5) * CELL_M;
         let free: Vec<bool> = (0..side * side)
-            .map(|c| obstacles.is_clear([centre(c % side), centre(c / side)], CLEARANCE_M))
+            .map(|c| obstacles.is_clear([cell_centre(c % side), cell_centre(c / side)], CLEARANCE_M))
             .collect();
         let mut field = Self {
             target,
@@ -108,7 +112,7 @@ impl DistanceField {
                     continue;
                 }
                 let rest = f64::from(self.distance[cy * self.side + cx]);
-                let centre = [(cx as f64 + 0.5) * CELL_M, (cy as f64 + 0.5) * CELL_M];
+                let centre = [cell_centre(cx), cell_centre(cy)];
                 let total = rest + (centre[0] - p[0]).hypot(centre[1] - p[1]);
                 if total.is_finite() && best.is_none_or(|(_, d)| total < d) {
                     best = Some((centre, total));

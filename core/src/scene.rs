@@ -14,9 +14,9 @@
 //! actions, next to the 64 bytes of each robot's observation), so HER runs the sim's own
 //! functions on them without a conversion or an allocation.
 
-use crate::geodesic::Ways;
 use formation_protocol::{NEIGHBOURS, neighbours};
 
+use crate::geodesic::Ways;
 use crate::obstacles::Obstacles;
 use crate::physics::Pose;
 use crate::task::present_centroid;
