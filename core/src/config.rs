@@ -390,6 +390,9 @@ pub fn extra_swarm_seed(seed: u64, k: usize) -> u64 {
 /// Most shape changes an episode may carry (`env.shape_changes`).
 pub const MAX_SHAPE_CHANGES: u32 = 8;
 
+/// Most map points a robot's token in the central critic may hold (`learn.critic_map_points`).
+pub const MAX_CRITIC_MAP_POINTS: usize = 8;
+
 /// From this many robots on, formations are compact rings (smaller swarms get freer shapes).
 pub const LARGE_SWARM: usize = 8;
 
@@ -543,6 +546,10 @@ pub struct LearnConfig {
     pub critic_hidden: Vec<usize>,
     /// `pooled` only: widths of the per-robot encoder; the last is what is averaged.
     pub critic_encoder: Vec<usize>,
+    /// `pooled` only: each robot's token also holds the nearest points of its this many nearest
+    /// obstacles within [`crate::features::CRITIC_MAP_RANGE_M`], read from the episode's map:
+    /// privileged information for the central critic, which no robot runs (0 = off).
+    pub critic_map_points: usize,
     /// TD3: actor and target updates every this many critic updates.
     pub policy_delay: u32,
     /// TD3: std of the target policy smoothing noise.
@@ -622,6 +629,7 @@ impl Default for LearnConfig {
             critic: CriticArchitecture::Mlp,
             critic_hidden: vec![256, 256],
             critic_encoder: vec![64, 64],
+            critic_map_points: 0,
             policy_delay: 2,
             target_noise: 0.2,
             target_noise_clip: 0.5,
@@ -1024,6 +1032,13 @@ impl LearnConfig {
         check_widths(&l.critic_hidden, "learn.critic_hidden")?;
         check_widths(&l.critic_encoder, "learn.critic_encoder")?;
         check(
+            l.critic_map_points <= MAX_CRITIC_MAP_POINTS
+                && (l.critic_map_points == 0 || l.critic == CriticArchitecture::Pooled),
+            "learn.critic_map_points",
+            l.critic_map_points,
+            "must be at most 8, and above 0 only with learn.critic = \"pooled\" (a robot's token holds its map points)",
+        )?;
+        check(
             l.actor_update == ActorUpdate::QGradient || l.critic == CriticArchitecture::Pooled,
             "learn.actor_update",
             "\"advantage_filtered\"",
@@ -1266,6 +1281,11 @@ mod tests {
             ("[learn]\ngamma = 1.5\n", "learn.gamma"),
             ("[learn]\nn_step = 0\n", "learn.n_step"),
             ("[learn]\ncritic_encoder = []\n", "learn.critic_encoder"),
+            ("[learn]\ncritic_map_points = 2\n", "learn.critic_map_points"),
+            (
+                "[learn]\ncritic = \"pooled\"\ncritic_map_points = 9\n",
+                "learn.critic_map_points",
+            ),
             ("[learn]\ncritic = \"attention\"\n", "critic"),
             ("[learn]\nselection_seed = 1000\n", "learn.selection_seed"),
             ("[learn]\nselection_episodes = 0\n", "learn.selection_episodes"),

@@ -11,6 +11,11 @@
 //! paper's critic sees every robot's observation instead (3 * 12 = 36 floats), which holds the
 //! same relative geometry in three frames.
 //!
+//! With `learn.critic_map_points` = K > 0 (the `pooled` critic only) each robot's token also
+//! holds the nearest points of its K nearest obstacles within [`CRITIC_MAP_RANGE_M`], read from
+//! the episode's map: what lies beyond the robots' 2 m rays, for the central critic alone (no
+//! robot runs it, so no robot needs the map).
+//!
 //! The arithmetic is `f32`, the precision of the state stream the replay's scenes come from
 //! (their values are that stream's `f32`s, widened exactly), so the features are the same
 //! floats whether a scene is read from the replay or from a `World`'s stream.
@@ -22,6 +27,10 @@ use crate::observation::Layout;
 use crate::physics::Pose;
 use crate::scene::Scene;
 use crate::task::is_present;
+
+/// How far round each robot the `pooled` critic's map points reach, metres: twice the range
+/// of the robots' own rays.
+pub const CRITIC_MAP_RANGE_M: f64 = 4.0;
 
 /// Layout of one tick of critic state for a swarm of `n_agents`.
 ///
@@ -36,6 +45,8 @@ pub struct CriticFeatures {
     pub slots: bool,
     /// Robot-major tokens (the `pooled` critic) instead of the team-major layout.
     pub per_robot: bool,
+    /// Obstacle points in each robot's token ([`CriticFeatures::with_map_points`]).
+    pub map_points: usize,
 }
 
 impl CriticFeatures {
@@ -45,6 +56,17 @@ impl CriticFeatures {
             n_agents,
             slots: Layout::of(model).slot().is_some(),
             per_robot: critic == CriticArchitecture::Pooled,
+            map_points: 0,
+        }
+    }
+
+    /// These features with the nearest points of each robot's `points` nearest obstacles in
+    /// its token (`learn.critic_map_points`; robot-major tokens only, as the config checks).
+    pub fn with_map_points(self, points: usize) -> Self {
+        debug_assert!(points == 0 || self.per_robot, "map points need robot-major tokens");
+        Self {
+            map_points: points,
+            ..self
         }
     }
 
@@ -59,8 +81,15 @@ impl CriticFeatures {
 
     /// Floats of one robot's token: its position relative to the centroid and heading (4),
     /// the displacement to each of its two observed neighbours (4), its desired edges (2), the
-    /// goal relative to the centroid (2) and, with slots, its slot offset (2).
+    /// goal relative to the centroid (2), with slots its slot offset (2), and with map points
+    /// each point's offset from the robot and a 1 (3 each; zeros where it has fewer obstacles
+    /// that near).
     pub fn token_dim(&self) -> usize {
+        self.map_at() + 3 * self.map_points
+    }
+
+    /// Where a token's map points start.
+    fn map_at(&self) -> usize {
         4 + 2 * NEIGHBOURS + NEIGHBOURS + 2 + if self.slots { 2 } else { 0 }
     }
 
@@ -80,6 +109,7 @@ impl CriticFeatures {
         let rotate = |dx: f32, dy: f32| [co * dx + s * dy, -s * dx + co * dy];
         let goal = narrow(scene.goal);
         let goal = rotate(goal[0] - c[0], goal[1] - c[1]);
+        let mut nearest: Vec<(f64, [f64; 2])> = Vec::new();
         for (i, token) in out.chunks_exact_mut(self.token_dim()).enumerate() {
             let p = position(&scene.poses[i]);
             let (hs, hc) = (scene.poses[i].theta as f32 - frame).sin_cos();
@@ -93,6 +123,16 @@ impl CriticFeatures {
             if self.slots {
                 let slot = narrow(scene.slots[i]);
                 token[12..14].copy_from_slice(&rotate(slot[0], slot[1]));
+            }
+            if self.map_points > 0 {
+                let at = [scene.poses[i].x, scene.poses[i].y];
+                nearest_points(scene, at, self.map_points, &mut nearest);
+                let map = &mut token[self.map_at()..];
+                map.fill(0.0);
+                for (point, &(_, q)) in map.chunks_exact_mut(3).zip(&nearest) {
+                    let offset = rotate(q[0] as f32 - p[0], q[1] as f32 - p[1]);
+                    point.copy_from_slice(&[offset[0], offset[1], 1.0]);
+                }
             }
         }
     }
@@ -123,6 +163,17 @@ impl CriticFeatures {
             }
         }
     }
+}
+
+/// The nearest points of the `k` obstacles nearest `at` within [`CRITIC_MAP_RANGE_M`], nearest
+/// first, into `out` (as (distance, point)).
+fn nearest_points(scene: &Scene, at: [f64; 2], k: usize, out: &mut Vec<(f64, [f64; 2])>) {
+    out.clear();
+    scene.obstacles.for_each_nearest_within(at, CRITIC_MAP_RANGE_M, |q| {
+        out.push(((q[0] - at[0]).hypot(q[1] - at[1]), q));
+    });
+    out.sort_by(|a, b| a.0.total_cmp(&b.0));
+    out.truncate(k);
 }
 
 /// `f64` values in the features' `f32`.
@@ -247,6 +298,44 @@ mod tests {
         assert_eq!(
             CriticFeatures::new(64, ObservationModel::Paper, CriticArchitecture::Pooled).token_dim(),
             12
+        );
+    }
+
+    #[test]
+    fn map_points_give_each_robot_its_nearest_obstacles_in_the_frame() {
+        use crate::obstacles::{Obstacle, Obstacles};
+        let disc = |centre: [f64; 2], radius: f64| Obstacle::Disc { centre, radius };
+        // Robot 0 stands at (1, 0): the first disc's nearest point is 1.5 m ahead of it in
+        // world +y, the second's 1.75 m behind in world -x, the third is out of range.
+        let obstacles = Obstacles::new(vec![
+            disc([-1.0, 0.0], 0.25),
+            disc([1.0, 2.0], 0.5),
+            disc([9.0, 9.0], 0.5),
+        ]);
+        let tick = Scene {
+            obstacles: &obstacles,
+            ..three_robots()
+        };
+        let plain = CriticFeatures::new(3, ObservationModel::SlotProximity, CriticArchitecture::Pooled);
+        let mapped = plain.with_map_points(3);
+        assert_eq!(mapped.token_dim(), 14 + 9);
+        let mut out = vec![0.0; mapped.dim()];
+        mapped.write(&mut out, &tick, std::f32::consts::FRAC_PI_2);
+        let mut without = vec![0.0; plain.dim()];
+        plain.write(&mut without, &tick, std::f32::consts::FRAC_PI_2);
+        let close = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-5);
+        // The rest of the token is unchanged; nearest first, world +y is the frame's +x.
+        assert_eq!(&out[..14], &without[..14]);
+        let map = [1.5, 0.0, 1.0, 0.0, 1.75, 1.0, 0.0, 0.0, 0.0];
+        assert!(close(&out[14..23], &map), "robot 0's map: {:?}", &out[14..23]);
+        // With one point only the nearest is kept.
+        let one = plain.with_map_points(1);
+        let mut out1 = vec![0.0; one.dim()];
+        one.write(&mut out1, &tick, std::f32::consts::FRAC_PI_2);
+        assert!(
+            close(&out1[14..17], &map[..3]),
+            "robot 0's nearest: {:?}",
+            &out1[14..17]
         );
     }
 }

@@ -73,6 +73,7 @@ fn main() -> anyhow::Result<()> {
         gamma: learn.gamma,
         env: env.clone(),
         critic: learn.critic,
+        critic_map_points: learn.critic_map_points,
     };
     let mut learner = Learner::new(n, &env, &learn, 1)?;
     let probe = sampler.sample(&replay, batch_size, &mut rng).expect("batch");

@@ -496,7 +496,8 @@ impl Learner {
             Algorithm::Ddpg => 1,
             Algorithm::Td3 => 2,
         };
-        let features = CriticFeatures::new(n_agents, env.observation, config.critic);
+        let features =
+            CriticFeatures::new(n_agents, env.observation, config.critic).with_map_points(config.critic_map_points);
         let scan = Layout::of(env.observation).scan().map(|offset| (offset, SCAN_RAYS));
         let rays = scan.map_or(0, |(_, rays)| rays);
         let critic_input = match config.critic {

@@ -142,6 +142,7 @@ impl<S: Service> Trainer<S> {
                 gamma: learn.gamma,
                 env: config.env.clone(),
                 critic: learn.critic,
+                critic_map_points: learn.critic_map_points,
             },
             rng: StdRng::seed_from_u64(options.seed ^ 0x5eed_c817),
             losses: Losses::default(),

@@ -37,11 +37,17 @@ fn random_batch(env: &EnvConfig, n: usize, b: usize, seed: u64) -> Batch {
 }
 
 fn random_batch_for(env: &EnvConfig, critic: CriticArchitecture, n: usize, b: usize, seed: u64) -> Batch {
+    random_batch_of(env, CriticFeatures::new(n, env.observation, critic), b, seed)
+}
+
+/// A batch of random floats laid out for `features`.
+fn random_batch_of(env: &EnvConfig, features: CriticFeatures, b: usize, seed: u64) -> Batch {
+    let n = features.n_agents;
     let mut rng = StdRng::seed_from_u64(seed);
     let mut fill = |len: usize| (0..len).map(|_| rng.random_range(-1.0f32..1.0)).collect::<Vec<_>>();
     let h = env.history;
     let od = Layout::of(env.observation).dim();
-    let sd = CriticFeatures::new(n, env.observation, critic).dim();
+    let sd = features.dim();
     Batch {
         batch_size: b,
         n_agents: n,
@@ -442,6 +448,61 @@ fn reverse_robots(values: &[f32], n: usize, width: usize) -> Vec<f32> {
         .chunks_exact(n * width)
         .flat_map(|tick| tick.chunks_exact(width).rev().flatten().copied())
         .collect()
+}
+
+#[test]
+fn a_critic_with_map_points_reads_them_and_takes_a_plain_checkpoints_actor_with_a_fresh_critic() {
+    let (env, learn) = small_config(Algorithm::Td3);
+    let plain = LearnConfig {
+        critic: CriticArchitecture::Pooled,
+        critic_encoder: vec![32, 32],
+        ..learn
+    };
+    let mapped = LearnConfig {
+        critic_map_points: 4,
+        ..plain.clone()
+    };
+    let features = CriticFeatures::new(3, env.observation, CriticArchitecture::Pooled).with_map_points(4);
+    let mut batch = random_batch_of(&env, features, 32, 71);
+    batch.terminals = vec![1.0; 32];
+    let mut learner = Learner::new(3, &env, &mapped, 72).expect("learner");
+    let target = Tensor::from_slice(&batch.rewards, (32, 1), &Device::Cpu).expect("target");
+    let loss = |learner: &Learner, batch: &Batch| {
+        learner
+            .critic_loss(batch, &target)
+            .expect("a batch with map points fits the critic")
+            .to_scalar::<f32>()
+            .expect("scalar")
+    };
+    // The critic reads the map points: changing only them changes its value.
+    let before = loss(&learner, &batch);
+    let mut moved = batch.clone();
+    let token = features.token_dim();
+    for (i, value) in moved.states.iter_mut().enumerate() {
+        if i % token >= token - 3 * 4 {
+            *value += 1.0;
+        }
+    }
+    assert_ne!(loss(&learner, &moved), before, "the map points do not reach the critic");
+    for _ in 0..50 {
+        learner.update(&batch, 0).expect("update");
+    }
+    assert!(
+        loss(&learner, &batch) < before,
+        "the critic does not learn with map points"
+    );
+    // A checkpoint whose critic had no map points gives its actor; the critic starts fresh.
+    let dir = std::env::temp_dir().join(format!("formation-learner-map-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("dir");
+    let path = dir.join("plain.safetensors");
+    let source = Learner::new(3, &env, &plain, 73).expect("learner");
+    source.save(&path, Default::default()).expect("save");
+    let mut fresh = Learner::new(3, &env, &mapped, 74).expect("learner");
+    let fresh_loss = loss(&fresh, &batch);
+    fresh.load(&path).expect("the actor carries over");
+    assert_eq!(fresh.actor_weights(0).expect("w"), source.actor_weights(0).expect("w"));
+    assert_eq!(loss(&fresh, &batch), fresh_loss, "the critic was not left fresh");
+    std::fs::remove_dir_all(&dir).expect("cleanup");
 }
 
 #[test]

@@ -121,6 +121,7 @@ fn train(env: &EnvConfig, learn: &LearnConfig, seed: u64) -> Result<Vec<Scored>>
         gamma: learn.gamma,
         env: env.clone(),
         critic: learn.critic,
+        critic_map_points: learn.critic_map_points,
     };
     let dim = Layout::of(env.observation).dim();
     anyhow::ensure!(

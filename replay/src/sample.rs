@@ -112,6 +112,8 @@ pub struct Sampler {
     pub env: EnvConfig,
     /// The critic the batches are for (it decides the state's layout).
     pub critic: CriticArchitecture,
+    /// Obstacle points in each robot's token (`learn.critic_map_points`; `pooled` only).
+    pub critic_map_points: usize,
 }
 
 impl Sampler {
@@ -122,7 +124,7 @@ impl Sampler {
 
     /// The critic state of `n_agents` robots.
     pub fn features(&self, n_agents: usize) -> CriticFeatures {
-        CriticFeatures::new(n_agents, self.env.observation, self.critic)
+        CriticFeatures::new(n_agents, self.env.observation, self.critic).with_map_points(self.critic_map_points)
     }
 
     /// B samples, transitions drawn uniformly over the buffer; `None` when it is empty.

@@ -62,6 +62,7 @@ fn sequences_never_cross_episodes_and_share_ticks() {
         gamma: 0.98,
         env: env.clone(),
         critic: CriticArchitecture::Mlp,
+        critic_map_points: 0,
     };
     let od = batch_obs_dim(&env);
     let mut rng = StdRng::seed_from_u64(2);
@@ -115,6 +116,7 @@ fn relabelling_sampler(env: &EnvConfig, history: usize) -> Sampler {
         gamma: 0.98,
         env: env.clone(),
         critic: CriticArchitecture::Mlp,
+        critic_map_points: 0,
     }
 }
 
@@ -308,6 +310,7 @@ fn n_step_samples_sum_discounted_rewards_up_to_a_terminal_or_the_end() {
             gamma,
             env: env.clone(),
             critic: CriticArchitecture::Mlp,
+            critic_map_points: 0,
         };
         let mut rng = StdRng::seed_from_u64(8);
         let batch = sampler.sample(&buffer, 512, &mut rng).expect("batch");
@@ -540,6 +543,7 @@ fn each_robot_s_own_reward_is_the_shared_one_with_its_own_approach_in_place_of_t
         gamma: 0.98,
         env: env.clone(),
         critic: CriticArchitecture::Pooled,
+        critic_map_points: 0,
     };
     let mut rng = StdRng::seed_from_u64(92);
     // One step: r_i = r + r_progress (a_i - mean a), a_i from the scene's poses and commands.

@@ -93,6 +93,7 @@ fn relabelled_rewards_hold_success_until_the_last_change_as_the_sim_did() {
         gamma: 0.98,
         env: env.clone(),
         critic: CriticArchitecture::Pooled,
+        critic_map_points: 0,
     };
     let mut rng = StdRng::seed_from_u64(7);
     let batch = sampler.sample(&buffer, 512, &mut rng).expect("batch");
