@@ -305,8 +305,8 @@ mod tests {
     fn map_points_give_each_robot_its_nearest_obstacles_in_the_frame() {
         use crate::obstacles::{Obstacle, Obstacles};
         let disc = |centre: [f64; 2], radius: f64| Obstacle::Disc { centre, radius };
-        // Robot 0 stands at (1, 0): the first disc's nearest point is 1.5 m ahead of it in
-        // world +y, the second's 1.75 m behind in world -x, the third is out of range.
+        // Robot 0 stands at (1, 0): the disc at (1, 2) is nearest, its surface 1.5 m away in
+        // world +y; the one at (-1, 0) next, 1.75 m away in world -x; the third is beyond 4 m.
         let obstacles = Obstacles::new(vec![
             disc([-1.0, 0.0], 0.25),
             disc([1.0, 2.0], 0.5),
