@@ -472,6 +472,19 @@ pub enum ActorUpdate {
     AdvantageFiltered,
 }
 
+/// Which components of each robot's action the critic's Q gradient moves (`learn.q_gradient_actions`).
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum QGradientActions {
+    /// The forward speed and the turn rate (DDPG and TD3, the paper's).
+    #[default]
+    Both,
+    /// The turn rate alone: the critic's Q reads the actor's speed with no gradient through it,
+    /// so the speed learns only from the imitation term. The critic steers; the start sets the
+    /// pace.
+    Turn,
+}
+
 /// Whose value the central critic learns (`learn.credit`).
 #[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq, Default)]
 #[serde(rename_all = "lowercase")]
@@ -571,6 +584,9 @@ pub struct LearnConfig {
     /// How the actor improves on the critic: `q_gradient` (default) or `advantage_filtered`
     /// (with a teacher, `imitation_alpha` weighs the filtered copy against the teacher's pull).
     pub actor_update: ActorUpdate,
+    /// Which action components the Q gradient moves: `both` (default) or `turn` (the speed
+    /// is left to the imitation term; `q_gradient` update only).
+    pub q_gradient_actions: QGradientActions,
     /// Whose value the critic learns: `team` (default, the shared reward) or `robot` (each
     /// robot's own reward and value, [`Credit::Robot`]).
     pub credit: Credit,
@@ -638,6 +654,7 @@ impl Default for LearnConfig {
             imitation_alpha: 2.5,
             imitation_teacher: ImitationTeacher::Baseline,
             actor_update: ActorUpdate::QGradient,
+            q_gradient_actions: QGradientActions::Both,
             credit: Credit::Team,
             critic_warmup_updates: 0,
             replay_capacity: 1_000_000,
@@ -1045,6 +1062,12 @@ impl LearnConfig {
             "needs learn.critic = \"pooled\": the filter rates each robot's action by swapping its token alone",
         )?;
         check(
+            l.q_gradient_actions == QGradientActions::Both || l.actor_update == ActorUpdate::QGradient,
+            "learn.q_gradient_actions",
+            "\"turn\"",
+            "needs learn.actor_update = \"q_gradient\": the filtered copy has no Q gradient to narrow",
+        )?;
+        check(
             l.credit == Credit::Team
                 || (l.critic == CriticArchitecture::Pooled && l.actor_update == ActorUpdate::QGradient),
             "learn.credit",
@@ -1305,6 +1328,19 @@ mod tests {
             let err = RunConfig::from_toml_str(text).expect_err(text);
             assert!(err.to_string().contains(field), "{err} should name {field}");
         }
+    }
+
+    #[test]
+    fn the_turn_only_q_gradient_needs_the_q_gradient_update() {
+        let turn = RunConfig::from_toml_str("[learn]\nq_gradient_actions = \"turn\"\n").expect("q gradient");
+        assert_eq!(turn.learn.q_gradient_actions, QGradientActions::Turn);
+        assert_eq!(RunConfig::default().learn.q_gradient_actions, QGradientActions::Both);
+        let filtered = RunConfig::from_toml_str(
+            "[learn]\nq_gradient_actions = \"turn\"\nactor_update = \"advantage_filtered\"\ncritic = \"pooled\"\n",
+        )
+        .expect_err("no Q gradient to narrow")
+        .to_string();
+        assert!(filtered.contains("learn.q_gradient_actions"), "{filtered}");
     }
 
     #[test]

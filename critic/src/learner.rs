@@ -16,6 +16,7 @@ use candle_nn::{AdamW, Linear, Optimizer, ParamsAdamW, VarBuilder, VarMap};
 use formation_core::baseline::{BaselineGains, ScriptedBaseline};
 use formation_core::config::{
     ActorUpdate, Algorithm, Credit, CriticArchitecture, EnvConfig, ImitationTeacher, LearnConfig, ObservationModel,
+    QGradientActions,
 };
 use formation_core::features::CriticFeatures;
 use formation_core::observation::{Layout, SCAN_RAYS};
@@ -150,6 +151,17 @@ fn member_mean(values: &Tensor, members: Option<&Members>) -> Result<Tensor> {
             .sum_all()?
             .affine(1.0 / m.action_count as f64, 0.0)?,
     })
+}
+
+/// Joint actions [B, N * 2] with the same values, whose gradient reaches only the turn rates:
+/// each robot's forward speed (component 0) is detached.
+fn turn_only_gradient(actions: &Tensor) -> Result<Tensor> {
+    let (b, joint) = actions.dims2()?;
+    let robots = joint / ACTION_DIM;
+    let per_robot = actions.reshape((b, robots, ACTION_DIM))?;
+    let speed = per_robot.narrow(2, 0, 1)?.detach();
+    let turn = per_robot.narrow(2, 1, ACTION_DIM - 1)?;
+    Ok(Tensor::cat(&[speed, turn], 2)?.reshape((b, joint))?)
 }
 
 /// The mean of values [B, 1] (the team's) or [B, N] (each robot's, `learn.credit = "robot"`)
@@ -807,7 +819,11 @@ impl Learner {
     fn policy_q(&self, batch: &Batch) -> Result<(Tensor, Tensor, Option<Members>)> {
         let (obs, states, actions) = Self::played_tensors(batch)?;
         let current = Self::joint_actions(&self.actors, &obs)?;
-        let window = self.with_actions_at_t(&actions, current.clone())?;
+        let into_q = match self.config.q_gradient_actions {
+            QGradientActions::Both => current.clone(),
+            QGradientActions::Turn => turn_only_gradient(&current)?,
+        };
+        let window = self.with_actions_at_t(&actions, into_q)?;
         let members = Members::of(&batch.present, batch.batch_size, batch.n_agents)?;
         let q = self.critics[0].forward(&self.critic_input(batch, states, window, &obs)?, members.as_ref())?;
         Ok((q, current, members))

@@ -4,7 +4,7 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use formation_core::baseline::BaselineGains;
 use formation_core::config::{
-    ActorUpdate, Algorithm, Credit, CriticArchitecture, EnvConfig, ImitationTeacher, LearnConfig,
+    ActorUpdate, Algorithm, Credit, CriticArchitecture, EnvConfig, ImitationTeacher, LearnConfig, QGradientActions,
 };
 use formation_core::features::CriticFeatures;
 use formation_core::observation::Layout;
@@ -895,6 +895,44 @@ fn an_advantage_filtered_step_copies_the_played_actions_the_critic_rates_higher_
         after < 0.7 * before,
         "towards the better played actions: {before} -> {after}"
     );
+}
+
+#[test]
+fn with_q_gradient_actions_turn_the_critic_moves_the_turn_rates_and_leaves_the_speeds_output_row_alone() {
+    let (env, learn) = pooled_config();
+    let (n, b) = (3, 16);
+    let batch = random_batch_for(&env, CriticArchitecture::Pooled, n, b, 72);
+    // The output layer's rows in the flat weights: [.., W (2 x hidden, the speed's row first), b].
+    let hidden = *learn.actor_hidden.last().expect("a hidden layer");
+    let rows = |w: &[f32]| {
+        let (weights, biases) = w.split_at(w.len() - ACTION_DIM);
+        let output = &weights[weights.len() - ACTION_DIM * hidden..];
+        let row = |k: usize| -> Vec<f32> {
+            output[k * hidden..(k + 1) * hidden]
+                .iter()
+                .chain([&biases[k]])
+                .copied()
+                .collect()
+        };
+        (row(0), row(1), weights[..weights.len() - ACTION_DIM * hidden].to_vec())
+    };
+    for (actions, speed_moves) in [(QGradientActions::Both, true), (QGradientActions::Turn, false)] {
+        let learn = LearnConfig {
+            q_gradient_actions: actions,
+            imitation_alpha: 0.0,
+            action_l2: 0.0,
+            ..learn.clone()
+        };
+        let mut learner = with_a_fitted_critic(n, &env, &learn, 71, &batch);
+        let (speed, turn, hidden_layers) = rows(&learner.actor_weights(0).expect("weights"));
+        for _ in 0..5 {
+            learner.actor_step(&batch).expect("step");
+        }
+        let (speed_after, turn_after, hidden_after) = rows(&learner.actor_weights(0).expect("weights"));
+        assert_eq!(speed != speed_after, speed_moves, "{actions:?}: the speed's output row");
+        assert_ne!(turn, turn_after, "{actions:?}: the turn rate's output row moves");
+        assert_ne!(hidden_layers, hidden_after, "{actions:?}: the hidden layers move");
+    }
 }
 
 /// The critic loss on `batch` against a target of zeros.
