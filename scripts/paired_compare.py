@@ -7,7 +7,8 @@ on the same seeds and episodes. Every CSV under A is paired with the one at the 
 path under B, and every episode with the same episode. For each file and over all of them it
 prints the two success rates, the episodes B gained and lost against A, the difference and its
 paired standard deviation: two files whose means differ by less than about twice that are not
-told apart by these episodes.
+told apart by these episodes. Where the CSVs hold formation-play's `episode_return` (the
+undiscounted sum of the training reward) the mean returns are paired the same way.
 
   for k in forest trap; do
     formation-play --team model --checkpoint A.safetensors --config C --obstacles $k --n 4,8,16 \\
@@ -26,10 +27,13 @@ import sys
 from pathlib import Path
 
 
-def outcomes(path: Path) -> dict[str, bool]:
-    """Each episode's success in a formation-play CSV, by episode number."""
+def outcomes(path: Path) -> dict[str, tuple[bool, float | None]]:
+    """Each episode's success and return (None where the CSV has no `episode_return`) in a
+    formation-play CSV, by episode number."""
     with path.open(newline="") as f:
-        return {row["episode"]: row["outcome"] == "success" for row in csv.DictReader(f)}
+        return {row["episode"]: (row["outcome"] == "success",
+                                 float(row["episode_return"]) if row.get("episode_return") else None)
+                for row in csv.DictReader(f)}
 
 
 def compare(a: list[bool], b: list[bool]) -> dict[str, float]:
@@ -42,6 +46,26 @@ def compare(a: list[bool], b: list[bool]) -> dict[str, float]:
     var = (gained + lost - n * diff * diff) / (n - 1) if n > 1 else 0.0
     return {"episodes": n, "a": sum(a) / n, "b": sum(b) / n, "gained": gained, "lost": lost,
             "diff": diff, "sd": math.sqrt(max(var, 0.0) / n)}
+
+
+def compare_returns(a: list[float], b: list[float]) -> dict[str, float]:
+    """Mean return of A and B on the same episodes, the mean of B - A and its paired standard
+    deviation."""
+    n = len(a)
+    diffs = [y - x for x, y in zip(a, b)]
+    mean = sum(diffs) / n
+    var = sum((d - mean) ** 2 for d in diffs) / (n - 1) if n > 1 else 0.0
+    return {"return_a": sum(a) / n, "return_b": sum(b) / n, "return_diff": mean,
+            "return_sd": math.sqrt(var / n)}
+
+
+def paired_row(a: list[tuple[bool, float | None]], b: list[tuple[bool, float | None]]) -> dict[str, float]:
+    """Success compared as `compare` does, and the returns as `compare_returns` does when every
+    episode of both has one."""
+    row = compare([x[0] for x in a], [y[0] for y in b])
+    if all(x[1] is not None for x in a + b):
+        row.update(compare_returns([x[1] for x in a], [y[1] for y in b]))
+    return row
 
 
 def by_size(rel: Path) -> tuple[str, int]:
@@ -64,13 +88,13 @@ def paired(a_dir: Path, b_dir: Path) -> list[tuple[str, dict[str, float]]]:
         if a.keys() != b.keys():
             sys.exit(f"paired_compare.py: {rel}: A and B hold different episodes: play both with the same --seed and --episodes")
         keys = sorted(a, key=int)
-        rows.append((str(rel), compare([a[k] for k in keys], [b[k] for k in keys])))
+        rows.append((str(rel), paired_row([a[k] for k in keys], [b[k] for k in keys])))
         all_a += [a[k] for k in keys]
         all_b += [b[k] for k in keys]
     extra = sorted(set(p.relative_to(b_dir) for p in b_dir.rglob("n*.csv")) - set(files))
     if extra:
         sys.exit(f"paired_compare.py: B has files A lacks: {', '.join(map(str, extra))}")
-    rows.append(("all", compare(all_a, all_b)))
+    rows.append(("all", paired_row(all_a, all_b)))
     return rows
 
 
@@ -82,11 +106,14 @@ def main() -> None:
     for d in (args.a, args.b):
         if not d.is_dir():
             sys.exit(f"paired_compare.py: {d} is not a directory")
-    print("| file | episodes | A | B | B gained | B lost | B - A | paired sd |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| file | episodes | A | B | B gained | B lost | B - A | paired sd "
+          "| A return | B return | B - A return | paired sd |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, r in paired(args.a, args.b):
+        returns = (f"{r['return_a']:.1f} | {r['return_b']:.1f} | {r['return_diff']:+.2f} | {r['return_sd']:.2f}"
+                   if "return_a" in r else "- | - | - | -")
         print(f"| {name} | {r['episodes']} | {r['a']:.3f} | {r['b']:.3f} | {r['gained']} | {r['lost']} "
-              f"| {r['diff']:+.3f} | {r['sd']:.3f} |")
+              f"| {r['diff']:+.3f} | {r['sd']:.3f} | {returns} |")
 
 
 if __name__ == "__main__":

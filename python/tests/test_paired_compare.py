@@ -37,6 +37,22 @@ def test_gains_losses_and_the_paired_sd_are_counted_episode_by_episode(tmp_path)
     assert total["diff"] == pytest.approx(1 / 7)
 
 
+def test_returns_are_paired_where_every_csv_holds_them(tmp_path):
+    for side, returns in (("a", [10.0, 20.0, 30.0]), ("b", [12.0, 18.0, 36.0])):
+        path = tmp_path / side / "n4.csv"
+        path.parent.mkdir(parents=True)
+        rows = ["episode,outcome,steps,episode_return"]
+        rows += [f"{i},success,100,{r}" for i, r in enumerate(returns)]
+        path.write_text("\n".join(rows) + "\n")
+    row = dict(paired_compare.paired(tmp_path / "a", tmp_path / "b"))["all"]
+    # Differences +2, -2, +6: mean 2, sample variance (0 + 16 + 16) / 2 = 16.
+    assert (row["return_a"], row["return_b"]) == (20.0, 22.0)
+    assert row["return_diff"] == pytest.approx(2.0)
+    assert row["return_sd"] == pytest.approx(math.sqrt(16 / 3))
+    write(tmp_path / "c/n4.csv", ["success"] * 3)
+    assert "return_a" not in dict(paired_compare.paired(tmp_path / "a", tmp_path / "c"))["all"]
+
+
 def test_other_episodes_or_a_missing_size_are_refused_with_the_reason(tmp_path):
     write(tmp_path / "a/n4.csv", ["success", "success"])
     write(tmp_path / "b/n4.csv", ["success", "success", "success"])
