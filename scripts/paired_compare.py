@@ -27,7 +27,7 @@ import sys
 from pathlib import Path
 
 
-def outcomes(path: Path) -> dict[str, tuple[bool, float | None]]:
+def episodes(path: Path) -> dict[str, tuple[bool, float | None]]:
     """Each episode's success and return (None where the CSV has no `episode_return`) in a
     formation-play CSV, by episode number."""
     with path.open(newline="") as f:
@@ -36,27 +36,29 @@ def outcomes(path: Path) -> dict[str, tuple[bool, float | None]]:
                 for row in csv.DictReader(f)}
 
 
+def mean_and_sd(diffs: list[float]) -> tuple[float, float]:
+    """The mean of per-episode differences and its paired standard deviation."""
+    n = len(diffs)
+    mean = sum(diffs) / n
+    var = sum((d - mean) ** 2 for d in diffs) / (n - 1) if n > 1 else 0.0
+    return mean, math.sqrt(var / n)
+
+
 def compare(a: list[bool], b: list[bool]) -> dict[str, float]:
     """Success of A and B on the same episodes, B's gains and losses, the difference and its
-    paired standard deviation (of the mean of the per-episode differences)."""
+    paired standard deviation."""
     n = len(a)
-    gained = sum(1 for x, y in zip(a, b) if y and not x)
-    lost = sum(1 for x, y in zip(a, b) if x and not y)
-    diff = (gained - lost) / n
-    var = (gained + lost - n * diff * diff) / (n - 1) if n > 1 else 0.0
-    return {"episodes": n, "a": sum(a) / n, "b": sum(b) / n, "gained": gained, "lost": lost,
-            "diff": diff, "sd": math.sqrt(max(var, 0.0) / n)}
+    diff, sd = mean_and_sd([int(y) - int(x) for x, y in zip(a, b)])
+    return {"episodes": n, "a": sum(a) / n, "b": sum(b) / n,
+            "gained": sum(1 for x, y in zip(a, b) if y and not x),
+            "lost": sum(1 for x, y in zip(a, b) if x and not y), "diff": diff, "sd": sd}
 
 
 def compare_returns(a: list[float], b: list[float]) -> dict[str, float]:
     """Mean return of A and B on the same episodes, the mean of B - A and its paired standard
     deviation."""
-    n = len(a)
-    diffs = [y - x for x, y in zip(a, b)]
-    mean = sum(diffs) / n
-    var = sum((d - mean) ** 2 for d in diffs) / (n - 1) if n > 1 else 0.0
-    return {"return_a": sum(a) / n, "return_b": sum(b) / n, "return_diff": mean,
-            "return_sd": math.sqrt(var / n)}
+    diff, sd = mean_and_sd([y - x for x, y in zip(a, b)])
+    return {"return_a": sum(a) / len(a), "return_b": sum(b) / len(b), "return_diff": diff, "return_sd": sd}
 
 
 def paired_row(a: list[tuple[bool, float | None]], b: list[tuple[bool, float | None]]) -> dict[str, float]:
@@ -84,7 +86,7 @@ def paired(a_dir: Path, b_dir: Path) -> list[tuple[str, dict[str, float]]]:
     for rel in files:
         if not (b_dir / rel).is_file():
             sys.exit(f"paired_compare.py: {b_dir / rel} is missing: B must be played on the same sizes")
-        a, b = outcomes(a_dir / rel), outcomes(b_dir / rel)
+        a, b = episodes(a_dir / rel), episodes(b_dir / rel)
         if a.keys() != b.keys():
             sys.exit(f"paired_compare.py: {rel}: A and B hold different episodes: play both with the same --seed and --episodes")
         keys = sorted(a, key=int)
