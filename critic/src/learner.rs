@@ -1036,6 +1036,12 @@ impl Learner {
             .all(|(name, var)| tensors.get(name).is_some_and(|t| t.dims() == var.as_tensor().dims())))
     }
 
+    /// Whether the checkpoint at `path` holds critics of this learner's shape (a training
+    /// run's full checkpoint; an actor-only file does not).
+    pub fn holds_critic(&self, path: &Path) -> Result<bool> {
+        self.critic_matches(&checkpoint::load(path)?.tensors)
+    }
+
     /// Writes every network (online and target) to a checkpoint.
     pub fn save(&self, path: &Path, extra: HashMap<String, String>) -> Result<()> {
         self.snapshot()?.save(path, extra)

@@ -9,12 +9,15 @@
 //! * [`learner`]: the networks and one gradient update (TD3 or DDPG);
 //! * [`distill`]: the offline `formation-distill` tool, the shared actor taught its teacher by
 //!   DAgger on the games of [`selection`];
+//! * [`probe`]: the offline `formation-critic-probe` tool, a trained critic's action values
+//!   against the true returns of branched in-process episodes;
 //! * [`weights`]: the weights services towards the agents;
 //! * [`progress`], [`view`]: the progress display, `training.csv` and the training curves.
 
 pub mod collector;
 pub mod distill;
 pub mod learner;
+pub mod probe;
 pub mod progress;
 pub mod run;
 pub mod selection;

@@ -143,7 +143,9 @@ pub(crate) struct Asked<'a> {
 
 /// One episode played in-process by the rules a lockstep sim plays it with (the core's
 /// [`EpisodeStepper`]): each robot's window and the commands in use, answered by in-process
-/// controllers. Model selection and distillation (`crate::distill`) play these.
+/// controllers. Model selection, distillation (`crate::distill`) and the critic probe
+/// (`crate::probe`, which branches copies of it) play these.
+#[derive(Debug, Clone)]
 pub(crate) struct Game {
     stepper: EpisodeStepper,
     /// No robot is ever silent here; the attendance still runs the rules of a team change.
@@ -155,7 +157,7 @@ pub(crate) struct Game {
 }
 
 impl Game {
-    fn new(stepper: EpisodeStepper, history: usize, dim: usize) -> Self {
+    pub(crate) fn new(stepper: EpisodeStepper, history: usize, dim: usize) -> Self {
         let n = stepper.world().n_agents();
         let mut game = Self {
             stepper,
@@ -193,6 +195,26 @@ impl Game {
     /// How it stands (ended: how it ended).
     pub(crate) fn outcome(&self) -> Outcome {
         self.stepper.last().outcome
+    }
+
+    /// The reward of the last transition (0 before the first).
+    pub(crate) fn last_reward(&self) -> f64 {
+        self.stepper.last().reward
+    }
+
+    /// Each robot's command in use for the last transition, clamped (the replay's action).
+    pub(crate) fn applied(&self) -> &[Command] {
+        self.stepper.applied()
+    }
+
+    /// What each robot was told at this tick.
+    pub(crate) fn told(&self) -> &[[f32; formation_protocol::MAX_OBS_DIM]] {
+        self.stepper.told()
+    }
+
+    /// Whether robot `agent`'s recovery behaviour drives it this tick.
+    pub(crate) fn recovering(&self, agent: usize) -> bool {
+        self.stepper.recovering(agent)
     }
 
     /// The stepper tells the robots this tick; each robot that heard it keeps it in its

@@ -80,6 +80,33 @@ pub struct Batch {
 }
 
 impl Batch {
+    /// A batch of `batch_size` samples, every value zero, for [`Sampler::fill`] to fill.
+    pub fn zeroed(batch_size: usize, n_agents: usize, history: usize, obs_dim: usize, state_dim: usize) -> Self {
+        let (b, n, h) = (batch_size, n_agents, history);
+        Self {
+            batch_size,
+            n_agents,
+            history,
+            obs_dim,
+            state_dim,
+            observations: vec![0.0; b * n * h * obs_dim],
+            next_observations: vec![0.0; b * n * h * obs_dim],
+            states: vec![0.0; b * h * state_dim],
+            next_states: vec![0.0; b * h * state_dim],
+            actions: vec![0.0; b * h * n * ACTION_DIM],
+            bootstrap_actions: vec![0.0; b * h * n * ACTION_DIM],
+            rewards: vec![0.0; b],
+            robot_rewards: vec![0.0; b * n],
+            discounts: vec![0.0; b],
+            terminals: vec![0.0; b],
+            origins: Vec::with_capacity(b),
+            goals: Vec::with_capacity(b),
+            relabelled: Vec::with_capacity(b),
+            present: vec![0.0; b * n],
+            next_present: vec![0.0; b * n],
+        }
+    }
+
     /// Width of one robot's observation window.
     pub fn window_dim(&self) -> usize {
         self.history * self.obs_dim
@@ -138,28 +165,7 @@ impl Sampler {
         let h = self.history;
         let sd = self.features(n).dim();
         let od = self.observer().dim();
-        let mut batch = Batch {
-            batch_size,
-            n_agents: n,
-            history: h,
-            obs_dim: od,
-            state_dim: sd,
-            observations: vec![0.0; batch_size * n * h * od],
-            next_observations: vec![0.0; batch_size * n * h * od],
-            states: vec![0.0; batch_size * h * sd],
-            next_states: vec![0.0; batch_size * h * sd],
-            actions: vec![0.0; batch_size * h * n * ACTION_DIM],
-            bootstrap_actions: vec![0.0; batch_size * h * n * ACTION_DIM],
-            rewards: vec![0.0; batch_size],
-            robot_rewards: vec![0.0; batch_size * n],
-            discounts: vec![0.0; batch_size],
-            terminals: vec![0.0; batch_size],
-            origins: Vec::with_capacity(batch_size),
-            goals: Vec::with_capacity(batch_size),
-            relabelled: Vec::with_capacity(batch_size),
-            present: vec![0.0; batch_size * n],
-            next_present: vec![0.0; batch_size * n],
-        };
+        let mut batch = Batch::zeroed(batch_size, n, h, od, sd);
         // Cumulative transition counts to draw transitions uniformly.
         let mut ends = Vec::with_capacity(episodes.len());
         let mut acc = 0;
