@@ -587,6 +587,10 @@ pub struct LearnConfig {
     /// Which action components the Q gradient moves: `both` (default) or `turn` (the speed
     /// is left to the imitation term; `q_gradient` update only).
     pub q_gradient_actions: QGradientActions,
+    /// The actor's steps move its output layer alone, its hidden layers held: a policy that can
+    /// follow the mean of the critic's slopes over the states that share a feature, not each
+    /// state's own (docs/RESULTS.md, "What the critic knows of an action"). Default false.
+    pub actor_output_layer_only: bool,
     /// Whose value the critic learns: `team` (default, the shared reward) or `robot` (each
     /// robot's own reward and value, [`Credit::Robot`]).
     pub credit: Credit,
@@ -655,6 +659,7 @@ impl Default for LearnConfig {
             imitation_teacher: ImitationTeacher::Baseline,
             actor_update: ActorUpdate::QGradient,
             q_gradient_actions: QGradientActions::Both,
+            actor_output_layer_only: false,
             credit: Credit::Team,
             critic_warmup_updates: 0,
             replay_capacity: 1_000_000,

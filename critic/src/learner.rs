@@ -448,6 +448,20 @@ fn vars_under(vars: &VarMap, prefix: &str) -> Result<Vec<Var>> {
     Ok(named.into_iter().map(|(_, var)| var.clone()).collect())
 }
 
+/// The actor variables its optimizer steps: every one, or with `output_layer_only` each
+/// actor's output layer alone (`learn.actor_output_layer_only`).
+fn trained_actor_vars(vars: &VarMap, n_actors: usize, shape: &ActorShape, output_layer_only: bool) -> Result<Vec<Var>> {
+    if !output_layer_only {
+        return Ok(vars.all_vars());
+    }
+    let last = shape.hidden.len();
+    let mut trained = Vec::new();
+    for actor in 0..n_actors {
+        trained.extend(vars_under(vars, &format!("actor{actor}.layer{last}"))?);
+    }
+    Ok(trained)
+}
+
 /// `work` on each item, in order: on its own thread per item when `parallel` (the later
 /// threads free to use any CPU, [`placement::widen`]), else one after the other.
 fn per_critic<I: Send, T: Send>(parallel: bool, items: Vec<I>, work: impl Fn(I) -> Result<T> + Sync) -> Result<Vec<T>> {
@@ -536,7 +550,11 @@ impl Learner {
         let critic_targets = build_critics(&critic_target_vars)?;
         copy_vars(&critic_vars, &critic_target_vars)?;
         Ok(Self {
-            actor_optimizer: adam(actor_vars.all_vars(), config.actor_lr, config.actor_adam_eps)?,
+            actor_optimizer: adam(
+                trained_actor_vars(&actor_vars, n_actors, &actor_shape, config.actor_output_layer_only)?,
+                config.actor_lr,
+                config.actor_adam_eps,
+            )?,
             critic_optimizers: (0..n_critics)
                 .map(|j| {
                     adam(

@@ -935,6 +935,39 @@ fn with_q_gradient_actions_turn_the_critic_moves_the_turn_rates_and_leaves_the_s
     }
 }
 
+#[test]
+fn with_actor_output_layer_only_an_actor_step_moves_the_output_layer_and_holds_the_hidden_ones() {
+    let (env, learn) = pooled_config();
+    let (n, b) = (3, 16);
+    let batch = random_batch_for(&env, CriticArchitecture::Pooled, n, b, 74);
+    let hidden = *learn.actor_hidden.last().expect("a hidden layer");
+    // The flat weights end with the output layer: W (2 x hidden), then b (2).
+    let output_start = |w: &[f32]| w.len() - ACTION_DIM * hidden - ACTION_DIM;
+    for (only, hidden_moves) in [(false, true), (true, false)] {
+        let learn = LearnConfig {
+            actor_output_layer_only: only,
+            ..learn.clone()
+        };
+        let mut learner = with_a_fitted_critic(n, &env, &learn, 73, &batch);
+        let before = learner.actor_weights(0).expect("weights");
+        for _ in 0..5 {
+            learner.actor_step(&batch).expect("step");
+        }
+        let after = learner.actor_weights(0).expect("weights");
+        let split = output_start(&before);
+        assert_eq!(
+            before[..split] != after[..split],
+            hidden_moves,
+            "output layer only = {only}: the hidden layers"
+        );
+        assert_ne!(
+            before[split..],
+            after[split..],
+            "output layer only = {only}: the output layer moves"
+        );
+    }
+}
+
 /// The critic loss on `batch` against a target of zeros.
 fn zero_target_loss(learner: &Learner, batch: &Batch) -> f32 {
     let zeros = Tensor::zeros((batch.batch_size, 1), DType::F32, &Device::Cpu).expect("zeros");
