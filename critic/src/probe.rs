@@ -77,8 +77,8 @@ pub struct ProbeRow {
     pub component: &'static str,
     /// The move of the normalised component, after clamping to [-1, 1].
     pub change: f32,
-    /// The first critic's Q with the moved action minus with the action as played, in reward
-    /// units (divided by `learn.reward_scale`).
+    /// The first critic's Q (the mean over an ensemble's) with the moved action minus with the
+    /// action as played, in reward units (divided by `learn.reward_scale`).
     pub critic_change: f64,
     /// The branch's discounted return minus the episode's, over the same ticks.
     pub true_change: f64,
@@ -99,15 +99,17 @@ struct BranchPoint {
 }
 
 /// Plays `options.episodes` episodes with `actors` (one shared, or one per robot) in the ideal
-/// world and probes `learner`'s first critic at every branch point (module docs).
+/// world and probes the first critic of `critics` (their mean, for several: an ensemble of
+/// trained critics) at every branch point (module docs).
 pub fn probe(
     env: &EnvConfig,
     learn: &LearnConfig,
-    learner: &Learner,
+    critics: &[Learner],
     actors: &mut [FrozenActor],
     options: &ProbeOptions,
     mut progress: impl FnMut(usize, usize),
 ) -> Result<Vec<ProbeRow>> {
+    ensure!(!critics.is_empty(), "a probe needs a critic");
     ensure!(options.every > 0, "probe every 0 ticks");
     ensure!(options.horizon > 0, "a probe horizon of 0 ticks");
     ensure!(
@@ -145,7 +147,7 @@ pub fn probe(
         let game = Game::new(stepper, env.history, layout.dim());
         let (recorder, points, game) = play_branching(game, actors, env, options, episode, &mut rng)?;
         let recorded = recorder.finish(&game);
-        let values = critic_values(&sampler, learner, learn, &recorded, &points, env, &mut rng)?;
+        let values = critic_values(&sampler, critics, learn, &recorded, &points, env, &mut rng)?;
         for (point, value) in points.into_iter().zip(values) {
             let true_value = discounted(&recorder.rewards, point.tick, options.horizon, learn.gamma);
             for (component, &name) in COMPONENTS.iter().enumerate() {
@@ -166,7 +168,7 @@ pub fn probe(
                     if change.abs() < 1e-6 {
                         continue; // at a limit already: no move to measure
                     }
-                    let critic_change = value.moved(learner, point.robot, component, change, learn)?;
+                    let critic_change = value.moved(critics, point.robot, component, change, learn)?;
                     rows.push(ProbeRow {
                         episode,
                         tick: point.tick,
@@ -341,7 +343,7 @@ impl CriticValue {
     /// played, in reward units.
     fn moved(
         &self,
-        learner: &Learner,
+        critics: &[Learner],
         robot: usize,
         component: usize,
         change: f32,
@@ -351,15 +353,23 @@ impl CriticValue {
         let (h, n) = (batch.history, batch.n_agents);
         let offset = ((h - 1) * n + robot) * ACTION_DIM + component;
         batch.actions[offset] = (batch.actions[offset] + change).clamp(-1.0, 1.0);
-        let q = f64::from(learner.played_value(&batch)?[0]);
-        Ok((q - self.played * learn.reward_scale) / learn.reward_scale)
+        Ok(mean_value(critics, &batch, learn)? - self.played)
     }
+}
+
+/// The mean over `critics` of their first critic's Q of a one-sample batch, in reward units.
+fn mean_value(critics: &[Learner], batch: &Batch, learn: &LearnConfig) -> Result<f64> {
+    let mut sum = 0.0;
+    for critic in critics {
+        sum += f64::from(critic.played_value(batch)?[0]);
+    }
+    Ok(sum / critics.len() as f64 / learn.reward_scale)
 }
 
 /// Each branch point's transition of `episode` as a one-sample batch, and its Q as played.
 fn critic_values(
     sampler: &Sampler,
-    learner: &Learner,
+    critics: &[Learner],
     learn: &LearnConfig,
     episode: &Episode,
     points: &[BranchPoint],
@@ -382,7 +392,7 @@ fn critic_values(
                 sampler.features(n).dim(),
             );
             sampler.fill(&mut batch, 0, episode, point.tick as usize, &env, rng);
-            let played = f64::from(learner.played_value(&batch)?[0]) / learn.reward_scale;
+            let played = mean_value(critics, &batch, learn)?;
             Ok(CriticValue { batch, played })
         })
         .collect()
@@ -673,7 +683,15 @@ mod tests {
     #[test]
     fn a_probe_moves_both_components_both_ways_and_the_critic_sees_the_move() {
         let (config, learner, mut actors, options) = forest_probe(0.0);
-        let rows = probe(&config.env, &config.learn, &learner, &mut actors, &options, |_, _| {}).expect("a probe");
+        let rows = probe(
+            &config.env,
+            &config.learn,
+            std::slice::from_ref(&learner),
+            &mut actors,
+            &options,
+            |_, _| {},
+        )
+        .expect("a probe");
         assert!(!rows.is_empty());
         for name in COMPONENTS {
             assert!(rows.iter().any(|r| r.component == name && r.change > 0.0), "{name} up");

@@ -22,9 +22,10 @@ use formation_model::checkpoint;
 #[command(version, about, long_about)]
 struct Cli {
     /// A training run's full checkpoint (its checkpoint.safetensors or a file of its
-    /// checkpoints/): the critic probed, and the actor played unless --actor is given.
-    #[arg(long)]
-    checkpoint: PathBuf,
+    /// checkpoints/): the critic probed, and the actor played unless --actor is given. Several
+    /// (comma-separated): the mean of their critics, the first one's actor.
+    #[arg(long, value_delimiter = ',', required = true)]
+    checkpoint: Vec<PathBuf>,
     /// Play this file's actor instead (a file or run directory; same observation and window).
     #[arg(long)]
     actor: Option<PathBuf>,
@@ -84,12 +85,20 @@ fn run(cli: Cli) -> Result<()> {
     if let Some(kind) = cli.obstacles {
         config.env.obstacles.kind = kind;
     }
-    let path = checkpoint::resolve(&cli.checkpoint)?;
-    let trained = checkpoint::load(&path)?;
+    let paths = cli
+        .checkpoint
+        .iter()
+        .map(|path| checkpoint::resolve(path))
+        .collect::<Result<Vec<_>>>()?;
+    let trained = checkpoint::load(&paths[0])?;
     let mut env = config.env.clone();
     env.observation = trained.meta.observation;
     env.history = trained.meta.actor.history;
-    let learner = learner_with_critic(&path, cli.n, &env, &config.learn)?;
+    let critics = paths
+        .iter()
+        .map(|path| learner_with_critic(path, cli.n, &env, &config.learn))
+        .collect::<Result<Vec<_>>>()?;
+    let learner = &critics[0];
     let played = match &cli.actor {
         Some(actor) => checkpoint::load(&checkpoint::resolve(actor)?)?,
         None => trained,
@@ -113,7 +122,7 @@ fn run(cli: Cli) -> Result<()> {
         horizon: cli.horizon,
         noise_std: cli.noise,
     };
-    let rows = probe(&env, &config.learn, &learner, &mut actors, &options, |done, total| {
+    let rows = probe(&env, &config.learn, &critics, &mut actors, &options, |done, total| {
         eprint!("\rformation-critic-probe: episode {done}/{total}");
     })?;
     eprintln!();
