@@ -604,7 +604,7 @@ pub fn learner_with_critic(path: &std::path::Path, n: usize, env: &EnvConfig, le
     let mut learner = Learner::new(n, env, learn, 0)?;
     ensure!(
         learner.holds_critic(path)?,
-        "{} holds no critic of this config's shape (a training run's checkpoint.safetensors or checkpoints/ hold one; best.safetensors and the shipped models hold the actor alone)",
+        "{} holds no critic of this config's shape (a training run's best.safetensors, checkpoint.safetensors and checkpoints/ hold one, trained with that run's [learn]; a distilled student holds none)",
         path.display()
     );
     learner
