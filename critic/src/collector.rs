@@ -220,11 +220,7 @@ where
             builder.episode.ticks.push(tick);
             // A shape or team change: the formation in force from this tick on.
             let last = builder.episode.formation(formation.from_tick);
-            if last.desired != formation.desired
-                || last.observed != formation.observed
-                || last.slots != formation.slots
-                || last.present != formation.present
-            {
+            if !last.same_as(&formation) {
                 builder.episode.formations.push(formation);
             }
             builder.last_tick = state.header.tick;

@@ -17,17 +17,19 @@
 //! change of one point is dominated by chaos (docs/RESULTS.md, "What the critic knows of an
 //! action"), only means over many points can grade a critic.
 
+use std::collections::{BTreeMap, BTreeSet};
+
 use anyhow::{Context, Result, ensure};
 use formation_core::config::{EnvConfig, LearnConfig};
 use formation_core::formation::Episodes;
 use formation_core::mission::NO_SLOT;
 use formation_core::observation::Layout;
-use formation_core::physics::Pose;
 use formation_core::reality::{Command, RealityConfig};
 use formation_core::stepper::EpisodeStepper;
 use formation_model::actor::FrozenActor;
 use formation_protocol::ACTION_DIM;
 use formation_replay::buffer::{Episode, Formation, Tick};
+use formation_replay::record;
 use formation_replay::sample::{Batch, Sampler};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -430,23 +432,8 @@ impl Recorder {
         let wire = |v: f64| f64::from(v as f32);
         let world = game.world();
         let tick = self.ticks.len();
-        let formation = Formation {
-            from_tick: tick,
-            desired: world.desired.iter().map(|d| d.map(wire)).collect(),
-            slots: world.slots.iter().map(|s| s.map(wire)).collect(),
-            observed: world.observed.clone(),
-            present: world.slot_of.iter().map(|&slot| slot != NO_SLOT).collect(),
-        };
-        let changed = self.formations.last().is_none_or(|last| {
-            (&last.desired, &last.slots, &last.observed, &last.present)
-                != (
-                    &formation.desired,
-                    &formation.slots,
-                    &formation.observed,
-                    &formation.present,
-                )
-        });
-        if changed {
+        let formation = record::formation(world, tick);
+        if self.formations.last().is_none_or(|last| !last.same_as(&formation)) {
             self.formations.push(formation);
         }
         let commands: Vec<Command> = match tick {
@@ -454,11 +441,7 @@ impl Recorder {
             _ => game.applied().iter().map(|&(v, w)| (wire(v), wire(w))).collect(),
         };
         self.ticks.push(Tick {
-            poses: world
-                .poses
-                .iter()
-                .map(|p| Pose::from([p.x as f32, p.y as f32, p.theta as f32]))
-                .collect(),
+            poses: record::wire_poses(world),
             commands,
             observations: game.told().to_vec(),
             reward: self.rewards.last().map_or(0.0, |&r| r as f32),
@@ -519,14 +502,16 @@ pub fn summarise(rows: &[ProbeRow]) -> Vec<ComponentSummary> {
     COMPONENTS
         .iter()
         .map(|&component| {
-            let of: Vec<&ProbeRow> = rows.iter().filter(|r| r.component == component).collect();
+            let of = rows.iter().filter(|r| r.component == component);
+            let downs: BTreeMap<(usize, u32, usize), &ProbeRow> = of
+                .clone()
+                .filter(|d| d.change < 0.0)
+                .map(|d| ((d.episode, d.tick, d.robot), d))
+                .collect();
             let slopes: Vec<Slopes> = of
-                .iter()
                 .filter(|u| u.change > 0.0)
                 .filter_map(|u| {
-                    let d = of
-                        .iter()
-                        .find(|d| d.change < 0.0 && (d.episode, d.tick, d.robot) == (u.episode, u.tick, u.robot))?;
+                    let d = downs.get(&(u.episode, u.tick, u.robot))?;
                     let span = f64::from(u.change - d.change);
                     Some(Slopes {
                         critic: (u.critic_change - d.critic_change) / span,
@@ -584,15 +569,12 @@ pub fn correlation(pairs: &[(f64, f64)]) -> Option<f64> {
 /// The correlation of the critic's values with the true returns over the rows' branch points
 /// (each point once), and the two means.
 pub fn value_calibration(rows: &[ProbeRow]) -> (Option<f64>, f64, f64) {
-    let mut seen = Vec::new();
-    let mut pairs = Vec::new();
-    for row in rows {
-        let key = (row.episode, row.tick);
-        if !seen.contains(&key) {
-            seen.push(key);
-            pairs.push((row.critic_value, row.true_value));
-        }
-    }
+    let mut seen = BTreeSet::new();
+    let pairs: Vec<(f64, f64)> = rows
+        .iter()
+        .filter(|row| seen.insert((row.episode, row.tick)))
+        .map(|row| (row.critic_value, row.true_value))
+        .collect();
     let count = pairs.len().max(1) as f64;
     let critic = pairs.iter().map(|p| p.0).sum::<f64>() / count;
     let truth = pairs.iter().map(|p| p.1).sum::<f64>() / count;

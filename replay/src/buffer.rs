@@ -67,6 +67,15 @@ pub struct Episode {
     pub time_limit: u32,
 }
 
+impl Formation {
+    /// Whether `other` is the same formation (all but the tick it is in force from): a shape
+    /// or team change when it is not.
+    pub fn same_as(&self, other: &Formation) -> bool {
+        (&self.desired, &self.slots, &self.observed, &self.present)
+            == (&other.desired, &other.slots, &other.observed, &other.present)
+    }
+}
+
 impl Episode {
     /// Robots in the episode.
     pub fn n_agents(&self) -> usize {

@@ -14,15 +14,20 @@ fn wire(value: f64) -> f64 {
     f64::from(value as f32)
 }
 
+/// The world's poses as the state stream carries them (f32).
+pub fn wire_poses(world: &World) -> Vec<Pose> {
+    world
+        .poses
+        .iter()
+        .map(|p| Pose::from([p.x as f32, p.y as f32, p.theta as f32]))
+        .collect()
+}
+
 /// The world's current scene as the collector reads it from the state stream.
 fn snapshot(world: &World, reward: f64) -> Tick {
     let n = world.n_agents();
     Tick {
-        poses: world
-            .poses
-            .iter()
-            .map(|p| Pose::from([p.x as f32, p.y as f32, p.theta as f32]))
-            .collect(),
+        poses: wire_poses(world),
         commands: world.commands.iter().map(|&(v, w)| (wire(v), wire(w))).collect(),
         observations: (0..n).map(|agent| world.observation(agent)).collect(),
         reward: reward as f32,
@@ -30,7 +35,7 @@ fn snapshot(world: &World, reward: f64) -> Tick {
 }
 
 /// The world's formation as the state stream carries it, in force from `from_tick`.
-fn formation(world: &World, from_tick: usize) -> Formation {
+pub fn formation(world: &World, from_tick: usize) -> Formation {
     Formation {
         from_tick,
         desired: world.desired.iter().map(|d| d.map(wire)).collect(),
